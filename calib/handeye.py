@@ -1,0 +1,185 @@
+"""Hand-eye calibration from station poses: one entry point, every method, one result type.
+
+``calibrate_hand_eye`` takes the robot poses (base_T_tcp) and camera observations
+(cam_T_target) of the stations, validates them, builds the motion pairs, checks that they
+determine the solution, and runs the chosen method:
+
+* ``sm`` — screw motions (Zhao & Liu), exact on noise-free data (``calib.screw``);
+* ``tsai``, ``park``, ``horaud``, ``andreff``, ``daniilidis``, ``shah``, ``li`` — OpenCV;
+* ``joint`` (default) — SM, then the weighted least-squares refinement of X, Y (and kappa on
+  request) from all stations (``calib.refine``), which also reports uncertainty.
+
+Every method returns the hand-eye *and* the target pose; for methods that only give X, the
+target pose is the average of the per-station loop closures.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from calib.geometry import check_transforms, invert, make_transform, rotation_angle
+from calib.peers import HAND_EYE_METHODS, ROBOT_WORLD_METHODS, solve_opencv
+from calib.refine import pose_residuals, refine
+from calib.screw import solve_sm
+
+SETUPS = ("eye_in_hand", "eye_to_hand")
+METHODS = ("sm", *HAND_EYE_METHODS, *ROBOT_WORLD_METHODS, "joint")
+MIN_STATIONS = 3
+#: Motions rotating less than this have no well-defined screw axis and are skipped.
+MIN_MOTION_ROTATION_DEG = 2.0
+#: All rotation axes within this angle of each other cannot fix the solution.
+MIN_AXIS_SPREAD_DEG = 2.0
+DEFAULT_ROBOT_NOISE_ROT_RAD = np.deg2rad(0.05)
+DEFAULT_ROBOT_NOISE_TRANS_M = 0.25e-3
+
+
+@dataclass(frozen=True)
+class HandEyeResult:
+    """Hand-eye estimate with what a user needs to trust it.
+
+    ``hand_eye`` is tcp_T_cam (eye-in-hand) or base_T_cam (eye-to-hand); ``target_pose`` is
+    base_T_target or tcp_T_target. ``sigmas`` (from ``joint`` only) holds standard deviations:
+    ``hand_eye_rot_rad`` and ``target_pose_rot_rad`` (3,) as small rotations in the frame of the
+    transform's first index, ``hand_eye_trans_m`` and ``target_pose_trans_m`` (3,) in that frame,
+    and ``kappa``. ``station_residuals`` has shape (n, 2): per-station rotation (rad) and
+    translation (m) of the robot pose predicted through the estimate.
+    """
+
+    setup: str
+    method: str
+    hand_eye: np.ndarray
+    target_pose: np.ndarray
+    kappa: float = 1.0
+    sigmas: dict[str, np.ndarray | float] = field(default_factory=dict)
+    station_residuals: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    motions_used: int = 0
+    motions_skipped: int = 0
+    noise: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Motions:
+    """Motion pairs between stations ``i < j``: ``A X = X B`` (see docs/conventions.md)."""
+
+    A: np.ndarray  # shape (m, 4, 4), robot chain motions inv(P_i) P_j
+    B: np.ndarray  # shape (m, 4, 4), camera motions C_i inv(C_j)
+    pairs: np.ndarray  # shape (m, 2), station indices
+    skipped: int
+
+
+def robot_chain(T_base_tcp: np.ndarray, setup: str) -> np.ndarray:
+    """The poses that play ``P`` in ``P_i X C_i = Y``: base_T_tcp, or its inverse eye-to-hand."""
+    if setup not in SETUPS:
+        raise ValueError(f"unknown setup '{setup}': choose eye_in_hand or eye_to_hand")
+    return T_base_tcp if setup == "eye_in_hand" else invert(T_base_tcp)
+
+
+def station_motions(P: np.ndarray, C: np.ndarray, *,
+                    min_rotation_deg: float = MIN_MOTION_ROTATION_DEG) -> Motions:
+    """All station pairs whose rotation defines a screw axis (angle in (min, 180 - min) deg)."""
+    i, j = np.triu_indices(P.shape[0], 1)
+    A = invert(P[i]) @ P[j]
+    B = C[i] @ invert(C[j])
+    lo, hi = np.deg2rad(min_rotation_deg), np.pi - np.deg2rad(min_rotation_deg)
+    ang_a, ang_b = rotation_angle(A[:, :3, :3]), rotation_angle(B[:, :3, :3])
+    ok = (ang_a > lo) & (ang_a < hi) & (ang_b > lo) & (ang_b < hi)
+    return Motions(A=A[ok], B=B[ok], pairs=np.stack([i[ok], j[ok]], axis=1),
+                   skipped=int((~ok).sum()))
+
+
+def check_motion_diversity(motions: Motions, *,
+                           min_spread_deg: float = MIN_AXIS_SPREAD_DEG) -> None:
+    """Raise ``ValueError`` if the motions cannot determine X (Chen: two non-parallel axes)."""
+    if len(motions.A) < 2:
+        raise ValueError(
+            f"fewer than 2 station pairs rotate by more than {MIN_MOTION_ROTATION_DEG:g} deg: "
+            "add stations with the tool tilted (10-35 deg) about different axes")
+    axes = Rotation.from_matrix(motions.A[:, :3, :3]).as_rotvec()
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    # the axis lines' largest angle from their principal direction
+    principal = np.linalg.svd(axes, full_matrices=False)[2][0]
+    spread = np.degrees(np.arccos(np.clip(np.abs(axes @ principal), 0.0, 1.0)).max())
+    if spread < min_spread_deg:
+        raise ValueError(
+            f"rotation axes of all motions are parallel within {min_spread_deg:g} deg: "
+            "add stations tilted about another axis")
+
+
+def validate_stations(T_base_tcp: np.ndarray, T_cam_target: np.ndarray) -> tuple[np.ndarray,
+                                                                                  np.ndarray]:
+    """Check the station poses at the boundary; return them as float (n, 4, 4) arrays."""
+    P = check_transforms(T_base_tcp, "tcp_pose")
+    C = check_transforms(T_cam_target, "target_pose")
+    if P.shape[0] != C.shape[0]:
+        raise ValueError(f"{P.shape[0]} robot poses but {C.shape[0]} camera poses: "
+                         "every station needs both")
+    if P.shape[0] < MIN_STATIONS:
+        raise ValueError(f"need at least {MIN_STATIONS} stations, got {P.shape[0]}")
+    return P, C
+
+
+def average_target_pose(P: np.ndarray, C: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Y as the mean of the per-station loop closures ``P_i X C_i`` (rotation mean, mean t)."""
+    Ys = P @ X @ C
+    R = Rotation.from_matrix(Ys[:, :3, :3]).mean().as_matrix()
+    return make_transform(R, Ys[:, :3, 3].mean(axis=0))
+
+
+def calibrate_hand_eye(T_base_tcp: np.ndarray, T_cam_target: np.ndarray, *,
+                       setup: str = "eye_in_hand", method: str = "joint",
+                       estimate_kappa: bool = False,
+                       robot_noise_rot: float = DEFAULT_ROBOT_NOISE_ROT_RAD,
+                       robot_noise_trans: float = DEFAULT_ROBOT_NOISE_TRANS_M) -> HandEyeResult:
+    """Hand-eye and target pose from station poses.
+
+    Parameters
+    ----------
+    T_base_tcp : shape (n, 4, 4), robot readings base_T_tcp, metres.
+    T_cam_target : shape (n, 4, 4), camera observations cam_T_target, metres.
+    setup : ``eye_in_hand`` or ``eye_to_hand``.
+    method : one of ``METHODS``.
+    estimate_kappa : ``joint`` only: estimate the board scale (camera translations scale with
+        it, Strobl & Hirzinger eq. 6). Off by default for pose-only data.
+    robot_noise_rot, robot_noise_trans : expected robot pose noise (rad, m); starting weights.
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown method '{method}': choose one of {', '.join(METHODS)}")
+    if estimate_kappa and method != "joint":
+        raise ValueError("kappa can only be estimated by the 'joint' method")
+    T_base_tcp, C = validate_stations(T_base_tcp, T_cam_target)
+    P = robot_chain(T_base_tcp, setup)
+    motions = station_motions(P, C)
+    check_motion_diversity(motions)
+
+    if method in HAND_EYE_METHODS or method in ROBOT_WORLD_METHODS:
+        X, Y = solve_opencv(P, C, method)
+    else:
+        length = float(np.median(np.linalg.norm(motions.A[:, :3, 3], axis=1))) or 1.0
+        X, Y = solve_sm(motions.A, motions.B, length_scale=length), None
+    if Y is None:
+        Y = average_target_pose(P, C, X)
+    common = dict(setup=setup, method=method, motions_used=len(motions.A),
+                  motions_skipped=motions.skipped)
+    if method != "joint":
+        res = pose_residuals(P, C, X, Y, inverted=setup == "eye_to_hand")
+        return HandEyeResult(hand_eye=X, target_pose=Y, station_residuals=_norms(res), **common)
+
+    fit = refine(P, C, X, Y, noise_rot=robot_noise_rot, noise_trans=robot_noise_trans,
+                 estimate_kappa=estimate_kappa, inverted=setup == "eye_to_hand")
+    sd = np.sqrt(np.clip(np.diag(fit.covariance), 0.0, None))
+    sigmas: dict[str, np.ndarray | float] = {
+        "hand_eye_rot_rad": sd[0:3], "hand_eye_trans_m": sd[3:6],
+        "target_pose_rot_rad": sd[6:9], "target_pose_trans_m": sd[9:12]}
+    if estimate_kappa:
+        sigmas["kappa"] = float(sd[12])
+    return HandEyeResult(hand_eye=fit.X, target_pose=fit.Y, kappa=fit.kappa, sigmas=sigmas,
+                         station_residuals=_norms(fit.residuals),
+                         noise={"rot_rad": fit.noise_rot, "trans_m": fit.noise_trans}, **common)
+
+
+def _norms(res: np.ndarray) -> np.ndarray:
+    """Per-station (rotation angle, translation distance) from residual vectors (n, 6)."""
+    return np.stack([np.linalg.norm(res[:, :3], axis=1), np.linalg.norm(res[:, 3:], axis=1)], 1)

@@ -1,0 +1,21 @@
+"""Shared test helpers: random rigid transforms and the one pose tolerance check."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from calib.geometry import make_transform, pose_error
+
+
+def random_transforms(rng: np.random.Generator, n: int, *, scale: float = 1.0) -> np.ndarray:
+    """n random rigid transforms (n, 4, 4): uniform rotations, Gaussian translations (m)."""
+    R = Rotation.random(n, random_state=rng).as_matrix()
+    return make_transform(R, rng.normal(0.0, scale, (n, 3)))
+
+
+def assert_pose_close(T_est: np.ndarray, T_true: np.ndarray, *, rot: float, trans: float) -> None:
+    """Rotation angle below ``rot`` rad and translation distance below ``trans`` m."""
+    dr, dt = pose_error(T_est, T_true)
+    assert np.all(dr < rot), f"rotation error {np.max(dr):.3e} rad >= {rot:.1e}"
+    assert np.all(dt < trans), f"translation error {np.max(dt):.3e} m >= {trans:.1e}"
