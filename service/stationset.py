@@ -1,0 +1,113 @@
+"""The station-set file format (``cellcal/stations@1``, product.md): schema and loading.
+
+A station set is a directory with ``stations.json`` and the images it names. Each station carries
+a robot pose (``tcp_pose``, base_T_tcp) and either an ``image`` or a measured ``target_pose``
+(cam_T_target, pose-only hand-eye). Poses are UR vectors in metres and radians.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from calib.geometry import check_ur_poses
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+PoseVector = Annotated[list[FiniteFloat], Field(min_length=6, max_length=6)]
+
+
+class Target(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    type: Literal["checkerboard"] = "checkerboard"
+    inner_corners: Annotated[list[int], Field(min_length=2, max_length=2)]
+    square_size_m: Annotated[float, Field(gt=0.0, lt=1.0, allow_inf_nan=False)]
+
+    @model_validator(mode="after")
+    def _corners_positive(self) -> Target:
+        if min(self.inner_corners) < 2:
+            raise ValueError("inner_corners must be at least [2, 2] (cols, rows)")
+        return self
+
+
+class Intrinsics(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    K: Annotated[list[Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]],
+                 Field(min_length=3, max_length=3)]
+    dist: Annotated[list[FiniteFloat], Field(min_length=4, max_length=14)]
+
+
+class Station(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    id: str
+    tcp_pose: PoseVector | None = None
+    image: str | None = None
+    target_pose: PoseVector | None = None
+
+    @model_validator(mode="after")
+    def _one_observation(self) -> Station:
+        if (self.image is None) == (self.target_pose is None):
+            raise ValueError("a station carries either an 'image' or a 'target_pose'")
+        return self
+
+
+class StationSet(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    format: Literal["cellcal/stations@1"]
+    setup: Literal["eye_in_hand", "eye_to_hand"] = "eye_in_hand"
+    target: Target | None = None
+    intrinsics: Intrinsics | None = None
+    stations: Annotated[list[Station], Field(min_length=1)]
+
+    @model_validator(mode="after")
+    def _consistent(self) -> StationSet:
+        ids = [s.id for s in self.stations]
+        dup = sorted({i for i in ids if ids.count(i) > 1})
+        if dup:
+            raise ValueError(f"station ids must be unique, repeated: {', '.join(dup)}")
+        if any(s.image for s in self.stations) and self.target is None:
+            raise ValueError("stations with images need a 'target' description")
+        return self
+
+    @property
+    def pose_only(self) -> bool:
+        return all(s.target_pose is not None for s in self.stations)
+
+    def pose_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """base_T_tcp and cam_T_target, each (n, 4, 4), of a pose-only set; validated."""
+        missing = [s.id for s in self.stations if s.tcp_pose is None]
+        if missing:
+            raise ValueError(f"station {missing[0]} has no tcp_pose: hand-eye needs one per "
+                             "station")
+        P = check_ur_poses([s.tcp_pose for s in self.stations], "tcp_pose")
+        C = check_ur_poses([s.target_pose for s in self.stations], "target_pose")
+        return P, C
+
+
+def load_station_set(directory: str | Path) -> StationSet:
+    """Read and validate ``DIR/stations.json``; raise ``ValueError`` with one clear line."""
+    path = Path(directory) / "stations.json"
+    if not path.is_file():
+        raise ValueError(f"{path}: no such file (a station set is a directory with "
+                         "stations.json)")
+    try:
+        raw = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from None
+    try:
+        return StationSet.model_validate(raw)
+    except ValidationError as exc:
+        raise ValueError(f"{path}: {describe_validation_error(exc)}") from None
+
+
+def describe_validation_error(exc: ValidationError) -> str:
+    """The first pydantic error as ``where: what`` (e.g. ``stations[3].tcp_pose[2]: …``)."""
+    err = exc.errors()[0]
+    where = ""
+    for part in err["loc"]:
+        where += f"[{part}]" if isinstance(part, int) else (f".{part}" if where else str(part))
+    more = f" (and {exc.error_count() - 1} more problems)" if exc.error_count() > 1 else ""
+    return f"{where or 'file'}: {err['msg']}{more}"
