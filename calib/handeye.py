@@ -79,12 +79,20 @@ def robot_chain(T_base_tcp: np.ndarray, setup: str) -> np.ndarray:
 
 def station_motions(P: np.ndarray, C: np.ndarray, *,
                     min_rotation_deg: float = MIN_MOTION_ROTATION_DEG) -> Motions:
-    """All station pairs whose rotation defines a screw axis (angle in (min, 180 - min) deg)."""
+    """All station pairs whose rotation defines a screw axis.
+
+    A pair is used when both its robot and camera rotation angles lie in ``(m, 180 deg - m)``
+    with ``m = max(min_rotation_deg, 5 x the angle noise)``; the angle noise is estimated from
+    the disagreement of the two angles, which are equal for exact data. Near 0 the screw axis
+    is undefined; near 180 deg noise can flip the axis of one of the two rotations.
+    """
     i, j = np.triu_indices(P.shape[0], 1)
     A = invert(P[i]) @ P[j]
     B = C[i] @ invert(C[j])
-    lo, hi = np.deg2rad(min_rotation_deg), np.pi - np.deg2rad(min_rotation_deg)
     ang_a, ang_b = rotation_angle(A[:, :3, :3]), rotation_angle(B[:, :3, :3])
+    noise = 1.4826 * float(np.median(np.abs(ang_a - ang_b))) / np.sqrt(2.0)
+    margin = max(np.deg2rad(min_rotation_deg), 5.0 * noise)
+    lo, hi = margin, np.pi - margin
     ok = (ang_a > lo) & (ang_a < hi) & (ang_b > lo) & (ang_b < hi)
     return Motions(A=A[ok], B=B[ok], pairs=np.stack([i[ok], j[ok]], axis=1),
                    skipped=int((~ok).sum()))
