@@ -1,0 +1,191 @@
+"""OpenCV pinhole camera with ``[k1, k2, p1, p2, k3]`` distortion and analytic Jacobians.
+
+Conventions are in ``docs/conventions.md``: ``K`` is 3x3 (no skew), ``dist = [k1, k2, p1, p2, k3]``,
+the camera frame is x right, y down, z along the optical axis. A point ``p`` in the target frame
+goes to the camera frame as ``R(rvec) @ p + tvec``, i.e. ``(rvec, tvec)`` is ``cam_T_target``.
+The distortion is the undistorted-to-distorted model of Strobl & Hirzinger, footnote 8 (as in
+OpenCV), applied to normalised coordinates ``x = X/Z, y = Y/Z``::
+
+    r² = x² + y²,  radial = 1 + k1 r² + k2 r⁴ + k3 r⁶
+    x_d = x radial + 2 p1 x y + p2 (r² + 2 x²)
+    y_d = y radial + p1 (r² + 2 y²) + 2 p2 x y
+    u = fx x_d + cx,  v = fy y_d + cy
+
+``project`` is vectorised over points *and* poses (``pose_index`` maps points to poses), so a
+bundle adjustment projects every observation of every image in one call.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Names of the columns of :attr:`ProjectionJacobian.intrinsics`.
+INTRINSIC_NAMES = ("fx", "fy", "cx", "cy")
+#: Names of the columns of :attr:`ProjectionJacobian.dist`.
+DIST_NAMES = ("k1", "k2", "p1", "p2", "k3")
+
+# Below this rotation angle (rad) the SO(3) Jacobian uses its Taylor series.
+_SMALL_ANGLE = 1e-4
+
+
+@dataclass(frozen=True)
+class ProjectionJacobian:
+    """Derivatives of the pixel coordinates ``(u, v)`` of each of N points.
+
+    Attributes
+    ----------
+    intrinsics : shape (N, 2, 4)
+        w.r.t. ``fx, fy, cx, cy``.
+    dist : shape (N, 2, 5)
+        w.r.t. ``k1, k2, p1, p2, k3``.
+    rvec, tvec : shape (N, 2, 3)
+        w.r.t. the pose; zero when ``project`` was called without a pose.
+    points : shape (N, 2, 3)
+        w.r.t. the 3D point in the frame it was given in (target, or camera without a pose).
+    """
+
+    intrinsics: np.ndarray
+    dist: np.ndarray
+    rvec: np.ndarray
+    tvec: np.ndarray
+    points: np.ndarray
+
+
+def rotation_from_rotvec(rvec: np.ndarray) -> np.ndarray:
+    """Rotation matrices from rotation vectors (Rodrigues), shape (..., 3) -> (..., 3, 3)."""
+    rvec = np.asarray(rvec, dtype=float)
+    theta = np.linalg.norm(rvec, axis=-1)[..., None, None]
+    W = _skew(rvec)
+    a, b, _ = _so3_coefficients(theta)
+    return np.eye(3) + a * W + b * (W @ W)
+
+
+def project(points: np.ndarray, K: np.ndarray, dist: np.ndarray,
+            rvec: np.ndarray | None = None, tvec: np.ndarray | None = None, *,
+            pose_index: np.ndarray | None = None,
+            jacobian: bool = False) -> np.ndarray | tuple[np.ndarray, ProjectionJacobian]:
+    """Project 3D points to distorted pixel coordinates (eq. 1 with U-D distortion).
+
+    Parameters
+    ----------
+    points : shape (N, 3)
+        Points in the target frame, or in the camera frame when ``rvec`` and ``tvec`` are None.
+    K : shape (3, 3)
+        Camera matrix ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``; a skew entry is ignored.
+    dist : shape (5,)
+        ``[k1, k2, p1, p2, k3]``.
+    rvec, tvec : shape (3,) or (P, 3), optional
+        Pose(s) ``cam_T_target`` as rotation vector and translation (metres). Both or neither.
+    pose_index : shape (N,), optional
+        Index into the P poses for each point; required when P poses are given.
+    jacobian : bool
+        Also return the analytic :class:`ProjectionJacobian`.
+
+    Returns
+    -------
+    uv : shape (N, 2)
+        Pixel coordinates.
+    jac : ProjectionJacobian
+        Only when ``jacobian`` is true.
+    """
+    P = np.asarray(points, dtype=float).reshape(-1, 3)
+    n = P.shape[0]
+    if (rvec is None) != (tvec is None):
+        raise ValueError("project: give both rvec and tvec, or neither")
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    k1, k2, p1, p2, k3 = np.asarray(dist, dtype=float)
+
+    if rvec is None:
+        Pc = P
+    else:
+        rvec = np.asarray(rvec, dtype=float).reshape(-1, 3)
+        tvec = np.asarray(tvec, dtype=float).reshape(-1, 3)
+        if pose_index is None:
+            if len(rvec) != 1:
+                raise ValueError("project: pose_index is required with several poses")
+            pose_index = np.zeros(n, dtype=int)
+        R = rotation_from_rotvec(rvec)[pose_index]  # (N, 3, 3)
+        RP = _matmul_vec(R, P)
+        Pc = RP + tvec[pose_index]
+
+    iz = 1.0 / Pc[:, 2]
+    x = Pc[:, 0] * iz
+    y = Pc[:, 1] * iz
+    xx, yy, xy = x * x, y * y, x * y
+    r2 = xx + yy
+    r4 = r2 * r2
+    r6 = r4 * r2
+    radial = 1.0 + k1 * r2 + k2 * r4 + k3 * r6
+    xd = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx)
+    yd = y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy
+    uv = np.empty((n, 2))
+    uv[:, 0] = fx * xd + cx
+    uv[:, 1] = fy * yd + cy
+    if not jacobian:
+        return uv
+
+    d_intr = np.zeros((n, 2, 4))
+    d_intr[:, 0, 0] = xd
+    d_intr[:, 1, 1] = yd
+    d_intr[:, 0, 2] = d_intr[:, 1, 3] = 1.0
+    d_dist = np.empty((n, 2, 5))
+    d_dist[:, 0] = np.column_stack([x * r2, x * r4, 2.0 * xy, r2 + 2.0 * xx, x * r6]) * fx
+    d_dist[:, 1] = np.column_stack([y * r2, y * r4, r2 + 2.0 * yy, 2.0 * xy, y * r6]) * fy
+
+    # d uv / d Pc = d uv/d(x_d, y_d) . d(x_d, y_d)/d(x, y) . d(x, y)/d(X, Y, Z)
+    drad = 2.0 * (k1 + 2.0 * k2 * r2 + 3.0 * k3 * r4)  # d radial / d x = drad * x
+    cross = drad * xy + 2.0 * p1 * x + 2.0 * p2 * y
+    a = ((fx * (radial + drad * xx + 2.0 * p1 * y + 6.0 * p2 * x), fx * cross),
+         (fy * cross, fy * (radial + drad * yy + 6.0 * p1 * y + 2.0 * p2 * x)))
+    d_cam = np.empty((n, 2, 3))
+    for k in range(2):
+        d_cam[:, k, 0] = a[k][0] * iz
+        d_cam[:, k, 1] = a[k][1] * iz
+        d_cam[:, k, 2] = -(a[k][0] * x + a[k][1] * y) * iz
+
+    if rvec is None:
+        empty = np.zeros((n, 2, 3))
+        return uv, ProjectionJacobian(d_intr, d_dist, empty, empty, d_cam)
+    # d(R p)/d rvec = -[R p]x J_l(rvec), J_l the left Jacobian of SO(3); g [v]x = g x v.
+    d_rvec = _matmul_rows(np.cross(RP[:, None, :], d_cam), _left_jacobian(rvec)[pose_index])
+    return uv, ProjectionJacobian(d_intr, d_dist, d_rvec, d_cam, _matmul_rows(d_cam, R))
+
+
+def _matmul_vec(M: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Stacked ``M @ v``, shapes (N, 3, 3), (N, 3) -> (N, 3)."""
+    return M[:, :, 0] * v[:, None, 0] + M[:, :, 1] * v[:, None, 1] + M[:, :, 2] * v[:, None, 2]
+
+
+def _matmul_rows(G: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """Stacked ``G @ M``, shapes (N, 2, 3), (N, 3, 3) -> (N, 2, 3)."""
+    return (G[:, :, 0, None] * M[:, None, 0] + G[:, :, 1, None] * M[:, None, 1]
+            + G[:, :, 2, None] * M[:, None, 2])
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices, shape (..., 3) -> (..., 3, 3)."""
+    z = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
+                     np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def _so3_coefficients(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """sin(t)/t, (1 - cos t)/t², (t - sin t)/t³ with Taylor series near zero."""
+    small = theta < _SMALL_ANGLE
+    t = np.where(small, 1.0, theta)
+    t2 = theta * theta
+    a = np.where(small, 1.0 - t2 / 6.0, np.sin(t) / t)
+    b = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(t)) / (t * t))
+    c = np.where(small, 1.0 / 6.0 - t2 / 120.0, (t - np.sin(t)) / (t * t * t))
+    return a, b, c
+
+
+def _left_jacobian(rvec: np.ndarray) -> np.ndarray:
+    """Left Jacobian of SO(3) ``I + (1-cos t)/t² W + (t-sin t)/t³ W²``, (N, 3) -> (N, 3, 3)."""
+    theta = np.linalg.norm(rvec, axis=-1)[..., None, None]
+    W = _skew(rvec)
+    _, b, c = _so3_coefficients(theta)
+    return np.eye(3) + b * W + c * (W @ W)

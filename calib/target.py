@@ -1,0 +1,309 @@
+"""Checkerboard target: board geometry and corner detection with a canonical origin.
+
+Geometry (``docs/conventions.md``): ``inner_corners = (cols, rows)``; true corner (i, j) is
+at (κν i s, κ j s, 0) in the target frame (Strobl & Hirzinger, eq. 4), nominal at κ = ν = 1.
+Corner arrays are row-major: index ``j * cols + i``, x along cols.
+
+Origin convention. The board has (cols + 1) x (rows + 1) squares; square (a, b) is the one
+whose far corner is inner corner (a, b), so square (0, 0) lies diagonally outside corner
+(0, 0) in the -x -y direction. **Square (0, 0) is black**; squares with a + b even are black.
+A camera always sees the board from the front, where z = x × y points away from it, so in
+the image (u right, v down) the x → y turn is clockwise: that fixes the handedness of the
+order. Then:
+
+- cols + rows odd (e.g. 11x8, 9x6): the two ends of the board have opposite colours, so the
+  colour of the squares decides the origin in every image (:func:`order_corners`).
+- cols + rows even (e.g. 8x6, 7x7): the pattern is the same after a 180° turn (a square
+  board also after 90°), so no single image can tell the ends apart. Detection still returns
+  a canonical order (the one whose x axis points most to the image right) and sets
+  ``ambiguous=True``; a later stage must pick the physical origin using the robot poses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+#: SB detector flags, tried in order: fast first, exhaustive search only when that fails.
+#: ``CALIB_CB_ACCURACY`` is left out: it is 4x slower and less accurate than :func:`_refine`.
+_SB_FLAG_SETS = (
+    cv2.CALIB_CB_NORMALIZE_IMAGE,
+    cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE,
+)
+#: Gaussian sigma (px) of the smoothing applied before the sub-pixel refinement.
+_REFINE_SIGMA = 1.2
+#: Largest half window (px) of the sub-pixel refinement.
+_REFINE_HALF_WINDOW = 5
+#: Default lower bound on :attr:`Detection.sharpness` (a Gaussian edge blur sigma of 4 px).
+MIN_SHARPNESS = 0.1
+#: Default lower bound on the image's robust grey range (1st to 99th percentile).
+MIN_CONTRAST = 20.0
+
+
+@dataclass(frozen=True)
+class Detection:
+    """Result of :func:`detect_checkerboard` for one image.
+
+    Attributes
+    ----------
+    ok : bool
+        True when ``corners`` holds the full grid and the image passed the quality checks.
+    corners : ndarray, shape (N, 2), float64, or None
+        Pixel positions in the canonical order of :func:`board_points`; None unless ``ok``.
+    reason : str or None
+        Why the image was rejected, in words a person can act on; None when ``ok``.
+    sharpness : float or None
+        Edge steepness over the board region (whole image if no board): mean of the top 1 %
+        gradient magnitudes divided by the grey range, per pixel. About 0.4 for a crisp
+        image, ``1 / (sigma sqrt(2 pi))`` for an edge blurred by a Gaussian of ``sigma`` px.
+        None for unreadable images.
+    coverage : float
+        Fraction of the image area inside the convex hull of the corners (0 if none).
+    mean_contrast : float or None
+        Mean grey level of white minus black inner squares; None without corners.
+    ambiguous : bool
+        True for boards symmetric under 180° (cols + rows even): the origin is at one of the
+        symmetric ends and must be resolved by a later stage.
+    """
+
+    ok: bool
+    corners: np.ndarray | None = None
+    reason: str | None = None
+    sharpness: float | None = None
+    coverage: float = 0.0
+    mean_contrast: float | None = None
+    ambiguous: bool = False
+
+
+def board_points(inner_corners: tuple[int, int], square_size: float, *, kappa: float = 1.0,
+                 nu: float = 1.0) -> np.ndarray:
+    """Inner corners in the target frame, shape (cols * rows, 3), row-major (x along cols).
+
+    Corner (i, j) is at (κν i s, κ j s, 0) (Strobl & Hirzinger, eq. 4).
+    """
+    cols, rows = _check_inner_corners(inner_corners)
+    if not np.isfinite(square_size) or square_size <= 0:
+        raise ValueError(f"square_size must be a positive length in metres, got {square_size}")
+    j, i = np.mgrid[0:rows, 0:cols]
+    s = square_size * kappa
+    return np.stack([i.ravel() * s * nu, j.ravel() * s, np.zeros(i.size)], axis=1)
+
+
+def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
+                        min_sharpness: float = MIN_SHARPNESS,
+                        min_contrast: float = MIN_CONTRAST) -> Detection:
+    """Find the checkerboard's inner corners in a grey or BGR uint8 image.
+
+    Uses OpenCV's sector-based detector (``findChessboardCornersSB``), refines the corners
+    (:func:`_refine`) and puts them in the canonical order (:func:`order_corners`). Bad input
+    never raises: the returned :class:`Detection` says why it was rejected.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W), (H, W, 1) or (H, W, 3) BGR, uint8
+    inner_corners : (cols, rows)
+    min_sharpness, min_contrast : float
+        Quality bounds; see :class:`Detection`.
+    """
+    cols, rows = _check_inner_corners(inner_corners)
+    grey, reason = _as_grey(image)
+    if grey is None:
+        return Detection(ok=False, reason=reason)
+    lo, hi = np.percentile(grey, [1, 99])
+    if hi - lo < min_contrast:
+        return Detection(ok=False, sharpness=0.0, reason=(
+            f"image is blank: grey levels span only {lo:.0f}..{hi:.0f} "
+            "(nothing in view, lens cap, lighting or exposure?)"))
+    for flags in _SB_FLAG_SETS:
+        found, raw = cv2.findChessboardCornersSB(grey, (cols, rows), flags=flags)
+        if found:
+            break
+    if not found:
+        sharpness = _sharpness(grey)
+        if sharpness < min_sharpness:
+            reason = f"image too blurred (sharpness {sharpness:.3f} < {min_sharpness:.3f})"
+        else:
+            reason = _diagnose_missing_board(grey, (cols, rows))
+        return Detection(ok=False, reason=reason, sharpness=sharpness)
+
+    corners, ambiguous, contrast = order_corners(grey, raw.reshape(-1, 2), (cols, rows))
+    corners = _refine(grey, corners, (cols, rows))
+    x0, y0 = np.floor(corners.min(axis=0)).astype(int)
+    x1, y1 = np.ceil(corners.max(axis=0)).astype(int)
+    sharpness = _sharpness(grey[max(y0, 0):y1 + 1, max(x0, 0):x1 + 1])
+    hull = cv2.convexHull(corners.astype(np.float32))
+    coverage = float(cv2.contourArea(hull)) / grey.size
+    metrics = {"sharpness": sharpness, "coverage": coverage, "mean_contrast": contrast,
+               "ambiguous": ambiguous}
+    if sharpness < min_sharpness:
+        return Detection(ok=False, **metrics, reason=(
+            f"image too blurred (sharpness {sharpness:.3f} < {min_sharpness:.3f})"))
+    return Detection(ok=True, corners=corners, **metrics)
+
+
+def order_corners(grey: np.ndarray, corners: np.ndarray,
+                  inner_corners: tuple[int, int]) -> tuple[np.ndarray, bool, float]:
+    """Put a detected grid in the canonical order of the module docstring.
+
+    Handles any order a detector may return: row- or column-major (transposed), either
+    handedness, either end first.
+
+    Parameters
+    ----------
+    grey : ndarray, shape (H, W), uint8
+    corners : ndarray, shape (cols * rows, 2)
+    inner_corners : (cols, rows)
+
+    Returns
+    -------
+    corners : ndarray, shape (cols * rows, 2), float64
+    ambiguous : bool
+        True when the board's symmetry leaves the origin undecided (cols + rows even).
+    contrast : float
+        Mean grey level of white minus black inner squares.
+    """
+    cols, rows = inner_corners
+    pts = np.asarray(corners, dtype=float).reshape(-1, 2)
+    grid = pts.reshape(rows, cols, 2)
+    if cols != rows:
+        transposed = pts.reshape(cols, rows, 2).transpose(1, 0, 2)
+        if _bending(transposed) < _bending(grid):
+            grid = transposed
+    if _signed_area(grid) < 0:
+        grid = grid[:, ::-1]
+    candidates = [grid, grid[::-1, ::-1]]
+    if cols == rows:
+        candidates += [np.rot90(grid, 1), np.rot90(grid, -1)]
+    if (cols + rows) % 2:
+        dark = _even_square_darkness(grey, grid)
+        return (grid if dark > 0 else candidates[1]).reshape(-1, 2), False, abs(dark)
+    rightness = [g[:, -1].mean(axis=0)[0] - g[:, 0].mean(axis=0)[0] for g in candidates]
+    best = candidates[int(np.argmax(rightness))]
+    return best.reshape(-1, 2), True, abs(_even_square_darkness(grey, best))
+
+
+def _check_inner_corners(inner_corners: tuple[int, int]) -> tuple[int, int]:
+    try:
+        cols, rows = (int(n) for n in inner_corners)
+    except (TypeError, ValueError):
+        raise ValueError(f"inner_corners must be (cols, rows), got {inner_corners!r}") from None
+    if cols < 2 or rows < 2 or (cols, rows) != tuple(inner_corners):
+        raise ValueError(f"inner_corners must be two integers >= 2, got {inner_corners!r}")
+    return cols, rows
+
+
+def _as_grey(image: object) -> tuple[np.ndarray | None, str | None]:
+    """The image as contiguous 2-D uint8, or None and the reason it is unusable."""
+    if not isinstance(image, np.ndarray):
+        return None, f"image is empty/corrupt: expected an array, got {type(image).__name__}"
+    if image.size == 0:
+        return None, f"image is empty/corrupt: no pixels (shape {image.shape})"
+    if image.dtype != np.uint8:
+        return None, f"image is empty/corrupt: expected 8-bit pixels (uint8), got {image.dtype}"
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[..., 0]
+    elif image.ndim == 3 and image.shape[2] == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.ndim != 2:
+        return None, f"image is empty/corrupt: expected grey or BGR, got shape {image.shape}"
+    return np.ascontiguousarray(image), None
+
+
+def _sharpness(grey: np.ndarray) -> float:
+    """Mean of the top 1 % gradient magnitudes over the 1-99 % grey range, per pixel."""
+    g = grey.astype(np.float32)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    mag = np.sqrt(gx * gx + gy * gy).ravel()
+    top = np.partition(mag, int(0.99 * mag.size))[int(0.99 * mag.size):]
+    lo, hi = np.percentile(g, [1, 99])
+    return float(top.mean() / max(hi - lo, 1.0))
+
+
+def _diagnose_missing_board(grey: np.ndarray, inner_corners: tuple[int, int]) -> str:
+    """Reason for a failed detection: off-image, wrong size, or simply not found.
+
+    Looks for any checkerboard of at least 3x3 inner corners (``CALIB_CB_LARGER``), keeps it
+    only if its squares really alternate black and white, and compares it with what was
+    asked for.
+    """
+    cols, rows = inner_corners
+    found, pts, meta = cv2.findChessboardCornersSBWithMeta(
+        grey, (3, 3), cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_LARGER)
+    if not found or pts is None:
+        return f"board not found ({cols}x{rows} inner corners expected)"
+    grid_rows, grid_cols = meta.shape[:2]
+    grid = pts.reshape(grid_rows, grid_cols, 2).astype(float)
+    lo, hi = np.percentile(grey, [1, 99])
+    if abs(_even_square_darkness(grey, grid)) < 0.25 * (hi - lo):
+        return f"board not found ({cols}x{rows} inner corners expected)"
+    pts = grid.reshape(-1, 2)
+    h, w = grey.shape
+    spacing = np.median(np.linalg.norm(np.diff(grid, axis=1), axis=-1))
+    near_edge = ((pts < 1.5 * spacing) | (pts > np.array([w, h]) - 1.5 * spacing)).any()
+    if near_edge and len(pts) < cols * rows:
+        return (f"only part of the board is visible: {grid_cols}x{grid_rows} of {cols}x{rows} "
+                "inner corners found, the board runs off the image")
+    if sorted((grid_cols, grid_rows)) != sorted((cols, rows)):
+        return (f"board not found with {cols}x{rows} inner corners; a {grid_cols}x{grid_rows} "
+                "grid is visible: check inner_corners, or whether part of the board is hidden")
+    return f"board not found ({cols}x{rows} inner corners expected)"
+
+
+def _refine(grey: np.ndarray, corners: np.ndarray, inner_corners: tuple[int, int]) -> np.ndarray:
+    """Sub-pixel corners, shape (N, 2): ``cornerSubPix`` on a Gaussian-smoothed image.
+
+    On rendered images with known truth this is 2-5x more accurate than the SB detector's own
+    ``CALIB_CB_ACCURACY`` (0.02-0.03 px RMS against 0.03-0.16 px) because smoothing removes
+    the pixel locking that gradient-based refinement shows on very sharp edges; on the 13
+    OpenCV ``left*.jpg`` images it lowers the ``cv2.calibrateCamera`` RMS from 0.234 px
+    (``CALIB_CB_ACCURACY``) to 0.182 px. The window
+    shrinks for small squares; a corner that wanders off its window keeps the SB estimate.
+    """
+    cols, rows = inner_corners
+    grid = corners.reshape(rows, cols, 2)
+    spacing = min(np.linalg.norm(np.diff(grid, axis=0), axis=-1).min(),
+                  np.linalg.norm(np.diff(grid, axis=1), axis=-1).min())
+    half = int(np.clip(0.3 * spacing, 2, _REFINE_HALF_WINDOW))
+    smooth = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), _REFINE_SIGMA)
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
+    refined = cv2.cornerSubPix(smooth, corners.astype(np.float32).reshape(-1, 1, 2),
+                               (half, half), (-1, -1), criteria).reshape(-1, 2).astype(float)
+    moved = np.linalg.norm(refined - corners, axis=1) > 0.6 * half
+    refined[moved] = corners[moved]
+    return refined
+
+
+def _bending(grid: np.ndarray) -> float:
+    """Mean second difference along both grid axes (px); small for a true grid order."""
+    return float(np.linalg.norm(np.diff(grid, 2, axis=0), axis=-1).mean()
+                 + np.linalg.norm(np.diff(grid, 2, axis=1), axis=-1).mean())
+
+
+def _signed_area(grid: np.ndarray) -> float:
+    """Shoelace area of the outer corners (0,0), (c,0), (c,r), (0,r); > 0 when x → y is
+    clockwise on screen, i.e. the board is seen from its front."""
+    q = np.array([grid[0, 0], grid[0, -1], grid[-1, -1], grid[-1, 0]])
+    return float(np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1]))
+
+
+def _even_square_darkness(grey: np.ndarray, grid: np.ndarray) -> float:
+    """Mean grey of inner squares with a + b odd minus those with a + b even.
+
+    Inner square (a, b), 1 <= a < cols, 1 <= b < rows, is bounded by corners (a-1..a,
+    b-1..b); it is sampled at its centre and halfway to each of its corners. Positive when
+    the even squares (the colour of square (0, 0)) are the dark ones.
+    """
+    c00, c10 = grid[:-1, :-1], grid[:-1, 1:]
+    c01, c11 = grid[1:, :-1], grid[1:, 1:]
+    centre = (c00 + c10 + c01 + c11) / 4
+    samples = np.stack([centre] + [(centre + c) / 2 for c in (c00, c10, c01, c11)])
+    m = samples.reshape(-1, 1, 2).astype(np.float32)
+    vals = cv2.remap(grey, m[..., 0], m[..., 1], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE).reshape(samples.shape[:-1])
+    vals = vals.astype(float).mean(axis=0)
+    b, a = np.mgrid[1:grid.shape[0], 1:grid.shape[1]]
+    even = (a + b) % 2 == 0
+    return float(vals[~even].mean() - vals[even].mean())
