@@ -9,8 +9,8 @@ determine the solution, and runs the chosen method:
 * ``joint`` (default) — SM, then the weighted least-squares refinement of X, Y (and kappa on
   request) from all stations (``calib.refine``), which also reports uncertainty.
 
-Every method returns the hand-eye *and* the target pose; for methods that only give X, the
-target pose is the average of the per-station loop closures.
+Every method returns the hand-eye *and* the target pose; for methods that only give one of
+them, the other is the average of the per-station loop closures.
 """
 
 from __future__ import annotations
@@ -129,11 +129,32 @@ def validate_stations(T_base_tcp: np.ndarray, T_cam_target: np.ndarray) -> tuple
     return P, C
 
 
-def average_target_pose(P: np.ndarray, C: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """Y as the mean of the per-station loop closures ``P_i X C_i`` (rotation mean, mean t)."""
-    Ys = P @ X @ C
-    R = Rotation.from_matrix(Ys[:, :3, :3]).mean().as_matrix()
-    return make_transform(R, Ys[:, :3, 3].mean(axis=0))
+def average_transform(Ts: np.ndarray) -> np.ndarray:
+    """Mean of transforms (n, 4, 4): chordal rotation mean and mean translation, (4, 4)."""
+    R = Rotation.from_matrix(Ts[:, :3, :3]).mean().as_matrix()
+    return make_transform(R, Ts[:, :3, 3].mean(axis=0))
+
+
+def tool_side_motions(T_base_tcp: np.ndarray, C: np.ndarray, setup: str) -> Motions:
+    """Motion pairs whose robot side is a tcp-frame motion ``inv(P_i) P_j`` (P = base_T_tcp).
+
+    Eye-in-hand their unknown is the hand-eye; eye-to-hand (camera pose replaced by its inverse)
+    it is the target pose tcp_T_target: ``inv(P_i) P_j Y = Y inv(C_i) C_j``. Either way the
+    robot's reading noise enters in the tcp frame, close to the unknown, instead of being
+    carried through the long lever of the base frame.
+    """
+    return station_motions(T_base_tcp, C if setup == "eye_in_hand" else invert(C))
+
+
+def solve_screw(T_base_tcp: np.ndarray, C: np.ndarray, setup: str,
+                motions: Motions) -> tuple[np.ndarray, np.ndarray]:
+    """X and Y by SM on the tool-side motions; the other unknown from the averaged loop."""
+    length = float(np.median(np.linalg.norm(motions.A[:, :3, 3], axis=1))) or 1.0
+    Z = solve_sm(motions.A, motions.B, length_scale=length)
+    if setup == "eye_in_hand":  # Z = tcp_T_cam; base_T_target = P X C
+        return Z, average_transform(T_base_tcp @ Z @ C)
+    # Z = tcp_T_target; base_T_cam = P Y inv(C)
+    return average_transform(T_base_tcp @ Z @ invert(C)), Z
 
 
 def calibrate_hand_eye(T_base_tcp: np.ndarray, T_cam_target: np.ndarray, *,
@@ -159,16 +180,15 @@ def calibrate_hand_eye(T_base_tcp: np.ndarray, T_cam_target: np.ndarray, *,
         raise ValueError("kappa can only be estimated by the 'joint' method")
     T_base_tcp, C = validate_stations(T_base_tcp, T_cam_target)
     P = robot_chain(T_base_tcp, setup)
-    motions = station_motions(P, C)
+    motions = tool_side_motions(T_base_tcp, C, setup)
     check_motion_diversity(motions)
 
     if method in HAND_EYE_METHODS or method in ROBOT_WORLD_METHODS:
         X, Y = solve_opencv(P, C, method)
+        if Y is None:
+            Y = average_transform(P @ X @ C)
     else:
-        length = float(np.median(np.linalg.norm(motions.A[:, :3, 3], axis=1))) or 1.0
-        X, Y = solve_sm(motions.A, motions.B, length_scale=length), None
-    if Y is None:
-        Y = average_target_pose(P, C, X)
+        X, Y = solve_screw(T_base_tcp, C, setup, motions)
     common = dict(setup=setup, method=method, motions_used=len(motions.A),
                   motions_skipped=motions.skipped)
     if method != "joint":
