@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -19,3 +22,8 @@ def assert_pose_close(T_est: np.ndarray, T_true: np.ndarray, *, rot: float, tran
     dr, dt = pose_error(T_est, T_true)
     assert np.all(dr < rot), f"rotation error {np.max(dr):.3e} rad >= {rot:.1e}"
     assert np.all(dt < trans), f"translation error {np.max(dt):.3e} m >= {trans:.1e}"
+
+
+#: ``../shared`` beside the repository (CI and developers have it there), e.g. the real images.
+SHARED = Path(os.environ.get("CELLCAL_SHARED", Path(__file__).resolve().parents[2] / "shared"))
+OPENCV_LEFT = SHARED / "data" / "opencv-left"

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from functools import cache
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -19,8 +18,9 @@ from calib.intrinsics import (
     initial_intrinsics,
 )
 from calib.target import board_points, detect_checkerboard
+from tests.helpers import OPENCV_LEFT
 
-DATA = Path("/work/shared/data/opencv-left")
+DATA = OPENCV_LEFT
 SIZE = (1280, 960)
 K_TRUE = np.array([[1000.0, 0.0, 645.0], [0.0, 1002.0, 478.0], [0.0, 0.0, 1.0]])
 DIST_TRUE = np.array([-0.2, 0.08, 0.0005, -0.0003, -0.01])

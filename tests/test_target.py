@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
@@ -12,8 +10,9 @@ from calib.geometry import make_transform
 from calib.target import board_points, detect_checkerboard, order_corners
 from mocks.render import RenderParams, render_board
 from mocks.scene import MockScene, camera_pose_for_tcp, default_scene, sample_station_poses
+from tests.helpers import OPENCV_LEFT
 
-LEFT_IMAGES = sorted(Path("/work/shared/data/opencv-left").glob("left*.jpg"))
+LEFT_IMAGES = sorted(OPENCV_LEFT.glob("left*.jpg"))
 SCENE = default_scene()
 CLEAN = RenderParams.from_scene(SCENE, image_noise=0.0, blur_px=0.0)
 ROLL_180 = make_transform(np.diag([-1.0, -1.0, 1.0]), np.zeros(3))
