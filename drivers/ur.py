@@ -1,0 +1,457 @@
+"""Universal Robots arms through the ``ur-rtde`` client (``rtde_control`` / ``rtde_receive``).
+
+``URRobot`` implements ``drivers.base.Robot``. Poses are UR pose vectors, base_T_tcp, metres and
+radians (``docs/conventions.md``). Every failure reaches the caller as a ``drivers.errors``
+subclass whose message a shop-floor person can act on; no ``RuntimeError`` from ur-rtde escapes.
+
+Why connecting starts with our own probe: the ur-rtde constructors hold the GIL while they
+block, so a worker thread with a deadline cannot interrupt them (the waiting thread never gets to
+run). Before constructing them we therefore check, with plain sockets and real timeouts, that the
+controller is reachable, answers RTDE requests, streams data and serves the dashboard, and that
+it answers fast enough for the ~40 request/reply round trips the constructors make to fit in
+``connect_timeout``. After a successful probe the constructors return in well under a second;
+the one slow path left is a control program that never starts, which ur-rtde itself gives up on
+after about 5 s.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import struct
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+import rtde_control
+import rtde_receive
+
+from calib.geometry import check_ur_poses
+from drivers.base import RobotStatus
+from drivers.errors import (
+    EmergencyStopError,
+    ProtectiveStopError,
+    RobotConnectionError,
+    RobotError,
+)
+
+RTDE_PORT = 30004
+DASHBOARD_PORT = 29999
+SCRIPT_PORT = 30003
+
+#: Request/reply round trips the two ur-rtde constructors make (RTDE recipes + dashboard).
+CONSTRUCTOR_ROUND_TRIPS = 40
+
+_SAFETY_PROTECTIVE_STOP = 1 << 2
+_SAFETY_EMERGENCY_STOPS = (1 << 5) | (1 << 6) | (1 << 7)  # system, robot, any e-stop
+_STATUS_PROGRAM_RUNNING = 1 << 1
+_ROBOT_MODES = {-1: "no_controller", 0: "disconnected", 1: "confirm_safety", 2: "booting",
+                3: "power_off", 4: "power_on", 5: "idle", 6: "backdrive", 7: "running",
+                8: "updating_firmware"}
+
+_PROTECTIVE_STOP_MSG = (
+    "The robot made a protective stop (usually a collision or a safety limit). Check that "
+    "nothing is in the way, unlock the protective stop on the teach pendant, then retry.")
+_EMERGENCY_STOP_MSG = (
+    "The robot is emergency-stopped. Release the emergency stop button, reset the robot on "
+    "the teach pendant, then retry.")
+
+
+def _recv_exact(sock: socket.socket, n: int) -> bytes:
+    buf = b""
+    while len(buf) < n:
+        chunk = sock.recv(n - len(buf))
+        if not chunk:
+            raise ConnectionError("connection closed by the controller")
+        buf += chunk
+    return buf
+
+
+def _rtde_receive(sock: socket.socket, msg_type: bytes) -> bytes:
+    """Payload of the next RTDE message of type ``msg_type`` (others are skipped)."""
+    while True:
+        size, reply_type = struct.unpack(">HB", _recv_exact(sock, 3))
+        body = _recv_exact(sock, size - 3)
+        if reply_type == msg_type[0]:
+            return body
+
+
+def _rtde_request(sock: socket.socket, msg_type: bytes, payload: bytes = b"") -> bytes:
+    """Send one RTDE request and return the payload of its reply."""
+    sock.sendall(struct.pack(">HB", len(payload) + 3, msg_type[0]) + payload)
+    return _rtde_receive(sock, msg_type)
+
+
+class URRobot:
+    """A UR arm driven through ur-rtde; see the module docstring for the connection strategy.
+
+    ``connect_timeout`` bounds ``connect()`` (seconds); a move is considered settled once the
+    TCP speed stays below ``settle_speed`` (m/s for the linear part, rad/s for the angular part)
+    for ``settle_dwell`` seconds. Moves block until the robot is at the target and settled.
+    """
+
+    def __init__(self, host: str, *, connect_timeout: float = 5.0, settle_speed: float = 1e-3,
+                 settle_dwell: float = 0.2, motion_timeout: float = 120.0) -> None:
+        self.host = host
+        self.connect_timeout = connect_timeout
+        self.settle_speed = settle_speed
+        self.settle_dwell = settle_dwell
+        self.motion_timeout = motion_timeout
+        self._control = None  # rtde_control.RTDEControlInterface
+        self._receive = None  # rtde_receive.RTDEReceiveInterface
+        self._lock = threading.RLock()  # one command at a time: ur-rtde is not thread-safe
+        self._moving = False
+        self._stop_requested = False
+        self._lost = False  # a connection was abandoned; cleared by connect() / close()
+
+    # ---- connection -------------------------------------------------------------------------
+
+    def __enter__(self) -> URRobot:
+        self.connect()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def connect(self) -> None:
+        """Connect (again): probe the controller, then start ur-rtde and its control program."""
+        with self._lock:
+            self.close()
+            self._probe()
+            try:
+                self._receive = rtde_receive.RTDEReceiveInterface(self.host)
+                self._control = rtde_control.RTDEControlInterface(self.host)
+            except RuntimeError as err:
+                self.close()
+                raise self._connect_error(err) from err
+            self._wait_first_data()
+
+    def close(self) -> None:
+        """Disconnect both interfaces. Safe to call twice and after a lost connection."""
+        with self._lock:
+            # Dropping the last reference runs the ur-rtde destructors, which disconnect
+            # (about 0.5 s each); an explicit disconnect() first would only double that.
+            self._control = self._receive = None
+            self._lost = False
+
+    def _probe(self) -> None:
+        """Check reachability and responsiveness with real timeouts; raise RobotConnectionError."""
+        deadline = time.monotonic() + self.connect_timeout
+
+        def remaining() -> float:
+            return max(deadline - time.monotonic(), 0.01)
+
+        try:
+            with socket.create_connection((self.host, RTDE_PORT), remaining()) as s:
+                s.settimeout(remaining())
+                t0 = time.monotonic()
+                _rtde_request(s, b"V", struct.pack(">H", 2))
+                _rtde_request(s, b"v")
+                per_request = (time.monotonic() - t0) / 2.0
+                if per_request * CONSTRUCTOR_ROUND_TRIPS > remaining():
+                    raise RobotConnectionError(
+                        f"The robot controller at {self.host} answers too slowly "
+                        f"({per_request * 1e3:.0f} ms per request) to connect within "
+                        f"{self.connect_timeout:g} s. Check the network between this computer "
+                        "and the robot (a busy or wireless link?).")
+                s.settimeout(remaining())
+                _rtde_request(s, b"O", struct.pack(">d", 125.0) + b"timestamp")
+                _rtde_request(s, b"S")
+                _rtde_receive(s, b"U")  # the first streamed data package
+            with socket.create_connection((self.host, DASHBOARD_PORT), remaining()) as s:
+                s.settimeout(remaining())
+                if not s.recv(256):  # the banner
+                    raise ConnectionResetError("dashboard closed the connection")
+            socket.create_connection((self.host, SCRIPT_PORT), remaining()).close()
+        except TimeoutError:
+            raise RobotConnectionError(
+                f"The robot controller at {self.host} did not answer within "
+                f"{self.connect_timeout:g} s. Check that the robot is switched on and fully "
+                "booted, then try again.") from None
+        except OSError as err:
+            raise RobotConnectionError(
+                f"Cannot reach the robot controller at {self.host} ({err.strerror or err}). "
+                "Check that the controller is switched on, the network cable is plugged in and "
+                "the IP address is right.") from None
+
+    def _wait_first_data(self) -> None:
+        """Block until the receive interface holds a real state (its thread starts async)."""
+        deadline = time.monotonic() + self.connect_timeout
+        while time.monotonic() < deadline:
+            if self._receive.getTimestamp() > 0.0:
+                return
+            time.sleep(0.005)
+        self.close()
+        raise RobotConnectionError(f"The robot controller at {self.host} sends no data.")
+
+    def _connect_error(self, err: RuntimeError) -> RobotError:
+        """Translate a ur-rtde constructor failure into a typed error."""
+        text = str(err).lower()
+        if "remote control" in text:
+            return RobotError(
+                f"The robot at {self.host} is in local mode. Switch it to Remote Control on the "
+                "teach pendant (top right corner), then connect again.",
+                code="not_in_remote_control")
+        if "control script" in text or "script" in text:
+            return RobotError(
+                f"The robot at {self.host} did not start the remote-control program. Make sure "
+                "the arm is powered on with brakes released, no protective or emergency stop is "
+                "active and no other program is running, then connect again.",
+                code="program_not_started")
+        return RobotConnectionError(
+            f"Could not connect to the robot controller at {self.host} ({err}). Check the "
+            "network connection and that the controller is switched on.")
+
+    # ---- state ------------------------------------------------------------------------------
+
+    def _interfaces(self) -> tuple[object, object]:
+        """(control, receive) if both are connected, else RobotConnectionError."""
+        control, receive = self._control, self._receive
+        if self._lost or (control is not None and receive is not None
+                          and not self._link_alive(control, receive)):
+            raise RobotConnectionError(
+                f"Lost the connection to the robot controller at {self.host}. Check the network "
+                "cable and that the controller is on, then reconnect.")
+        if control is None or receive is None:
+            raise RobotConnectionError(
+                f"Not connected to the robot at {self.host}. Connect first.",
+                code="robot_not_connected")
+        return control, receive
+
+    @staticmethod
+    def _link_alive(control: object, receive: object) -> bool:
+        try:
+            return bool(receive.isConnected() and control.isConnected())
+        except RuntimeError:
+            return False
+
+    def _read(self, getter: str) -> object:
+        _, receive = self._interfaces()
+        try:
+            return getattr(receive, getter)()
+        except RuntimeError as err:
+            raise self._runtime_error(err) from err
+
+    def tcp_pose(self) -> np.ndarray:
+        """Actual TCP pose, shape (6,), base_T_tcp as a UR pose vector."""
+        return np.asarray(self._read("getActualTCPPose"), dtype=float)
+
+    def joint_positions(self) -> np.ndarray:
+        """Actual joint angles, shape (6,), radians."""
+        return np.asarray(self._read("getActualQ"), dtype=float)
+
+    def status(self) -> RobotStatus:
+        """Current controller state; ``connected=False`` rather than an error when offline."""
+        try:
+            _, receive = self._interfaces()
+            safety = int(receive.getSafetyStatusBits())
+            robot_status = int(receive.getRobotStatus())
+            mode = _ROBOT_MODES.get(int(receive.getRobotMode()), "unknown")
+        except (RobotConnectionError, RuntimeError):
+            return RobotStatus(connected=False)
+        return RobotStatus(
+            connected=True,
+            program_running=bool(robot_status & _STATUS_PROGRAM_RUNNING),
+            protective_stop=bool(safety & _SAFETY_PROTECTIVE_STOP),
+            emergency_stop=bool(safety & _SAFETY_EMERGENCY_STOPS),
+            mode=mode)
+
+    def _raise_if_stopped(self) -> None:
+        """ProtectiveStopError / EmergencyStopError if the robot is safety-stopped."""
+        st = self.status()
+        if not st.connected:
+            self._interfaces()  # raises the connection error
+        if st.emergency_stop:
+            raise EmergencyStopError(_EMERGENCY_STOP_MSG)
+        if st.protective_stop:
+            raise ProtectiveStopError(_PROTECTIVE_STOP_MSG)
+
+    # ---- motion -----------------------------------------------------------------------------
+
+    def move_linear(self, pose: np.ndarray, *, speed: float = 0.25,
+                    acceleration: float = 1.2) -> None:
+        """Move the TCP in a straight line to ``pose`` (shape (6,)); returns once settled."""
+        pose = np.asarray(pose, dtype=float)
+        if pose.shape != (6,):
+            raise ValueError(f"pose: expected [x, y, z, rx, ry, rz], got shape {pose.shape}")
+        check_ur_poses(pose, "pose")  # finite, metres
+        self._move("moveL", pose, speed, acceleration)
+
+    def move_joint(self, q: np.ndarray, *, speed: float = 1.05,
+                   acceleration: float = 1.4) -> None:
+        """Move in joint space to ``q`` (shape (6,), radians); returns once settled."""
+        q = np.asarray(q, dtype=float)
+        if q.shape != (6,) or not np.isfinite(q).all():
+            raise ValueError(f"q: expected 6 finite joint angles in radians, got {q!r}")
+        if np.abs(q).max() > 2.0 * np.pi:
+            raise ValueError("q: joint angles beyond ±2π rad: were degrees given?")
+        self._move("moveJ", q, speed, acceleration)
+
+    def _move(self, method: str, target: np.ndarray, speed: float, acceleration: float) -> None:
+        if speed <= 0.0 or acceleration <= 0.0:
+            raise ValueError("speed and acceleration must be positive")
+        with self._lock:
+            control, _ = self._interfaces()
+            self._raise_if_stopped()
+            self._ensure_program(control)
+            self._moving, self._stop_requested = True, False
+            try:
+                ok = self._guarded(getattr(control, method), target.tolist(), speed,
+                                   acceleration, timeout=self.motion_timeout)
+            finally:
+                self._moving = False
+            if not ok:
+                raise self._move_failure()
+        self.wait_settled(timeout=self.motion_timeout)
+
+    def _guarded(self, fn: Callable[..., bool], *args: object, timeout: float) -> bool:
+        """Run a blocking ur-rtde call in a worker thread while watching the link.
+
+        ur-rtde calls release the GIL, so this thread can watch: if the receive interface loses
+        the connection (the client's own recovery can then wait for minutes) or ``timeout``
+        passes, the connection is abandoned and a typed error raised at once. A RuntimeError
+        from the call becomes a typed error too.
+        """
+        outcome: dict[str, object] = {}
+
+        def work() -> None:
+            try:
+                outcome["value"] = fn(*args)
+            except RuntimeError as err:
+                outcome["error"] = err
+
+        worker = threading.Thread(target=work, name="ur-rtde-call", daemon=True)
+        worker.start()
+        deadline = time.monotonic() + timeout
+        while worker.is_alive():
+            worker.join(0.02)
+            if not worker.is_alive():
+                break
+            receive = self._receive
+            try:
+                alive = receive is not None and receive.isConnected()
+            except RuntimeError:
+                alive = False
+            if not alive:
+                self._abandon()
+                raise RobotConnectionError(
+                    f"Lost the connection to the robot controller at {self.host} during a "
+                    "move. Check the network cable and that the controller is on, then "
+                    "reconnect; the robot may have stopped anywhere along the path.")
+            if time.monotonic() > deadline:
+                self._abandon()
+                raise RobotError(
+                    f"The robot did not finish within {timeout:g} s; the connection was "
+                    "closed. Check the teach pendant, then reconnect.", code="robot_timeout")
+        if "error" in outcome:
+            raise self._runtime_error(outcome["error"])
+        return bool(outcome.get("value"))
+
+    def _abandon(self) -> None:
+        """Forget a broken connection whose control call is stuck in a worker thread.
+
+        The stuck call keeps its interface alive until it returns; calling into it from here
+        could block on its internal locks, so only the receive side is disconnected.
+        """
+        receive, self._receive, self._control = self._receive, None, None
+        self._lost = True
+        if receive is not None:
+            with contextlib.suppress(RuntimeError):
+                receive.disconnect()
+
+    def _ensure_program(self, control: object) -> None:
+        """Restart the control program if it stopped (e.g. after an unlocked protective stop)."""
+        try:
+            running = control.isProgramRunning()
+        except RuntimeError as err:
+            raise self._runtime_error(err) from err
+        if running:
+            return
+        self._guarded(control.reuploadScript, timeout=self.connect_timeout + 6.0)
+        deadline = time.monotonic() + self.connect_timeout
+        # The control interface has its own state stream; its view must show the program.
+        while not self._guarded(control.isProgramRunning, timeout=self.connect_timeout):
+            if time.monotonic() > deadline:
+                raise RobotError(
+                    f"The robot at {self.host} did not restart the remote-control program. "
+                    "Check the teach pendant for a message, then reconnect.",
+                    code="program_not_started")
+            time.sleep(0.01)
+
+    def _move_failure(self) -> RobotError:
+        """Why ur-rtde reported a failed move, as a typed error (waits briefly for the cause)."""
+        deadline = time.monotonic() + 0.5
+        while True:
+            st = self.status()
+            if not st.connected:
+                return RobotConnectionError(
+                    f"Lost the connection to the robot controller at {self.host} during a move. "
+                    "Check the network cable and that the controller is on, then reconnect.")
+            if st.emergency_stop:
+                return EmergencyStopError(_EMERGENCY_STOP_MSG)
+            if st.protective_stop:
+                return ProtectiveStopError(_PROTECTIVE_STOP_MSG)
+            if self._stop_requested:
+                return RobotError("The move was stopped on request.", code="motion_stopped")
+            if time.monotonic() > deadline:
+                break
+            time.sleep(0.01)
+        if not st.program_running:
+            return RobotError(
+                "The robot's remote-control program stopped during the move. Check the teach "
+                "pendant for a message, then retry.", code="program_stopped")
+        return RobotError(
+            "The robot did not complete the move: the target may be out of reach or outside "
+            "the safety limits.", code="motion_failed")
+
+    def _runtime_error(self, err: RuntimeError) -> RobotError:
+        """Any other ur-rtde RuntimeError: a connection problem if the link is gone."""
+        text = str(err).lower()
+        lost = ("connect", "refused", "timed out", "broken pipe", "eof", "reset by peer")
+        if any(w in text for w in lost) or not self.status().connected:
+            return RobotConnectionError(
+                f"Lost the connection to the robot controller at {self.host}. Check the network "
+                "cable and that the controller is on, then reconnect.")
+        return RobotError(f"The robot controller reported an error: {err}.")
+
+    def wait_settled(self, *, timeout: float = 5.0) -> None:
+        """Block until the TCP speed stays below ``settle_speed`` for ``settle_dwell`` seconds."""
+        deadline = time.monotonic() + timeout
+        quiet_since: float | None = None
+        while True:
+            speed = np.asarray(self._read("getActualTCPSpeed"), dtype=float)
+            now = time.monotonic()
+            if (np.linalg.norm(speed[:3]) < self.settle_speed
+                    and np.linalg.norm(speed[3:]) < self.settle_speed):
+                quiet_since = now if quiet_since is None else quiet_since
+                if now - quiet_since >= self.settle_dwell:
+                    return
+            else:
+                quiet_since = None
+                self._raise_if_stopped()
+            if now > deadline:
+                self._raise_if_stopped()
+                raise RobotError(
+                    f"The robot did not come to rest within {timeout:g} s.", code="not_settled")
+            time.sleep(0.004)
+
+    def stop(self) -> None:
+        """Stop any motion: stopL when idle; during a blocking move, the dashboard ``stop``."""
+        if self._moving:
+            self._stop_requested = True
+            try:
+                with socket.create_connection((self.host, DASHBOARD_PORT),
+                                              self.connect_timeout) as s:
+                    s.settimeout(self.connect_timeout)
+                    s.recv(256)  # banner
+                    s.sendall(b"stop\n")
+                    s.recv(256)
+            except OSError:
+                raise RobotConnectionError(
+                    f"Could not reach the robot at {self.host} to stop it. Use the emergency "
+                    "stop if the robot is still moving.") from None
+            return
+        with self._lock:
+            control, _ = self._interfaces()
+            self._guarded(control.stopL, 2.0, timeout=self.connect_timeout)

@@ -1,0 +1,237 @@
+"""The UR driver through the real ur-rtde client against the emulated controller.
+
+One emulator process (on the first free address from 127.0.0.2) serves most tests; faults are
+switched on over its dashboard and cleared before each test. Tests that need a fault from
+start-up get their own emulator and address.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+
+import numpy as np
+import pytest
+from ur_emulator_fixture import (
+    EmulatorProcess,
+    free_host,
+    running_emulator,
+    wait_ports,
+)
+
+from calib.geometry import matrix_from_ur_pose, pose_error
+from drivers.base import Robot
+from drivers.errors import (
+    EmergencyStopError,
+    ProtectiveStopError,
+    RobotConnectionError,
+    RobotError,
+)
+from drivers.ur import URRobot
+from mocks.ur_kinematics import fk_pose
+
+FAST = {"speed": 1.0, "acceleration": 4.0}
+
+
+@pytest.fixture(scope="module")
+def emulator() -> Iterator[EmulatorProcess]:
+    with running_emulator("--settle-time", "0.1") as emu:
+        yield emu
+
+
+@pytest.fixture
+def robot(emulator: EmulatorProcess) -> Iterator[URRobot]:
+    assert emulator.command("emulator clear") == "emulator: faults cleared"
+    wait_ports(emulator.host)  # a previous test may have dropped the connections
+    bot = URRobot(emulator.host, connect_timeout=3.0, settle_dwell=0.05, motion_timeout=10.0)
+    bot.connect()
+    yield bot
+    bot.close()
+
+
+def assert_pose_close(actual: np.ndarray, expected: np.ndarray, *, rot: float = 1e-6,
+                      trans: float = 1e-6) -> None:
+    angle, dist = pose_error(matrix_from_ur_pose(actual), matrix_from_ur_pose(expected))
+    assert angle < rot and dist < trans, f"off by {angle:.2e} rad, {dist:.2e} m"
+
+
+def wait_until(predicate: Callable[[], bool], timeout: float = 2.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        time.sleep(0.01)
+
+
+@pytest.mark.timeout(30)
+def test_reads_pose_consistent_with_joints(robot: URRobot) -> None:
+    assert isinstance(robot, Robot)
+    status = robot.status()
+    assert status.connected and status.program_running and status.ready
+    assert status.mode == "running"
+    assert_pose_close(robot.tcp_pose(), fk_pose(robot.joint_positions()), trans=1e-9)
+
+
+@pytest.mark.timeout(20)
+def test_move_linear_reaches_pose_and_settles(robot: URRobot) -> None:
+    target = robot.tcp_pose() + np.array([0.04, -0.03, 0.05, 0.0, 0.0, 0.0])
+    robot.move_linear(target, **FAST)  # returns once settled, so the pose read is final
+    assert_pose_close(robot.tcp_pose(), target)
+
+
+@pytest.mark.timeout(20)
+def test_move_joint_reaches_joints_with_tcp_from_fk(robot: URRobot,
+                                                    emulator: EmulatorProcess) -> None:
+    q = robot.joint_positions() + np.array([0.2, -0.1, 0.15, 0.1, -0.2, 0.3])
+    robot.move_joint(q, speed=3.0, acceleration=8.0)
+    np.testing.assert_allclose(robot.joint_positions(), q, atol=1e-9)
+    assert_pose_close(robot.tcp_pose(), fk_pose(q), trans=1e-9)
+    assert_pose_close(np.asarray(emulator.state()["pose"]), fk_pose(q), trans=1e-9)
+
+
+@pytest.mark.timeout(20)
+def test_protective_stop_during_move_then_unlock(robot: URRobot, emulator: EmulatorProcess) -> None:
+    start = robot.tcp_pose()
+    target = start + np.array([0.0, 0.0, 0.08, 0.0, 0.0, 0.0])
+    emulator.command("emulator fault protective_stop_during_move")
+    with pytest.raises(ProtectiveStopError, match=r"protective stop.*unlock"):
+        robot.move_linear(target, **FAST)
+    assert robot.status().protective_stop
+    stopped_at = robot.tcp_pose()
+    assert 0.01 < stopped_at[2] - start[2] < 0.07  # halted part way
+    with pytest.raises(ProtectiveStopError):  # refuses to move until unlocked
+        robot.move_linear(target, **FAST)
+    assert emulator.command("unlock protective stop") == "Protective stop releasing"
+    wait_until(lambda: not robot.status().protective_stop)
+    robot.move_linear(target, **FAST)  # the driver restarts the control program
+    assert_pose_close(robot.tcp_pose(), target)
+
+
+@pytest.mark.timeout(20)
+def test_emergency_stop_during_move(robot: URRobot, emulator: EmulatorProcess) -> None:
+    target = robot.tcp_pose() + np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.0])
+    emulator.command("emulator fault emergency_stop_during_move")
+    with pytest.raises(EmergencyStopError, match="emergency stop button"):
+        robot.move_linear(target, **FAST)
+    assert robot.status().emergency_stop
+    assert not robot.status().ready
+
+
+@pytest.mark.timeout(30)
+def test_connection_drop_during_move_then_reconnect(robot: URRobot,
+                                                    emulator: EmulatorProcess) -> None:
+    target = robot.tcp_pose() + np.array([0.0, 0.06, 0.0, 0.0, 0.0, 0.0])
+    emulator.command("emulator fault drop_during_move=0.5")
+    t0 = time.monotonic()
+    with pytest.raises(RobotConnectionError, match="Lost the connection"):
+        robot.move_linear(target, **FAST)
+    assert time.monotonic() - t0 < 5.0
+    with pytest.raises(RobotConnectionError, match="reconnect"):
+        robot.tcp_pose()
+    assert not robot.status().connected
+    wait_ports(emulator.host, timeout=5.0)
+    robot.connect()  # the control program is still running: ur-rtde stops and re-uploads it
+    robot.move_linear(target, **FAST)
+    assert_pose_close(robot.tcp_pose(), target)
+
+
+@pytest.mark.timeout(30)
+def test_connection_drop_while_idle_is_noticed(robot: URRobot, emulator: EmulatorProcess) -> None:
+    emulator.command("emulator drop 0.3")
+
+    def lost() -> bool:
+        try:
+            robot.tcp_pose()
+        except RobotConnectionError:
+            return True
+        return False
+
+    wait_until(lost, timeout=3.0)
+    wait_ports(emulator.host, timeout=5.0)
+    robot.connect()
+    assert robot.status().ready
+
+
+@pytest.mark.timeout(30)
+def test_stop_during_move(robot: URRobot) -> None:
+    target = robot.tcp_pose() + np.array([0.0, 0.0, 0.1, 0.0, 0.0, 0.0])
+    errors: list[BaseException] = []
+
+    def move() -> None:
+        try:
+            robot.move_linear(target, speed=0.05, acceleration=1.0)
+        except RobotError as err:
+            errors.append(err)
+
+    mover = threading.Thread(target=move)
+    mover.start()
+    time.sleep(0.3)
+    robot.stop()
+    mover.join(10)
+    assert len(errors) == 1 and errors[0].code == "motion_stopped"
+    robot.move_linear(target, **FAST)  # the next move restarts the program
+    assert_pose_close(robot.tcp_pose(), target)
+
+
+@pytest.mark.timeout(20)
+def test_not_in_remote_control(emulator: EmulatorProcess) -> None:
+    emulator.command("emulator clear")
+    emulator.command("emulator fault local_control")
+    try:
+        with pytest.raises(RobotError, match="Remote Control") as info:
+            URRobot(emulator.host, connect_timeout=3.0).connect()
+        assert info.value.code == "not_in_remote_control"
+    finally:
+        emulator.command("emulator clear")
+
+
+@pytest.mark.timeout(20)
+def test_slow_controller(emulator: EmulatorProcess) -> None:
+    emulator.command("emulator clear")
+    try:
+        emulator.command("emulator fault slow_replies=0.5")
+        t0 = time.monotonic()
+        with pytest.raises(RobotConnectionError, match="too slowly"):
+            URRobot(emulator.host, connect_timeout=2.0).connect()
+        assert time.monotonic() - t0 < 2.5  # refused up front, not after 40 slow round trips
+        emulator.command("emulator fault slow_replies=0.01")
+        with URRobot(emulator.host, connect_timeout=3.0, settle_dwell=0.05) as bot:
+            assert bot.status().ready
+    finally:
+        emulator.command("emulator clear")
+
+
+@pytest.mark.timeout(20)
+def test_close_twice_then_use(robot: URRobot) -> None:
+    robot.close()
+    robot.close()
+    assert not robot.status().connected
+    with pytest.raises(RobotConnectionError, match="Connect first"):
+        robot.tcp_pose()
+
+
+@pytest.mark.timeout(20)
+def test_invalid_targets_rejected_before_moving(robot: URRobot) -> None:
+    with pytest.raises(ValueError, match="millimetres"):
+        robot.move_linear(np.array([400.0, 100.0, 300.0, 0.0, 3.14, 0.0]))
+    with pytest.raises(ValueError, match="degrees"):
+        robot.move_joint(np.array([0.0, -90.0, 90.0, -90.0, -90.0, 0.0]))
+
+
+@pytest.mark.timeout(30)
+def test_program_never_starts_is_a_clear_error() -> None:
+    with running_emulator("--fault", "program_never_starts") as emu:
+        t0 = time.monotonic()
+        with pytest.raises(RobotError, match="did not start the remote-control program") as info:
+            URRobot(emu.host, connect_timeout=3.0).connect()
+        assert info.value.code == "program_not_started"
+        assert time.monotonic() - t0 < 10.0
+
+
+@pytest.mark.timeout(10)
+def test_unreachable_host_fails_fast() -> None:
+    host = free_host()  # nothing listens there: connection refused
+    t0 = time.monotonic()
+    with pytest.raises(RobotConnectionError, match="Cannot reach the robot controller"):
+        URRobot(host, connect_timeout=2.0).connect()
+    assert time.monotonic() - t0 < 2.5
