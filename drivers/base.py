@@ -9,7 +9,7 @@ base_T_tcp; joint positions are radians. See ``docs/conventions.md``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Protocol, Self, runtime_checkable
 
 import numpy as np
 
@@ -89,3 +89,25 @@ class Camera(Protocol):
     def configure(self, *, resolution: tuple[int, int] | None = None,
                   exposure: float | None = None) -> None:
         """Request a resolution and/or exposure (seconds); unsupported requests raise."""
+
+
+class RobotSession:
+    """Mixin: ``with robot:`` connects on entry and closes on exit."""
+
+    def __enter__(self) -> Self:
+        self.connect()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class CameraSession:
+    """Mixin: ``with camera:`` opens on entry and closes on exit."""
+
+    def __enter__(self) -> Self:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

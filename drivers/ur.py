@@ -28,7 +28,7 @@ import rtde_control
 import rtde_receive
 
 from calib.geometry import check_ur_poses
-from drivers.base import RobotStatus
+from drivers.base import RobotSession, RobotStatus
 from drivers.errors import (
     EmergencyStopError,
     ProtectiveStopError,
@@ -83,7 +83,7 @@ def _rtde_request(sock: socket.socket, msg_type: bytes, payload: bytes = b"") ->
     return _rtde_receive(sock, msg_type)
 
 
-class URRobot:
+class URRobot(RobotSession):
     """A UR arm driven through ur-rtde; see the module docstring for the connection strategy.
 
     ``connect_timeout`` bounds ``connect()`` (seconds); a move is considered settled once the
@@ -106,13 +106,6 @@ class URRobot:
         self._lost = False  # a connection was abandoned; cleared by connect() / close()
 
     # ---- connection -------------------------------------------------------------------------
-
-    def __enter__(self) -> URRobot:
-        self.connect()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def connect(self) -> None:
         """Connect (again): probe the controller, then start ur-rtde and its control program."""

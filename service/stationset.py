@@ -8,13 +8,19 @@ a robot pose (``tcp_pose``, base_T_tcp) and either an ``image`` or a measured ``
 from __future__ import annotations
 
 import json
+import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
+import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from calib.geometry import check_ur_poses
+from drivers.capture import CapturedStation
+
+STATIONS_FILE = "stations.json"
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 PoseVector = Annotated[list[FiniteFloat], Field(min_length=6, max_length=6)]
@@ -89,7 +95,7 @@ class StationSet(BaseModel):
 
 def load_station_set(directory: str | Path) -> StationSet:
     """Read and validate ``DIR/stations.json``; raise ``ValueError`` with one clear line."""
-    path = Path(directory) / "stations.json"
+    path = Path(directory) / STATIONS_FILE
     if not path.is_file():
         raise ValueError(f"{path}: no such file (a station set is a directory with "
                          "stations.json)")
@@ -111,3 +117,46 @@ def describe_validation_error(exc: ValidationError) -> str:
         where += f"[{part}]" if isinstance(part, int) else (f".{part}" if where else str(part))
     more = f" (and {exc.error_count() - 1} more problems)" if exc.error_count() > 1 else ""
     return f"{where or 'file'}: {err['msg']}{more}"
+
+
+def station_record(station: CapturedStation, image_name: str) -> dict[str, Any]:
+    """The ``stations.json`` entry of a captured station; its id is the image name's stem."""
+    return {"id": Path(image_name).stem, "tcp_pose": [float(v) for v in station.tcp_pose],
+            "image": image_name}
+
+
+def write_station_set(directory: str | Path, setup: str, target: Mapping[str, Any],
+                      stations: Sequence[CapturedStation], *,
+                      intrinsics: Mapping[str, Any] | None = None) -> Path:
+    """Write ``stations`` as a station set in ``directory``; return the ``stations.json`` path.
+
+    Images are ``000.png``, ``001.png``, ...; ``target`` is the station-set target
+    (``type``, ``inner_corners`` [cols, rows], nominal ``square_size_m``); ``intrinsics``
+    (``K``, ``dist``) is optional. The document is validated before anything is written
+    (``ValueError``), an existing ``stations.json`` is never overwritten (``FileExistsError``),
+    and ``stations.json`` is written last, atomically, so an interrupted write never leaves a
+    readable but incomplete set.
+    """
+    directory = Path(directory)
+    path = directory / STATIONS_FILE
+    names = [f"{k:03d}.png" for k in range(len(stations))]
+    doc: dict[str, Any] = {"format": "cellcal/stations@1", "setup": setup,
+                           "target": dict(target)}
+    if intrinsics is not None:
+        doc["intrinsics"] = dict(intrinsics)
+    doc["stations"] = [station_record(s, n) for s, n in zip(stations, names, strict=True)]
+    try:
+        StationSet.model_validate(doc)
+    except ValidationError as exc:
+        raise ValueError(f"cannot write a station set: {describe_validation_error(exc)}") \
+            from None
+    if path.exists():
+        raise FileExistsError(f"{path} already exists; choose a new directory for the capture")
+    directory.mkdir(parents=True, exist_ok=True)
+    for station, name in zip(stations, names, strict=True):
+        if not cv2.imwrite(str(directory / name), station.image):
+            raise OSError(f"could not write {directory / name}")
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(doc, indent=2) + "\n")
+    os.replace(tmp, path)
+    return path

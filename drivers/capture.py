@@ -1,0 +1,70 @@
+"""Capture calibration stations (move, settle, grab, read pose) and write them as a station set.
+
+A captured set is written in the ``cellcal/stations@1`` format of ``product.md`` (one PNG per
+station), so ``cellcal calibrate`` reads a capture directly.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib.geometry import check_ur_poses, matrix_from_ur_pose, pose_error
+from drivers.base import Camera, Robot
+from drivers.errors import RobotError
+
+
+@dataclass(frozen=True)
+class CapturedStation:
+    """One captured station: the frame and the robot reading that belongs to it.
+
+    Timestamps are wall-clock seconds (``time.time()``), so they can be compared with logs.
+    """
+
+    image: np.ndarray  # shape (H, W) or (H, W, 3), uint8
+    tcp_pose: np.ndarray  # shape (6,), base_T_tcp read after the grab
+    target_tcp_pose: np.ndarray  # shape (6,), the commanded pose
+    moved_at: float  # move command sent
+    settled_at: float  # robot at rest
+    grabbed_at: float  # frame returned by the camera
+    pose_read_at: float  # tcp_pose read
+
+
+def capture_station(robot: Robot, camera: Camera, tcp_target: np.ndarray, *,
+                    settle_timeout: float = 5.0, grab_timeout: float = 2.0,
+                    speed: float = 0.25, acceleration: float = 1.2,
+                    max_drift: tuple[float, float] = (1e-4, 1e-3)) -> CapturedStation:
+    """Move to ``tcp_target`` (UR pose, shape (6,)), settle, grab a fresh frame, read the pose.
+
+    The pose is read *after* the grab, and compared with a reading taken just before it. The
+    camera returns a frame exposed after the grab call, so the reading after it describes a
+    state no earlier than the exposure; if the two readings differ by more than ``max_drift``
+    (metres, radians) the robot moved while the image was taken (it had not really settled,
+    or was bumped) and the station is refused with ``RobotError`` (code
+    ``moved_during_grab``) rather than pairing an image with the wrong pose.
+    """
+    target = np.asarray(tcp_target, dtype=float)
+    if target.shape != (6,):
+        raise ValueError(f"tcp_target: expected [x, y, z, rx, ry, rz], got shape {target.shape}")
+    check_ur_poses(target, "tcp_target")
+    moved_at = time.time()
+    robot.move_linear(target, speed=speed, acceleration=acceleration)
+    robot.wait_settled(timeout=settle_timeout)
+    settled_at = time.time()
+    before = robot.tcp_pose()
+    image = camera.grab(timeout=grab_timeout)
+    grabbed_at = time.time()
+    after = robot.tcp_pose()
+    pose_read_at = time.time()
+    angle, dist = pose_error(matrix_from_ur_pose(before), matrix_from_ur_pose(after))
+    if dist > max_drift[0] or angle > max_drift[1]:
+        raise RobotError(
+            f"The robot moved by {dist * 1e3:.2f} mm / {np.rad2deg(angle):.3f} deg while the "
+            "image was taken; it had not settled. Increase the settle time and retry.",
+            code="moved_during_grab")
+    return CapturedStation(image=image, tcp_pose=np.asarray(after, dtype=float),
+                           target_tcp_pose=target,
+                           moved_at=moved_at, settled_at=settled_at, grabbed_at=grabbed_at,
+                           pose_read_at=pose_read_at)

@@ -1,0 +1,305 @@
+"""Cameras and recordings through ``cv2.VideoCapture``: ``v4l2://`` and ``file://`` URLs.
+
+``OpenCVCamera`` implements ``drivers.base.Camera``. Sources, by URL:
+
+- ``v4l2:///dev/videoN`` (or any V4L2 device path, e.g. ``/dev/v4l/by-id/...``): a live camera
+  through OpenCV's V4L2 backend.
+- ``file:///path/video.avi``: a video file, one frame per grab.
+- ``file:///path/frame_%04d.png``: an image sequence named by a printf pattern (OpenCV's
+  ``CAP_IMAGES``; numbering starts at 0 or 1), one image per grab.
+- ``file:///path/dir``: every image in a directory (``.png .jpg .jpeg .bmp .tif .tiff .pgm``)
+  in sorted file-name order, one per grab. Use zero-padded names so sorting keeps the order.
+
+A recording replays what was captured, so a grab returns its *next* frame; at the end it raises
+``CameraError`` (code ``end_of_stream``) rather than looping, so a capture can never pair a
+robot pose with an old frame.
+
+Fresh frames from a live camera. V4L2 keeps up to ``CAP_PROP_BUFFERSIZE`` (B, usually 4) frames
+queued; after the robot has been standing still for a while they are all old (exposed during
+the move). At the time of a grab at most B frames are ready, so after discarding B frames the
+next one arrived after the call. Its exposure may still have begun just before the call, so it
+is discarded too, and frame B + 2 is returned. This needs no timing heuristics; its cost is
+about one frame period when the queue was full (the usual case after a move) and up to B + 2
+periods when it was empty.
+
+Timeouts. A ``grab`` on a device that stopped streaming can block inside OpenCV for many
+seconds, so every ``cv2.VideoCapture`` call runs on one worker thread (OpenCV releases the GIL)
+and the caller waits at most its timeout. A call stuck on the worker delays the next ones, which
+then time out too, until the device answers again or the camera is closed and reopened.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
+from pathlib import Path
+from typing import Any, TypeVar
+from urllib.parse import urlsplit
+
+import cv2
+import numpy as np
+
+from drivers.base import CameraSession
+from drivers.errors import CameraError, CameraTimeoutError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
+#: V4L2 buffer queue length assumed when the backend does not report one.
+DEFAULT_V4L2_BUFFERS = 4
+#: OpenCV's V4L2 backend passes exposure in the driver's unit: 100 µs.
+_V4L2_EXPOSURE_UNIT_S = 1e-4
+_V4L2_EXPOSURE_MANUAL = 1
+
+_T = TypeVar("_T")
+
+
+class _ImageDirectory:
+    """The part of the ``cv2.VideoCapture`` interface this module uses, over a directory."""
+
+    def __init__(self, directory: Path) -> None:
+        self._files = sorted(p for p in directory.iterdir()
+                             if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+        self._next = 0
+        self._frame: np.ndarray | None = None
+
+    def isOpened(self) -> bool:  # noqa: N802 - the cv2.VideoCapture name
+        return bool(self._files)
+
+    def grab(self) -> bool:
+        if self._next >= len(self._files):
+            return False
+        path = self._files[self._next]
+        self._next += 1
+        self._frame = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if self._frame is None:
+            raise CameraError(f"{path}: not a readable image.", code="corrupt_frame")
+        return True
+
+    def retrieve(self) -> tuple[bool, np.ndarray | None]:
+        return self._frame is not None, self._frame
+
+    def get(self, prop: int) -> float:
+        if self._files and prop in (cv2.CAP_PROP_FRAME_WIDTH, cv2.CAP_PROP_FRAME_HEIGHT):
+            shape = self._frame.shape if self._frame is not None else cv2.imread(
+                str(self._files[0]), cv2.IMREAD_UNCHANGED).shape
+            return float(shape[1] if prop == cv2.CAP_PROP_FRAME_WIDTH else shape[0])
+        return 0.0
+
+    def set(self, prop: int, value: float) -> bool:
+        return False
+
+    def release(self) -> None:
+        self._files = []
+
+
+class OpenCVCamera(CameraSession):
+    """A ``v4l2://`` camera or ``file://`` recording; see the module docstring.
+
+    ``open_timeout`` bounds ``open()``, ``configure()`` and ``close()`` (seconds). Use as a
+    context manager, or call ``open()`` and ``close()``.
+    """
+
+    def __init__(self, url: str, *, open_timeout: float = 5.0) -> None:
+        self.url = url
+        self.open_timeout = open_timeout
+        self._kind, self._path = _parse_url(url)
+        self._cap: Any = None
+        self._worker: ThreadPoolExecutor | None = None
+        self._size = (0, 0)
+        self._frames_read = 0
+
+    @property
+    def live(self) -> bool:
+        """True for a V4L2 device, False for a recording."""
+        return self._kind == "v4l2"
+
+    def open(self) -> None:
+        """Open the device or recording; ``CameraError`` with a sentence saying what is wrong."""
+        self.close()
+        path = Path(self._path)
+        if self._kind == "v4l2" and not path.exists():
+            raise CameraError(f"No camera at {path}: check that it is plugged in and look for "
+                              "its device with `ls /dev/video*`.", code="camera_not_found")
+        if self._kind == "pattern" and not path.parent.is_dir():
+            raise CameraError(f"{self.url}: no directory {path.parent} for the image sequence.",
+                              code="camera_not_found")
+        if self._kind in ("file", "directory") and not path.exists():
+            raise CameraError(f"{self.url}: no such file or directory.", code="camera_not_found")
+        if self._kind == "file" and path.is_dir():
+            self._kind = "directory"
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="opencv-camera")
+        self._cap = self._call(self._open_capture, self.open_timeout, "opening the camera")
+        if not self._cap.isOpened():
+            self.close()
+            raise CameraError(self._open_failure(), code="camera_open_failed")
+        self._size = self._call(self._read_size, self.open_timeout, "reading its resolution")
+        self._frames_read = 0
+
+    def close(self) -> None:
+        """Release the device. Safe to call twice; never blocks longer than ``open_timeout``."""
+        worker, cap = self._worker, self._cap
+        self._worker = self._cap = None
+        if worker is None:
+            return
+        if cap is not None:
+            with contextlib.suppress(FutureTimeout, cv2.error):
+                worker.submit(cap.release).result(self.open_timeout)
+        worker.shutdown(wait=False)  # a release queued behind a stuck call still runs
+
+    def grab(self, *, timeout: float = 2.0) -> np.ndarray:
+        """A frame exposed after this call (live) or the next frame (recording).
+
+        Shape (H, W, 3) uint8 BGR, or (H, W) for grey recordings. Raises
+        ``CameraTimeoutError`` if none arrives within ``timeout`` seconds and ``CameraError``
+        at the end of a recording or when a live device disappears.
+        """
+        deadline = time.monotonic() + timeout
+        no_frame = (f"{self.url} delivered no frame within {timeout:g} s: is the camera still "
+                    "connected and streaming?")
+        return self._call(lambda: self._read(deadline, no_frame), timeout, no_frame)
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        """(width, height) in pixels, as the device reports it."""
+        self._check_open()
+        return self._size
+
+    def configure(self, *, resolution: tuple[int, int] | None = None,
+                  exposure: float | None = None) -> None:
+        """Set the resolution and/or a manual exposure (seconds); verified by reading back.
+
+        A request the device ignores or rounds raises ``CameraError`` (code
+        ``camera_unsupported``) naming what it delivers instead. Recordings only accept their
+        own resolution and have no exposure control.
+        """
+        self._check_open()
+        if exposure is not None and (not np.isfinite(exposure) or exposure <= 0.0):
+            raise ValueError(f"exposure must be a positive time in seconds, got {exposure}")
+        if resolution is not None and tuple(resolution) != self._size:
+            w, h = (int(v) for v in resolution)
+            got = self._call(lambda: self._set_resolution(w, h), self.open_timeout,
+                             "setting the resolution")
+            if got != (w, h):
+                raise CameraError(
+                    f"{self.url} does not support {w}x{h}; it delivers {got[0]}x{got[1]}.",
+                    code="camera_unsupported")
+        if exposure is not None:
+            if not self.live:
+                raise CameraError(f"{self.url} is a recording: its exposure cannot be set.",
+                                  code="camera_unsupported")
+            got_s = self._call(lambda: self._set_exposure(exposure), self.open_timeout,
+                               "setting the exposure")
+            if abs(got_s - exposure) > _V4L2_EXPOSURE_UNIT_S:
+                raise CameraError(
+                    f"{self.url} does not support a manual exposure of {exposure * 1e3:g} ms "
+                    f"(it reports {got_s * 1e3:g} ms).", code="camera_unsupported")
+
+    # ---- worker-thread side -----------------------------------------------------------------
+
+    def _call(self, fn: Callable[[], _T], timeout: float, what: str) -> _T:
+        """Run ``fn`` on the capture thread; ``CameraTimeoutError`` after ``timeout`` s.
+
+        ``what`` is the timeout message, or the activity it names (``opening the camera``).
+        """
+        worker = self._worker
+        if worker is None:
+            raise CameraError(f"{self.url} is not open. Open it first.", code="camera_not_open")
+        try:
+            return worker.submit(fn).result(timeout=max(timeout, 0.0))
+        except FutureTimeout:
+            raise CameraTimeoutError(what if what.startswith(self.url) else
+                                     f"{self.url} did not answer within {timeout:g} s while "
+                                     f"{what}.") from None
+        except cv2.error as err:
+            raise CameraError(f"{self.url}: OpenCV error: {err.msg}") from None
+
+    def _open_capture(self) -> Any:
+        if self._kind == "directory":
+            return _ImageDirectory(Path(self._path))
+        if self._kind == "v4l2":
+            m = re.fullmatch(r"/dev/video(\d+)", self._path)
+            return cv2.VideoCapture(int(m.group(1)) if m else self._path, cv2.CAP_V4L2)
+        return cv2.VideoCapture(self._path, cv2.CAP_IMAGES if self._kind == "pattern"
+                                else cv2.CAP_ANY)
+
+    def _open_failure(self) -> str:
+        if self._kind == "v4l2":
+            return (f"{self._path} exists but cannot be opened as a V4L2 camera: is another "
+                    "program using it, or does this user lack access (the 'video' group)?")
+        if self._kind == "directory":
+            return (f"{self.url}: the directory holds no images "
+                    f"({' '.join(IMAGE_SUFFIXES)}).")
+        if self._kind == "pattern":
+            return f"{self.url}: no image matches the pattern (numbering must start at 0 or 1)."
+        return f"{self.url}: not a video file OpenCV can decode."
+
+    def _read_size(self) -> tuple[int, int]:
+        return (int(self._cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
+                int(self._cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+
+    def _read(self, deadline: float, no_frame: str) -> np.ndarray:
+        """Discard stale frames (live), grab the frame to return and decode it."""
+        cap = self._cap
+        if self.live:
+            buffers = int(cap.get(cv2.CAP_PROP_BUFFERSIZE))
+            to_grab = (buffers if buffers > 0 else DEFAULT_V4L2_BUFFERS) + 2
+        else:
+            to_grab = 1
+        while to_grab:
+            if time.monotonic() > deadline:
+                raise CameraTimeoutError(no_frame)
+            if cap.grab():
+                to_grab -= 1
+                continue
+            if not self.live:
+                raise CameraError(
+                    f"{self.url}: end of the recording after {self._frames_read} frames; "
+                    "there are no more frames to grab.", code="end_of_stream")
+            if not Path(self._path).exists():
+                raise CameraError(f"The camera {self._path} was disconnected.",
+                                  code="camera_disconnected")
+            time.sleep(0.005)  # the device is not streaming (yet): retry until the deadline
+        ok, frame = cap.retrieve()
+        if not ok or frame is None:
+            raise CameraError(f"{self.url}: could not decode the frame.", code="corrupt_frame")
+        self._frames_read += 1
+        return frame
+
+    def _set_resolution(self, w: int, h: int) -> tuple[int, int]:
+        self._cap.set(cv2.CAP_PROP_FRAME_WIDTH, w)
+        self._cap.set(cv2.CAP_PROP_FRAME_HEIGHT, h)
+        self._size = self._read_size()
+        return self._size
+
+    def _set_exposure(self, exposure: float) -> float:
+        self._cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, _V4L2_EXPOSURE_MANUAL)
+        self._cap.set(cv2.CAP_PROP_EXPOSURE, exposure / _V4L2_EXPOSURE_UNIT_S)
+        return float(self._cap.get(cv2.CAP_PROP_EXPOSURE)) * _V4L2_EXPOSURE_UNIT_S
+
+    def _check_open(self) -> None:
+        if self._cap is None:
+            raise CameraError(f"{self.url} is not open. Open it first.", code="camera_not_open")
+
+
+def _parse_url(url: str) -> tuple[str, str]:
+    """(kind, path) of a ``v4l2://`` or ``file://`` URL, else ValueError.
+
+    ``kind`` is ``v4l2``, ``pattern`` (a printf pattern) or ``file`` (a video, or a directory
+    once ``open`` has seen it is one). The path is taken literally: no percent-decoding, so
+    ``%04d`` stays a pattern.
+    """
+    parts = urlsplit(url)
+    scheme = parts.scheme.lower()
+    if scheme not in ("v4l2", "file"):
+        raise ValueError(f"not a camera URL: {url!r}; use v4l2:///dev/videoN or file:///path")
+    if parts.netloc not in ("", "localhost") or not parts.path.startswith("/"):
+        raise ValueError(f"{url!r}: write an absolute path after three slashes, e.g. "
+                         f"{scheme}:///{(parts.netloc + parts.path).lstrip('/')}")
+    if parts.query or parts.fragment:
+        raise ValueError(f"{url!r}: camera URLs take no '?' or '#' part")
+    if scheme == "v4l2":
+        return "v4l2", parts.path
+    return ("pattern" if "%" in Path(parts.path).name else "file"), parts.path

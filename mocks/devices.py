@@ -1,0 +1,440 @@
+"""Simulated robot and camera for a mock scene: the ``Robot`` and ``Camera`` Protocols.
+
+``MockRobot`` holds the *true* TCP pose and reports it with the scene's robot noise;
+``MockCamera`` renders the scene's board from the robot's true pose with the scene's image noise
+and blur. Both are instant by default (ophyd-async ``SimMotor(instant=True)``); realistic timing
+is on request. Both fail on purpose: faults are injected with ``inject_fault`` (or the robot's
+``faults`` argument) and surface as the same typed errors the real drivers raise.
+
+Noise model. A real controller reading at rest is stable: it differs from the true pose by the
+arm's calibration error for that configuration, not by fresh noise on every read. So the robot
+draws one noise transform (``calib.geometry.perturb``: Gaussian angle of sigma
+``robot_rot_deg`` about a random axis, Gaussian length of sigma ``robot_trans_mm`` in a random
+direction) each time a motion ends, and ``tcp_pose()`` returns ``true @ noise`` until the next
+motion ends.
+
+Kinematics. The mock is a Cartesian robot: ``move_linear`` accepts any pose inside the
+workspace box. Joint space is a UR5e (``mocks.ur_kinematics``, TCP = flange): ``move_joint``
+goes through forward kinematics, and ``joint_positions()`` solves inverse kinematics, which
+fails (``RobotError`` code ``joints_unknown``) for poses beyond a UR5e's 0.85 m reach — the
+default scene's stations reach about 1.2 m from the base.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from calib.geometry import check_ur_poses, perturb, ur_pose_from_matrix
+from drivers.base import CameraSession, RobotSession, RobotStatus
+from drivers.errors import (
+    CameraError,
+    CameraTimeoutError,
+    ProtectiveStopError,
+    RobotConnectionError,
+    RobotError,
+    WorkspaceError,
+)
+from mocks import ur_kinematics as kin
+from mocks.render import RenderParams, render_board
+from mocks.scene import MockScene, camera_pose_for_tcp
+from mocks.ur_emulator import trapezoid_fraction
+
+#: Robot faults: each affects the next move only (``slow`` its settling), see ``inject_fault``.
+ROBOT_FAULTS = ("protective_stop", "disconnect", "unreachable", "slow")
+#: Camera faults: each affects the next ``count`` grabs, see ``MockCamera.inject_fault``.
+CAMERA_FAULTS = ("timeout", "corrupt", "disconnect")
+
+#: Motion update period (s) of a timed move.
+_TICK = 0.01
+#: Extra settling time (s) of the ``slow`` fault when no value is given.
+_DEFAULT_SLOW_S = 10.0
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """An axis-aligned box in the base frame (metres) that TCP targets must lie in.
+
+    The default is a 3 m wide box above the base's z = 0 plane (the table the robot stands on):
+    it holds every station of the default scene and refuses targets below the table.
+    """
+
+    lo: tuple[float, float, float] = (-1.5, -1.5, 0.0)
+    hi: tuple[float, float, float] = (1.5, 1.5, 1.5)
+
+    def check(self, pose: np.ndarray) -> None:
+        """Raise ``WorkspaceError`` if the position of UR pose ``pose`` (6,) is outside."""
+        p = np.asarray(pose, dtype=float)[:3]
+        if np.all(p >= self.lo) and np.all(p <= self.hi):
+            return
+        mm = ", ".join(f"{v * 1e3:.0f}" for v in p)
+        box = " x ".join(f"[{a * 1e3:.0f}, {b * 1e3:.0f}]"
+                         for a, b in zip(self.lo, self.hi, strict=True))
+        raise WorkspaceError(f"Target position ({mm}) mm is outside the workspace limits "
+                             f"{box} mm (base frame); the robot was not moved.")
+
+
+def _parse_fault(spec: str, known: tuple[str, ...]) -> tuple[str, float | None]:
+    """``NAME`` or ``NAME=VALUE`` -> (name, value or None); ValueError for unknown names."""
+    name, _, value = spec.partition("=")
+    name = name.strip()
+    if name not in known:
+        raise ValueError(f"unknown fault {name!r}; known: {', '.join(known)}")
+    try:
+        return name, float(value) if value else None
+    except ValueError:
+        raise ValueError(f"fault {name!r}: value {value!r} is not a number") from None
+
+
+class MockRobot(RobotSession):
+    """A simulated arm implementing ``drivers.base.Robot`` over a ``MockScene``.
+
+    Parameters
+    ----------
+    scene : the cell; the robot starts at ``scene.start_pose()``.
+    instant : moves take no time and settle at once; otherwise they follow a trapezoidal
+        velocity profile (as the UR emulator does) and then ring out for ``settle_time`` s.
+    speed : speed slider, the fraction of the commanded speed and acceleration actually used.
+    seed : seed of the robot noise draws (default: the scene's seed).
+    settle_time : ringing time (s) after a timed move before ``wait_settled`` returns.
+    workspace : limits every move target must respect.
+    faults : fault specs ``NAME[=VALUE]`` injected from the start (see :meth:`inject_fault`).
+    """
+
+    def __init__(self, scene: MockScene, *, instant: bool = True, speed: float = 1.0,
+                 seed: int | None = None, settle_time: float = 0.2,
+                 workspace: Workspace | None = None, faults: Iterable[str] = ()) -> None:
+        if not 0.0 < speed <= 1.0:
+            raise ValueError(f"speed slider must be in (0, 1], got {speed}")
+        self.scene = scene
+        self.instant = instant
+        self.speed = speed
+        self.settle_time = 0.0 if instant else settle_time
+        self.workspace = workspace if workspace is not None else Workspace()
+        self._rng = np.random.default_rng([scene.seed if seed is None else seed, 1])
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._T = scene.start_pose()
+        self._noise = self._draw_noise()
+        self._q: np.ndarray | None = None  # joints, when known from a joint move
+        self._q_seed = kin.HOME_Q.copy()
+        self._connected = False
+        self._protective_stop = False
+        self._moving = False
+        self._settled_at = 0.0
+        self._faults: dict[str, float | None] = {}
+        for spec in faults:
+            self.inject_fault(*_parse_fault(spec, ROBOT_FAULTS))
+
+    # ---- simulation controls ----------------------------------------------------------------
+
+    @property
+    def true_pose(self) -> np.ndarray:
+        """The true (noise-free) base_T_tcp, shape (4, 4): what the camera sees from."""
+        with self._lock:
+            return self._T.copy()
+
+    def inject_fault(self, name: str, value: float | None = None) -> None:
+        """Make the next move fail or misbehave.
+
+        ``protective_stop``: the move stops half way with a protective stop, which stays until
+        :meth:`unlock_protective_stop`. ``disconnect``: the connection drops half way; every
+        call raises ``RobotConnectionError`` until :meth:`connect`. ``unreachable``: the move
+        is refused (code ``motion_failed``) and the robot stays put. ``slow``: the move takes
+        ``value`` s (default 10) longer to settle, so a shorter ``wait_settled`` times out.
+        """
+        _parse_fault(name, ROBOT_FAULTS)
+        with self._lock:
+            self._faults[name] = value
+
+    def clear_faults(self) -> None:
+        """Remove pending faults and unlock a protective stop."""
+        with self._lock:
+            self._faults.clear()
+            self._protective_stop = False
+
+    def unlock_protective_stop(self) -> None:
+        """Clear a protective stop, as the teach pendant does."""
+        with self._lock:
+            self._protective_stop = False
+
+    # ---- Robot Protocol ---------------------------------------------------------------------
+
+    def connect(self) -> None:
+        """Connect (again); never fails: a lost connection is restored."""
+        with self._lock:
+            self._connected = True
+
+    def close(self) -> None:
+        """Disconnect. Safe to call twice."""
+        with self._lock:
+            self._connected = False
+
+    def tcp_pose(self) -> np.ndarray:
+        """Reported TCP pose, shape (6,): the true pose with this rest's noise draw."""
+        with self._lock:
+            self._check_link()
+            return ur_pose_from_matrix(self._T @ self._noise)
+
+    def joint_positions(self) -> np.ndarray:
+        """Joint angles, shape (6,), of the UR5e model; ``joints_unknown`` beyond its reach."""
+        with self._lock:
+            self._check_link()
+            if self._q is None:
+                q = kin.ik(ur_pose_from_matrix(self._T), self._q_seed)
+                if q is None:
+                    raise RobotError(
+                        "The mock robot's TCP pose is beyond the reach of the UR5e model it "
+                        "uses for joint positions; joint positions are unknown here.",
+                        code="joints_unknown")
+                self._q = self._q_seed = q
+            return self._q.copy()
+
+    def move_linear(self, pose: np.ndarray, *, speed: float = 0.25,
+                    acceleration: float = 1.2) -> None:
+        """Move the TCP in a straight line to ``pose`` (shape (6,)); blocks until there."""
+        pose = np.asarray(pose, dtype=float)
+        if pose.shape != (6,):
+            raise ValueError(f"pose: expected [x, y, z, rx, ry, rz], got shape {pose.shape}")
+        T1 = check_ur_poses(pose, "pose")[0]
+        with self._lock:
+            T0 = self._T.copy()
+        slerp = Slerp([0.0, 1.0], Rotation.from_matrix([T0[:3, :3], T1[:3, :3]]))
+        lin = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
+        ang = float(np.linalg.norm((slerp(1.0) * slerp(0.0).inv()).as_rotvec()))
+
+        def path(s: float) -> tuple[np.ndarray, np.ndarray | None]:
+            T = T1.copy() if s >= 1.0 else np.eye(4)
+            if s < 1.0:
+                T[:3, :3] = slerp(s).as_matrix()
+                T[:3, 3] = T0[:3, 3] + s * (T1[:3, 3] - T0[:3, 3])
+            return T, None
+
+        self._move(pose, lin if lin > 1e-6 else ang, speed, acceleration, path)
+
+    def move_joint(self, q: np.ndarray, *, speed: float = 1.05,
+                   acceleration: float = 1.4) -> None:
+        """Move in joint space to ``q`` (shape (6,), radians); the TCP follows UR5e FK."""
+        q1 = np.asarray(q, dtype=float)
+        if q1.shape != (6,) or not np.isfinite(q1).all():
+            raise ValueError(f"q: expected 6 finite joint angles in radians, got {q!r}")
+        if np.abs(q1).max() > 2.0 * np.pi:
+            raise ValueError("q: joint angles beyond ±2π rad: were degrees given?")
+        q0 = self.joint_positions()
+
+        def path(s: float) -> tuple[np.ndarray, np.ndarray | None]:
+            qs = q1 if s >= 1.0 else q0 + s * (q1 - q0)
+            return kin.fk_matrix(qs), qs
+
+        self._move(kin.fk_pose(q1), float(np.abs(q1 - q0).max()), speed, acceleration, path)
+
+    def wait_settled(self, *, timeout: float = 5.0) -> None:
+        """Block until no move is running and the last one has rung out, or raise
+        ``RobotError`` (code ``not_settled``) after ``timeout`` s."""
+        deadline = time.monotonic() + timeout
+        while True:
+            with self._lock:
+                self._check_link()
+                rest_at = np.inf if self._moving else self._settled_at
+            now = time.monotonic()
+            if now >= rest_at:
+                return
+            if now >= deadline:
+                raise RobotError(f"The robot did not come to rest within {timeout:g} s.",
+                                 code="not_settled")
+            time.sleep(min(rest_at, deadline, now + _TICK) - now)
+
+    def stop(self) -> None:
+        """Stop a move in progress where it is (the move raises ``motion_stopped``)."""
+        self._stop.set()
+
+    def status(self) -> RobotStatus:
+        """Current simulated controller state."""
+        with self._lock:
+            return RobotStatus(connected=self._connected, program_running=self._connected,
+                               protective_stop=self._protective_stop,
+                               mode="running" if self._connected else "disconnected")
+
+    # ---- internals --------------------------------------------------------------------------
+
+    def _check_link(self) -> None:
+        """RobotConnectionError unless connected (call with the lock held)."""
+        if not self._connected:
+            raise RobotConnectionError("Not connected to the mock robot. Connect first.",
+                                       code="robot_not_connected")
+
+    def _draw_noise(self) -> np.ndarray:
+        """One reading-error transform (4, 4) from the scene's robot noise."""
+        n = self.scene.noise
+        return perturb(np.eye(4), np.deg2rad(n.robot_rot_deg), n.robot_trans_mm * 1e-3,
+                       self._rng)
+
+    def _move(self, target: np.ndarray, distance: float, speed: float, acceleration: float,
+              path: Callable[[float], tuple[np.ndarray, np.ndarray | None]]) -> None:
+        """Check, then play ``path`` (fraction -> (T_base_tcp, joints or None)) with faults."""
+        if speed <= 0.0 or acceleration <= 0.0:
+            raise ValueError("speed and acceleration must be positive")
+        with self._lock:
+            self._check_link()
+            if self._moving:
+                raise RobotError("The robot is already moving.", code="robot_busy")
+            if self._protective_stop:
+                raise ProtectiveStopError(
+                    "The robot is in a protective stop. Unlock it, then retry.")
+            self.workspace.check(target)
+            if "unreachable" in self._faults:
+                del self._faults["unreachable"]
+                raise RobotError(
+                    "The robot did not complete the move: the target may be out of reach or "
+                    "outside the safety limits.", code="motion_failed")
+            fault = next((f for f in ("protective_stop", "disconnect") if f in self._faults),
+                         None)
+            if fault:
+                del self._faults[fault]
+            extra_settle = 0.0
+            if "slow" in self._faults:
+                value = self._faults.pop("slow")
+                extra_settle = _DEFAULT_SLOW_S if value is None else max(value, 0.0)
+            self._moving = True
+            self._stop.clear()
+        v, a = speed * self.speed, acceleration * self.speed
+        start = time.monotonic()
+        try:
+            while True:
+                s = (1.0 if self.instant else
+                     trapezoid_fraction(time.monotonic() - start, distance, v, a))
+                if fault:
+                    s = min(s, 0.5)
+                T, q = path(s)
+                with self._lock:
+                    self._T, self._q = T, q
+                    if q is not None:
+                        self._q_seed = q
+                if fault and s >= 0.5:
+                    self._fail_mid_move(fault)
+                if s >= 1.0:
+                    return
+                if self._stop.is_set():
+                    raise RobotError("The move was stopped on request.", code="motion_stopped")
+                time.sleep(_TICK)
+        finally:
+            with self._lock:
+                self._moving = False
+                self._noise = self._draw_noise()
+                self._settled_at = time.monotonic() + self.settle_time + extra_settle
+
+    def _fail_mid_move(self, fault: str) -> None:
+        """Raise the error of a mid-move ``protective_stop`` or ``disconnect`` fault."""
+        with self._lock:
+            if fault == "protective_stop":
+                self._protective_stop = True
+            else:
+                self._connected = False
+        if fault == "protective_stop":
+            raise ProtectiveStopError(
+                "The robot made a protective stop (usually a collision or a safety limit). "
+                "Check that nothing is in the way, unlock the protective stop, then retry.")
+        raise RobotConnectionError(
+            "Lost the connection to the mock robot during a move; the robot may have stopped "
+            "anywhere along the path. Reconnect.")
+
+
+class MockCamera(CameraSession):
+    """A simulated camera implementing ``drivers.base.Camera``: renders what the robot sees.
+
+    Each grab renders the scene's true board (``mocks.render.render_board``) from the robot's
+    *true* pose at the time of the call (``camera_pose_for_tcp``), with fresh image noise from
+    a generator seeded by ``seed`` (default: the scene's seed). ``instant=False`` waits one to
+    two frame periods of ``fps``, like a live camera delivering the next full frame.
+    """
+
+    def __init__(self, scene: MockScene, robot: MockRobot, *, instant: bool = True,
+                 fps: float = 30.0, seed: int | None = None) -> None:
+        if fps <= 0.0:
+            raise ValueError(f"fps must be positive, got {fps}")
+        self.scene = scene
+        self.robot = robot
+        self.instant = instant
+        self.fps = fps
+        self._params = RenderParams.from_scene(scene)
+        self._rng = np.random.default_rng([scene.seed if seed is None else seed, 2])
+        self._opened = False
+        self._faults: dict[str, int] = {}
+        self._lock = threading.Lock()
+
+    def inject_fault(self, name: str, count: int = 1) -> None:
+        """Make the next ``count`` grabs fail.
+
+        ``timeout``: no frame arrives (``CameraTimeoutError`` after the grab's timeout).
+        ``corrupt``: the frame is torn, as after a truncated USB transfer: from a random row
+        down it is black. ``disconnect``: the camera is unplugged; grabs raise ``CameraError``
+        until :meth:`open` (``count`` is ignored).
+        """
+        _parse_fault(name, CAMERA_FAULTS)
+        if count < 1:
+            raise ValueError(f"count must be at least 1, got {count}")
+        with self._lock:
+            self._faults[name] = count
+
+    def clear_faults(self) -> None:
+        """Remove pending faults."""
+        with self._lock:
+            self._faults.clear()
+
+    def open(self) -> None:
+        """Open (or plug back in) the camera."""
+        with self._lock:
+            self._opened = True
+            self._faults.pop("disconnect", None)
+
+    def close(self) -> None:
+        """Close the camera. Safe to call twice."""
+        with self._lock:
+            self._opened = False
+
+    def grab(self, *, timeout: float = 2.0) -> np.ndarray:
+        """A frame rendered now, shape (H, W) uint8 grey."""
+        with self._lock:
+            if not self._opened or "disconnect" in self._faults:
+                self._opened = False
+                raise CameraError("The mock camera is not open (unplugged?). Open it first.",
+                                  code="camera_not_open")
+            fault = next((f for f in ("timeout", "corrupt") if f in self._faults), None)
+            if fault:
+                self._faults[fault] -= 1
+                if not self._faults[fault]:
+                    del self._faults[fault]
+        if fault == "timeout":
+            time.sleep(max(timeout, 0.0))
+            raise CameraTimeoutError(f"The mock camera delivered no frame within {timeout:g} s.")
+        if not self.instant:
+            period = 1.0 / self.fps  # the rest of the current frame, then one full frame
+            time.sleep(min(2.0 * period - time.monotonic() % period, timeout))
+        T_cam_target = camera_pose_for_tcp(self.scene, self.robot.true_pose)
+        with self._lock:
+            image = render_board(self._params, T_cam_target, rng=self._rng)
+            if fault == "corrupt":
+                image[int(self._rng.integers(image.shape[0] // 4, image.shape[0])):] = 0
+        return image
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        """(width, height) of the scene's camera."""
+        w, h = self.scene.camera.image_size
+        return int(w), int(h)
+
+    def configure(self, *, resolution: tuple[int, int] | None = None,
+                  exposure: float | None = None) -> None:
+        """Accept the scene's resolution only; accept (and ignore) any positive exposure."""
+        if resolution is not None and tuple(resolution) != self.resolution:
+            w, h = self.resolution
+            raise CameraError(f"The mock camera only delivers {w}x{h}, the scene's image size; "
+                              f"{resolution[0]}x{resolution[1]} is not supported.",
+                              code="camera_unsupported")
+        if exposure is not None and (not np.isfinite(exposure) or exposure <= 0.0):
+            raise ValueError(f"exposure must be a positive time in seconds, got {exposure}")
