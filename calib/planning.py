@@ -1,0 +1,330 @@
+"""Station planning: robot poses that show the board well and determine the hand-eye.
+
+Pure geometry, no I/O. Frames follow ``docs/conventions.md``; the two guesses a plan needs are
+the two unknowns of the calibration, in the result's own convention:
+
+============  ==========================  ===========================================
+setup         ``hand_eye_guess``          ``target_pose_guess``
+============  ==========================  ===========================================
+eye-in-hand   tcp_T_cam (camera on tool)  base_T_target (board fixed in the cell)
+eye-to-hand   base_T_cam (fixed camera)   tcp_T_target (board carried by the tool)
+============  ==========================  ===========================================
+
+Rough values are enough (a CAD guess for the hand-eye, :func:`rough_target_from_image` for
+the target): the plan keeps a margin around the board in the image.
+
+Every station is first chosen as a *view* ``cam_T_target``: the camera looks at a point near
+the pattern centre along the board normal tilted by up to ``max_tilt_deg`` about an in-plane
+axis (axes spread around the circle, so the motions between stations rotate about varied
+axes), rolled about its optical axis, from a distance in ``distance_band``. A view is kept when
+the whole board projects inside the image with a margin and its tcp pose lies in the workspace
+box. The stations are then ordered for short travel, and a plan whose motions could not
+determine the hand-eye (Chen: two non-parallel screw axes) is refused before the robot moves.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.spatial.transform import Rotation
+
+from calib.geometry import check_transforms, invert, make_transform, rotation_angle
+from calib.handeye import (
+    MIN_STATIONS,
+    SETUPS,
+    check_motion_diversity,
+    tool_side_motions,
+)
+from calib.target import board_points
+
+#: Metres of travel one radian of tool rotation is worth when ordering stations.
+ROTATION_WEIGHT_M_PER_RAD = 0.1
+#: A plan's motion axes must spread at least this much (stricter than the solver's 2 deg:
+#: a plan should be well conditioned, not merely solvable).
+MIN_PLAN_AXIS_SPREAD_DEG = 10.0
+#: Largest view tilt accepted: beyond it corners foreshorten too much to detect reliably.
+MAX_TILT_LIMIT_DEG = 70.0
+#: Candidate views tried per station before the request is declared infeasible.
+_ATTEMPTS_PER_STATION = 300
+#: Look-at points are jittered by this fraction of the pattern's half extent.
+_LOOK_AT_JITTER = 0.2
+#: Smallest cosine between the start camera's optical axis and the board normal.
+_MIN_START_FACING = 0.2
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Stations in visiting order.
+
+    Attributes
+    ----------
+    tcp_poses : shape (n, 4, 4)
+        base_T_tcp to command, visiting order.
+    views : shape (n, 4, 4)
+        cam_T_target expected at each station under the guesses.
+    travel : float
+        Path length from the start through all stations: metres plus
+        ``ROTATION_WEIGHT_M_PER_RAD`` times radians (:func:`path_length`).
+    """
+
+    tcp_poses: np.ndarray
+    views: np.ndarray
+    travel: float
+
+
+def plan_stations(n: int, *, start_tcp_pose: np.ndarray, target_pose_guess: np.ndarray,
+                  hand_eye_guess: np.ndarray, K: np.ndarray, image_size: tuple[int, int],
+                  inner_corners: tuple[int, int], square_size: float,
+                  distance_band: tuple[float, float],
+                  workspace: tuple[ArrayLike, ArrayLike],
+                  setup: str = "eye_in_hand", dist: ArrayLike | None = None,
+                  max_tilt_deg: float = 35.0, max_roll_deg: float = 90.0,
+                  margin_frac: float = 0.04,
+                  rng: np.random.Generator | int | None = None) -> Plan:
+    """Plan ``n`` calibration stations; refuse requests that would give a degenerate plan.
+
+    Parameters
+    ----------
+    n : number of stations, at least ``MIN_STATIONS``.
+    start_tcp_pose : shape (4, 4), base_T_tcp where the robot is now; the tour starts here and
+        the views' roll is measured from the start view's.
+    target_pose_guess, hand_eye_guess : shape (4, 4), rough unknowns (module docstring table).
+    K : shape (3, 3), approximate camera matrix; ``image_size`` (width, height) in pixels.
+    inner_corners : (cols, rows); ``square_size`` nominal, metres.
+    distance_band : (near, far), metres from the camera to the look-at point on the board.
+    workspace : (lo, hi), each shape (3,): box in the base frame the tcp positions must lie in.
+    setup : ``eye_in_hand`` or ``eye_to_hand``.
+    dist : OpenCV distortion coefficients, default none.
+    max_tilt_deg : largest angle between the optical axis and the board normal.
+    max_roll_deg : largest roll about the optical axis, relative to the start view.
+    margin_frac : free image border around the board, fraction of the smaller image side.
+    rng : generator or seed.
+
+    Raises
+    ------
+    ValueError
+        Saying what to change: too few stations, bad options, a start pose that does not face
+        the board, a board or workspace that cannot fit the views, or parallel motion axes.
+    """
+    if n < MIN_STATIONS:
+        raise ValueError(f"a plan needs at least {MIN_STATIONS} stations to determine the "
+                         f"hand-eye, got {n}: ask for more stations (10-20 is typical)")
+    if setup not in SETUPS:
+        raise ValueError(f"unknown setup '{setup}': choose eye_in_hand or eye_to_hand")
+    if not 0.0 < max_tilt_deg <= MAX_TILT_LIMIT_DEG:
+        raise ValueError(f"max_tilt_deg must be in (0, {MAX_TILT_LIMIT_DEG:g}], got "
+                         f"{max_tilt_deg}: tilted views are what make the hand-eye solvable")
+    near, far = (float(d) for d in distance_band)
+    if not 0.0 < near <= far:
+        raise ValueError(f"distance_band must be (near, far) metres with 0 < near <= far, "
+                         f"got {distance_band}")
+    lo, hi = (np.asarray(b, dtype=float).reshape(3) for b in workspace)
+    if not (lo < hi).all():
+        raise ValueError(f"workspace must be (lo, hi) with lo < hi on every axis, got "
+                         f"lo={lo.tolist()}, hi={hi.tolist()}")
+    P0 = check_transforms(start_tcp_pose, "start_tcp_pose")[0]
+    X = check_transforms(hand_eye_guess, "hand_eye_guess")[0]
+    Y = check_transforms(target_pose_guess, "target_pose_guess")[0]
+    K = np.asarray(K, dtype=float)
+    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError("K must be a finite 3x3 camera matrix with positive focal lengths")
+    if len(image_size) != 2 or min(image_size) <= 0:
+        raise ValueError(f"image_size must be (width, height) in pixels, got {image_size}")
+    dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=float)
+    rng = np.random.default_rng(rng)
+
+    cols, rows = inner_corners
+    grid = board_points(inner_corners, square_size)
+    centre = grid[[0, -1]].mean(axis=0)
+    half_extent = grid[-1] - centre
+    outline = _board_outline(cols, rows, square_size)
+    roll0 = _start_roll(camera_view(P0, X, Y, setup))
+
+    views: list[np.ndarray] = []
+    tcps: list[np.ndarray] = []
+    for k in range(n):
+        in_view = 0
+        for _ in range(_ATTEMPTS_PER_STATION):
+            azimuth = 2.0 * np.pi * (k + rng.uniform()) / n
+            tilt = np.deg2rad(max_tilt_deg) * np.sqrt(rng.uniform(0.1, 1.0))
+            roll = roll0 + np.deg2rad(max_roll_deg) * rng.uniform(-1.0, 1.0)
+            look_at = centre + _LOOK_AT_JITTER * half_extent * rng.uniform(-1.0, 1.0, 3)
+            C = look_at_view(look_at, tilt, azimuth, roll, rng.uniform(near, far))
+            if not _board_in_view(C, outline, K, dist, image_size, margin_frac):
+                continue
+            in_view += 1
+            P = tcp_pose_for_view(C, X, Y, setup)
+            if not ((P[:3, 3] >= lo).all() and (P[:3, 3] <= hi).all()):
+                continue
+            views.append(C)
+            tcps.append(P)
+            break
+        else:
+            raise ValueError(_infeasible_message(k, n, in_view > 0, (near, far), lo, hi))
+
+    P_all, C_all = np.array(tcps), np.array(views)
+    try:
+        check_motion_diversity(tool_side_motions(P_all, C_all, setup),
+                               min_spread_deg=MIN_PLAN_AXIS_SPREAD_DEG)
+    except ValueError as err:
+        raise ValueError(f"planned stations would not determine the hand-eye ({err}); "
+                         "raise max_tilt_deg or the number of stations") from None
+    order = order_for_travel(P0, P_all)
+    return Plan(tcp_poses=P_all[order], views=C_all[order],
+                travel=path_length(P0, P_all[order]))
+
+
+def rough_target_from_image(corners: np.ndarray, K: np.ndarray, inner_corners: tuple[int, int],
+                            square_size: float, start_tcp_pose: np.ndarray,
+                            hand_eye_guess: np.ndarray, *, setup: str = "eye_in_hand",
+                            dist: ArrayLike | None = None) -> np.ndarray:
+    """Rough target pose from one detection at the start pose, for :func:`plan_stations`.
+
+    ``solvePnP`` of the nominal board gives cam_T_target, closed through the chain:
+    base_T_target = ``P X C`` eye-in-hand, tcp_T_target = ``inv(P) X C`` eye-to-hand
+    (``docs/conventions.md``). Approximate intrinsics are fine: errors of a few percent in
+    focal length move the board by a few percent of its distance, which the plan's margin
+    absorbs.
+
+    Parameters
+    ----------
+    corners : shape (cols * rows, 2), detected corners in the order of ``board_points``.
+    K : shape (3, 3); ``dist`` OpenCV coefficients, default none.
+    inner_corners : (cols, rows); ``square_size`` nominal, metres.
+    start_tcp_pose : shape (4, 4), base_T_tcp when the image was taken.
+    hand_eye_guess : shape (4, 4), tcp_T_cam (eye-in-hand) or base_T_cam (eye-to-hand).
+
+    Returns
+    -------
+    target_pose : shape (4, 4), base_T_target (eye-in-hand) or tcp_T_target (eye-to-hand).
+    """
+    if setup not in SETUPS:
+        raise ValueError(f"unknown setup '{setup}': choose eye_in_hand or eye_to_hand")
+    obj = board_points(inner_corners, square_size)
+    img = np.asarray(corners, dtype=float).reshape(-1, 2)
+    if img.shape[0] != obj.shape[0]:
+        raise ValueError(f"got {img.shape[0]} corners for a {inner_corners[0]}x"
+                         f"{inner_corners[1]} board ({obj.shape[0]} expected)")
+    P = check_transforms(start_tcp_pose, "start_tcp_pose")[0]
+    X = check_transforms(hand_eye_guess, "hand_eye_guess")[0]
+    dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=float)
+    ok, rvec, tvec = cv2.solvePnP(obj, img, np.asarray(K, dtype=float), dist,
+                                  flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        raise ValueError("solvePnP failed on the detected corners: check K and inner_corners")
+    C = make_transform(cv2.Rodrigues(rvec)[0], tvec.ravel())
+    return P @ X @ C if setup == "eye_in_hand" else invert(P) @ X @ C
+
+
+def camera_view(T_base_tcp: np.ndarray, hand_eye: np.ndarray, target_pose: np.ndarray,
+                setup: str) -> np.ndarray:
+    """cam_T_target seen from robot pose(s) base_T_tcp, shapes (..., 4, 4) -> (..., 4, 4).
+
+    Eye-in-hand ``inv(X) inv(P) Y``, eye-to-hand ``inv(X) P Y`` (``docs/conventions.md``).
+    """
+    if setup == "eye_in_hand":
+        return invert(hand_eye) @ invert(T_base_tcp) @ target_pose
+    return invert(hand_eye) @ T_base_tcp @ target_pose
+
+
+def tcp_pose_for_view(T_cam_target: np.ndarray, hand_eye: np.ndarray, target_pose: np.ndarray,
+                      setup: str) -> np.ndarray:
+    """base_T_tcp giving view(s) cam_T_target, (..., 4, 4); inverse of :func:`camera_view`."""
+    if setup == "eye_in_hand":
+        return target_pose @ invert(T_cam_target) @ invert(hand_eye)
+    return hand_eye @ T_cam_target @ invert(target_pose)
+
+
+def look_at_view(look_at: np.ndarray, tilt: float, azimuth: float, roll: float,
+                 distance: float) -> np.ndarray:
+    """cam_T_target, shape (4, 4), of a camera ``distance`` m from ``look_at`` (target frame).
+
+    The optical axis is the board normal +z (which points away from a camera seeing the
+    front) tilted by ``tilt`` rad about the in-plane axis at ``azimuth`` rad from x; at zero
+    tilt the camera x axis is at angle ``roll`` from the board x axis.
+    """
+    tilt_axis = np.array([np.cos(azimuth), np.sin(azimuth), 0.0])
+    R = (Rotation.from_rotvec(tilt * tilt_axis) * Rotation.from_rotvec([0.0, 0.0, roll]))
+    R_target_cam = R.as_matrix()
+    origin = np.asarray(look_at, dtype=float) - distance * R_target_cam[:, 2]
+    return invert(make_transform(R_target_cam, origin))
+
+
+def travel_cost(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
+    """Combined distance between poses (..., 4, 4): metres + weight x rotation angle (rad)."""
+    dR = np.swapaxes(T_a[..., :3, :3], -1, -2) @ T_b[..., :3, :3]
+    return (np.linalg.norm(T_b[..., :3, 3] - T_a[..., :3, 3], axis=-1)
+            + ROTATION_WEIGHT_M_PER_RAD * rotation_angle(dR))
+
+
+def path_length(start: np.ndarray, poses: np.ndarray) -> float:
+    """Total :func:`travel_cost` from ``start`` (4, 4) through ``poses`` (n, 4, 4) in order."""
+    path = np.concatenate([np.asarray(start)[None], poses])
+    return float(travel_cost(path[:-1], path[1:]).sum())
+
+
+def order_for_travel(start: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """Greedy nearest-neighbour visiting order of ``poses`` (n, 4, 4) from ``start``, (n,) int."""
+    left = list(range(len(poses)))
+    order: list[int] = []
+    here = np.asarray(start)
+    while left:
+        nxt = left[int(np.argmin(travel_cost(here, poses[left])))]
+        order.append(nxt)
+        left.remove(nxt)
+        here = poses[nxt]
+    return np.array(order, dtype=int)
+
+
+def _start_roll(C0: np.ndarray) -> float:
+    """Roll (rad) of the start view: angle of the camera x axis in the board plane."""
+    R_target_cam = C0[:3, :3].T
+    if R_target_cam[2, 2] < _MIN_START_FACING or C0[2, 3] <= 0.0:
+        raise ValueError(
+            "at the start pose the camera does not face the front of the board under the "
+            "given guesses: check target_pose_guess, hand_eye_guess and setup, or move the "
+            "robot so that the camera sees the board")
+    x = R_target_cam[:, 0]
+    return float(np.arctan2(x[1], x[0]))
+
+
+def _board_outline(cols: int, rows: int, square_size: float, per_side: int = 8) -> np.ndarray:
+    """Points along the outer edge of the squares (one square beyond the inner corners),
+    shape (4 * per_side, 3), target frame."""
+    t = np.linspace(0.0, 1.0, per_side, endpoint=False)
+    x0, y0, x1, y1 = -square_size, -square_size, cols * square_size, rows * square_size
+    xs = np.concatenate([x0 + (x1 - x0) * t, np.full_like(t, x1), x1 - (x1 - x0) * t,
+                         np.full_like(t, x0)])
+    ys = np.concatenate([np.full_like(t, y0), y0 + (y1 - y0) * t, np.full_like(t, y1),
+                         y1 - (y1 - y0) * t])
+    return np.stack([xs, ys, np.zeros_like(xs)], axis=1)
+
+
+def _board_in_view(C: np.ndarray, outline: np.ndarray, K: np.ndarray, dist: np.ndarray,
+                   image_size: tuple[int, int], margin_frac: float) -> bool:
+    """Whether the outline projects in front of the camera and inside the image margin."""
+    if ((outline @ C[:3, :3].T)[:, 2] + C[2, 3] <= 0.0).any():
+        return False
+    uv, _ = cv2.projectPoints(outline, cv2.Rodrigues(C[:3, :3])[0], C[:3, 3], K, dist)
+    uv = uv.reshape(-1, 2)
+    w, h = image_size
+    m = margin_frac * min(w, h)
+    return bool((uv >= m).all() and (uv <= [w - m, h - m]).all())
+
+
+def _infeasible_message(k: int, n: int, views_fit: bool, band: tuple[float, float],
+                        lo: np.ndarray, hi: np.ndarray) -> str:
+    """Why station ``k`` could not be placed (``views_fit``: some views showed the board but
+    their tcp poses left the workspace), and what to change."""
+    head = f"could place only {k} of {n} stations"
+    if views_fit:
+        box = " x ".join(f"[{a:.3f}, {b:.3f}]" for a, b in zip(lo, hi, strict=True))
+        return (f"{head}: the workspace box {box} m is too small to fit the views (tcp poses "
+                "outside it): enlarge the workspace, bring the board closer to its centre, or "
+                "shorten the distance band")
+    return (f"{head}: the board does not fit in the image with its margin at "
+            f"{band[0]:.3f}-{band[1]:.3f} m: increase the distance band, or lower "
+            "max_tilt_deg or max_roll_deg")

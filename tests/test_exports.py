@@ -1,0 +1,170 @@
+import json
+import xml.etree.ElementTree as ET
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from calib.geometry import make_transform, matrix_from_ur_pose, ur_pose_from_matrix
+from calib.handeye import HandEyeResult
+from mocks.scene import default_scene
+from service.exports import FORMATS, export
+from service.results import hand_eye_result_json
+
+SCENE = default_scene()
+
+
+def full_result(setup="eye_in_hand", hand_eye=None, dist=None):
+    X = SCENE.hand_eye_matrix if hand_eye is None else hand_eye
+    Y = SCENE.target_pose_matrix
+    return {
+        "format": "cellcal/result@1",
+        "setup": setup,
+        "camera": {"image_size": [1280, 1024], "K": SCENE.camera.K,
+                   "dist": SCENE.camera.dist if dist is None else dist, "rms_px": 0.05},
+        "target": {"kappa": 1.005, "nu": 0.9975},
+        "hand_eye": {"matrix": X.tolist(), "pose": ur_pose_from_matrix(X).tolist()},
+        "target_pose": {"matrix": Y.tolist(), "pose": ur_pose_from_matrix(Y).tolist()},
+    }
+
+
+def pose_only_result():
+    fit = HandEyeResult(setup="eye_in_hand", method="sm", hand_eye=SCENE.hand_eye_matrix,
+                        target_pose=SCENE.target_pose_matrix)
+    return hand_eye_result_json(fit, [], options={})
+
+
+def read_cv_yaml(text):
+    return cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY
+                           | cv2.FILE_STORAGE_FORMAT_YAML)
+
+
+def test_json_round_trips():
+    result = full_result()
+    content, media, name = export(result, "json")
+    assert (media, name) == ("application/json", "calibration.json")
+    assert json.loads(content) == result
+
+
+def test_opencv_yaml_round_trips_through_filestorage():
+    content, media, name = export(full_result(), "opencv-yaml")
+    assert media == "application/yaml" and name.endswith(".yaml")
+    assert content.startswith("%YAML:1.0")
+    assert "hand_eye: !!opencv-matrix" in content
+    fs = read_cv_yaml(content)
+    assert fs.getNode("image_width").real() == 1280
+    assert fs.getNode("image_height").real() == 1024
+    np.testing.assert_array_equal(fs.getNode("camera_matrix").mat(), SCENE.camera.k_matrix)
+    np.testing.assert_array_equal(fs.getNode("distortion_coefficients").mat().ravel(),
+                                  SCENE.camera.dist)
+    np.testing.assert_array_equal(fs.getNode("hand_eye").mat(), SCENE.hand_eye_matrix)
+    np.testing.assert_array_equal(fs.getNode("target_pose").mat(), SCENE.target_pose_matrix)
+    assert fs.getNode("setup").string() == "eye_in_hand"
+    assert fs.getNode("kappa").real() == 1.005
+    assert "hand_eye = tcp_T_cam" in content
+
+
+def test_ros_camera_info_has_the_ros_layout():
+    content, media, name = export(full_result(), "ros-camera-info", camera_name="cell_cam")
+    assert (media, name) == ("application/yaml", "camera_info.yaml")
+    lines = content.splitlines()
+    assert lines[:3] == ["image_width: 1280", "image_height: 1024", "camera_name: cell_cam"]
+    assert "distortion_model: plumb_bob" in lines
+    for key, shape in [("camera_matrix", (3, 3)), ("distortion_coefficients", (1, 5)),
+                       ("rectification_matrix", (3, 3)), ("projection_matrix", (3, 4))]:
+        i = lines.index(f"{key}:")
+        assert lines[i + 1:i + 3] == [f"  rows: {shape[0]}", f"  cols: {shape[1]}"]
+    # the same text read as YAML (OpenCV's parser needs its header line)
+    fs = read_cv_yaml("%YAML:1.0\n" + content)
+    data = {k: np.array([fs.getNode(k).getNode("data").at(i).real()
+                         for i in range(fs.getNode(k).getNode("data").size())])
+            for k in ("camera_matrix", "distortion_coefficients", "rectification_matrix",
+                      "projection_matrix")}
+    K = SCENE.camera.k_matrix
+    np.testing.assert_array_equal(data["camera_matrix"].reshape(3, 3), K)
+    np.testing.assert_array_equal(data["distortion_coefficients"], SCENE.camera.dist)
+    np.testing.assert_array_equal(data["rectification_matrix"].reshape(3, 3), np.eye(3))
+    np.testing.assert_array_equal(data["projection_matrix"].reshape(3, 4),
+                                  np.hstack([K, np.zeros((3, 1))]))
+
+
+def test_ros_camera_info_distortion_models():
+    four = export(full_result(dist=[0.1, 0.2, 0.0, 0.0]), "ros-camera-info")[0]
+    assert "data: [0.1, 0.2, 0.0, 0.0, 0.0]" in four
+    eight = export(full_result(dist=[0.1] * 8), "ros-camera-info")[0]
+    assert "distortion_model: rational_polynomial" in eight
+    with pytest.raises(ValueError, match="no distortion model with 14 coefficients"):
+        export(full_result(dist=[0.0] * 14), "ros-camera-info")
+
+
+def urdf_joint(content):
+    root = ET.fromstring(content)
+    joint = root.find("joint")
+    origin = joint.find("origin")
+    xyz = np.array(origin.get("xyz").split(), dtype=float)
+    rpy = np.array(origin.get("rpy").split(), dtype=float)
+    return joint, xyz, rpy
+
+
+@pytest.mark.parametrize(("setup", "parent"), [("eye_in_hand", "tool0"),
+                                               ("eye_to_hand", "base")])
+def test_urdf_origin_reproduces_the_hand_eye(setup, parent):
+    X = SCENE.hand_eye_matrix
+    content, media, name = export(full_result(setup), "urdf")
+    assert (media, name) == ("application/xml", "camera_joint.urdf")
+    joint, xyz, rpy = urdf_joint(content)
+    assert joint.get("type") == "fixed"
+    assert joint.find("parent").get("link") == parent
+    assert joint.find("child").get("link") == "camera_optical_frame"
+    np.testing.assert_array_equal(xyz, X[:3, 3])
+    # URDF rpy: fixed axes x, y, z, i.e. R = Rz(yaw) Ry(pitch) Rx(roll)
+    Rz, Ry, Rx = (Rotation.from_euler(a, v).as_matrix() for a, v in zip("zyx", rpy[::-1],
+                                                                          strict=True))
+    np.testing.assert_allclose(Rz @ Ry @ Rx, X[:3, :3], atol=1e-14)
+    np.testing.assert_allclose(Rotation.from_euler("xyz", rpy).as_matrix(), X[:3, :3],
+                               atol=1e-14)
+    assert "R = Rz(yaw) Ry(pitch) Rx(roll)" in content
+
+
+def test_urdf_at_gimbal_lock_still_reproduces_the_matrix():
+    X = make_transform(Rotation.from_euler("xyz", [0.3, np.pi / 2, -0.2]).as_matrix(),
+                       [0.0, 0.0, 0.1])
+    _, _, rpy = urdf_joint(export(full_result(hand_eye=X), "urdf")[0])
+    np.testing.assert_allclose(Rotation.from_euler("xyz", rpy).as_matrix(), X[:3, :3],
+                               atol=1e-12)
+
+
+def test_ur_pose_is_the_hand_eye_as_a_pose_vector():
+    content, media, name = export(pose_only_result(), "ur-pose")
+    assert media == "text/plain" and name.endswith(".txt")
+    comment, line = content.splitlines()
+    assert comment.startswith("# ") and "tcp_T_cam" in comment and "TCP offset" in comment
+    assert line.startswith("p[") and line.endswith("]")
+    pose = np.array(line[2:-1].split(","), dtype=float)
+    np.testing.assert_allclose(matrix_from_ur_pose(pose), SCENE.hand_eye_matrix, atol=1e-15)
+
+
+def test_pose_formats_work_for_pose_only_results():
+    assert export(pose_only_result(), "urdf")[0].startswith("<?xml")
+    assert json.loads(export(pose_only_result(), "json")[0])["camera"] is None
+
+
+@pytest.mark.parametrize("fmt", ["opencv-yaml", "ros-camera-info"])
+def test_camera_formats_refuse_pose_only_results(fmt):
+    with pytest.raises(ValueError, match=f"format '{fmt}' needs a camera model.*pose-only.*"
+                                         "json, urdf, ur-pose"):
+        export(pose_only_result(), fmt)
+
+
+def test_unknown_format_lists_the_choices():
+    with pytest.raises(ValueError, match="unknown export format 'csv': choose one of "
+                                         + ", ".join(FORMATS)):
+        export(full_result(), "csv")
+
+
+def test_bad_hand_eye_is_refused():
+    result = full_result()
+    result["hand_eye"]["matrix"][0][0] = 2.0
+    with pytest.raises(ValueError, match=r"hand_eye.*not orthonormal"):
+        export(result, "ur-pose")
