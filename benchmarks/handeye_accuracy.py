@@ -30,7 +30,7 @@ from calib.screw import solve_sm
 from mocks.posesim import default_cell, simulate
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
 
 OPENCV = [m for m in METHODS if m not in ("sm", "joint")]
 OUT = Path(__file__).parent / "results"

@@ -149,7 +149,7 @@ def project(points: np.ndarray, K: np.ndarray, dist: np.ndarray,
         empty = np.zeros((n, 2, 3))
         return uv, ProjectionJacobian(d_intr, d_dist, empty, empty, d_cam)
     # d(R p)/d rvec = -[R p]x J_l(rvec), J_l the left Jacobian of SO(3); g [v]x = g x v.
-    d_rvec = _matmul_rows(np.cross(RP[:, None, :], d_cam), _left_jacobian(rvec)[pose_index])
+    d_rvec = _matmul_rows(np.cross(RP[:, None, :], d_cam), left_jacobian(rvec)[pose_index])
     return uv, ProjectionJacobian(d_intr, d_dist, d_rvec, d_cam, _matmul_rows(d_cam, R))
 
 
@@ -183,7 +183,7 @@ def _so3_coefficients(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     return a, b, c
 
 
-def _left_jacobian(rvec: np.ndarray) -> np.ndarray:
+def left_jacobian(rvec: np.ndarray) -> np.ndarray:
     """Left Jacobian of SO(3) ``I + (1-cos t)/t² W + (t-sin t)/t³ W²``, (N, 3) -> (N, 3, 3)."""
     theta = np.linalg.norm(rvec, axis=-1)[..., None, None]
     W = _skew(rvec)

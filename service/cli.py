@@ -10,30 +10,44 @@ import argparse
 import json
 import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
 
 from calib.handeye import METHODS, calibrate_hand_eye
+from calib.target import Detection
 from drivers.errors import DeviceError
+from service import cli_devices, cli_serve
+
+if TYPE_CHECKING:
+    from service.stationset import StationSet
 
 EXIT_USAGE = 2
 EXIT_FAILED = 1
 
 
+#: Show a detection progress bar from this many images on.
+PROGRESS_MIN_IMAGES = 10
+
+
 def _calibrate(args: argparse.Namespace) -> int:
-    from service.results import hand_eye_result_json
     from service.stationset import load_station_set
 
     stations = load_station_set(args.station_dir)
-    if not stations.pose_only:
-        raise ValueError(
-            f"{args.station_dir}: stations with images need the image pipeline, which this "
-            "version does not have yet; give each station a 'target_pose' (cam_T_target)")
-    P, C = stations.pose_arrays()
-    options = {"estimate_kappa": args.estimate_kappa}
-    result = calibrate_hand_eye(P, C, setup=stations.setup, method=args.method, **options)
-    doc = hand_eye_result_json(result, [s.id for s in stations.stations], options=options,
-                               command=" ".join(["cellcal", *sys.argv[1:]]))
+    command = " ".join(["cellcal", *sys.argv[1:]])
+    if stations.pose_only:
+        from service.results import hand_eye_result_json
+
+        P, C = stations.pose_arrays()
+        options = {"estimate_kappa": args.estimate_kappa}
+        result = calibrate_hand_eye(P, C, setup=stations.setup, method=args.method, **options)
+        doc = hand_eye_result_json(result, [s.id for s in stations.stations], options=options,
+                                   command=command)
+    else:
+        doc = _calibrate_images(args, stations, command)
     text = json.dumps(doc, indent=2)
     if args.out in (None, "-"):
         print(text)
@@ -41,6 +55,66 @@ def _calibrate(args: argparse.Namespace) -> int:
         Path(args.out).write_text(text + "\n")
         print(f"wrote {args.out}", file=sys.stderr)
     return 0
+
+
+def _calibrate_images(args: argparse.Namespace, stations: StationSet,
+                      command: str) -> dict[str, Any]:
+    """Result document of a station set with images (``calib.pipeline``)."""
+    from tqdm import tqdm
+
+    from calib.pipeline import calibrate_stations
+    from service.results import calibration_result_json
+
+    posed = [s.id for s in stations.stations if s.target_pose is not None]
+    if posed:
+        raise ValueError(f"{args.station_dir}: station {posed[0]} has a target_pose while others "
+                         "have images; a station set is either pose-only or image-based")
+    target = stations.target
+    directory = Path(args.station_dir)
+    images = (_read_image(directory, s.image) for s in stations.stations)
+    n = len(stations.stations)
+
+    def progress(items: Iterable[Any]) -> Iterable[Any]:
+        return tqdm(items, total=n, desc="detecting corners", unit="image", file=sys.stderr,
+                    disable=n < PROGRESS_MIN_IMAGES, leave=False)
+
+    intrinsics = None if stations.intrinsics is None else (
+        stations.intrinsics.K, stations.intrinsics.dist)
+    result = calibrate_stations(
+        images, [s.tcp_pose for s in stations.stations], inner_corners=target.inner_corners,
+        square_size=target.square_size_m, setup=stations.setup,
+        station_ids=[s.id for s in stations.stations], intrinsics=intrinsics,
+        method=args.method, nu_method=args.nu_method, progress=progress)
+    return calibration_result_json(result, command=command)
+
+
+def _read_image(directory: Path, name: str) -> np.ndarray | Detection:
+    """The image ``directory/name`` as grey uint8, or a rejected Detection saying why not."""
+    path = directory / name
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        return Detection(ok=False, reason=f"cannot read image file '{name}': "
+                                          f"{exc.strerror or exc}")
+    if _truncated(data):
+        return Detection(ok=False, reason=f"image file '{name}' is truncated (incomplete copy "
+                                          "or interrupted capture?)")
+    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        return Detection(ok=False, reason=f"image file '{name}' is not a readable image")
+    return image
+
+
+def _truncated(data: bytes) -> bool:
+    """True for a JPEG without its end marker or a PNG without its IEND chunk.
+
+    OpenCV decodes a truncated JPEG anyway (grey below the cut), so this is checked first.
+    """
+    if data.startswith(b"\xff\xd8"):
+        return not data.rstrip(b"\x00\r\n ").endswith(b"\xff\xd9")
+    if data.startswith(b"\x89PNG"):
+        return b"IEND" not in data[-16:]
+    return False
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -59,21 +133,31 @@ def build_parser() -> argparse.ArgumentParser:
 
     cal = sub.add_parser(
         "calibrate", help="calibrate a station set directory (stations.json)",
-        description="Compute the hand-eye transform (and target pose) from a station set. "
-                    "Default method 'joint': screw motions (SM), then a weighted least-squares "
-                    "refinement over all stations that also reports standard deviations.")
+        description="Calibrate a station set. With images: corners are detected, then "
+                    "intrinsics with the board aspect ratio nu, hand-eye by screw motions (SM), "
+                    "the board scale kappa, and by default ('joint') a maximum-likelihood "
+                    "estimate over all corners and robot poses with standard deviations; "
+                    "images that cannot be used are listed with the reason. Pose-only sets "
+                    "(stations with target_pose): SM, then a weighted least-squares "
+                    "refinement over all stations.")
     cal.add_argument("station_dir", help="directory holding stations.json")
     cal.add_argument("--out", help="result JSON path (default: stdout)")
     cal.add_argument("--method", default="joint", choices=METHODS,
                      help="solver (default: joint)")
     cal.add_argument("--estimate-kappa", action="store_true",
-                     help="also estimate the board scale kappa (joint only)")
+                     help="pose-only sets: also estimate the board scale kappa (joint only; "
+                          "always estimated from images)")
+    cal.add_argument("--nu-method", default="images", choices=("images", "extrinsics"),
+                     help="images: board aspect ratio nu from the corner residuals (Method #1, "
+                          "default); extrinsics: from the hand-eye residuals (Method #2)")
     cal.set_defaults(func=_calibrate)
 
     demo = sub.add_parser("demo", help="simulate a cell, calibrate it, compare with the truth")
     demo.add_argument("--seed", type=int, default=1)
     demo.add_argument("--stations", type=int, default=15)
     demo.set_defaults(func=_demo)
+    cli_devices.register(sub)
+    cli_serve.register(sub)
     return parser
 
 

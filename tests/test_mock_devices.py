@@ -140,7 +140,14 @@ def test_speed_slider_scales_motion_time() -> None:
 def test_stop_interrupts_a_move() -> None:
     robot = connected(EXACT, instant=False)
     start = robot.tcp_pose()
-    threading.Timer(0.1, robot.stop).start()
+
+    def stop_once_moving() -> None:
+        deadline = time.monotonic() + 5.0
+        while robot.true_pose[2, 3] > start[2] - 2e-3 and time.monotonic() < deadline:
+            time.sleep(0.005)
+        robot.stop()
+
+    threading.Thread(target=stop_once_moving, daemon=True).start()
     with pytest.raises(RobotError, match="stopped on request") as err:
         robot.move_linear(shifted(start, -0.2), speed=0.1, acceleration=1.0)
     assert err.value.code == "motion_stopped"

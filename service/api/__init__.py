@@ -1,0 +1,1 @@
+"""REST routers, one per resource; ``service.app`` mounts them behind the API key."""

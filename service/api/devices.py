@@ -1,0 +1,43 @@
+"""The cell's devices as the service sees them (connecting if needed) and the motion limits."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from drivers.errors import DeviceError
+from service.api.deps import DevicesDep, SettingsDep
+from service.schemas import CameraInfo, DevicesPublic, ErrorInfo, RobotInfo
+
+router = APIRouter(prefix="/devices", tags=["devices"])
+
+
+def _error(exc: Exception) -> ErrorInfo:
+    code = exc.code if isinstance(exc, DeviceError) else "invalid_configuration"
+    return ErrorInfo(code=code, detail=str(exc))
+
+
+@router.get("")
+def get_devices(devices: DevicesDep, settings: SettingsDep) -> DevicesPublic:
+    """Robot state and TCP pose, camera resolution, workspace box; errors per device."""
+    workspace = {"min": list(settings.workspace_min), "max": list(settings.workspace_max)}
+    robot_info = RobotInfo(url=settings.robot, connected=False)
+    camera_info = CameraInfo(url=settings.camera, opened=False)
+    try:
+        robot, camera = devices.get()
+    except (DeviceError, ValueError) as exc:
+        robot_info.error = camera_info.error = _error(exc)
+        return DevicesPublic(robot=robot_info, camera=camera_info, workspace=workspace)
+    try:
+        st = robot.status()
+        robot_info = RobotInfo(url=settings.robot, connected=st.connected, ready=st.ready,
+                               mode=st.mode, protective_stop=st.protective_stop,
+                               emergency_stop=st.emergency_stop,
+                               tcp_pose=[float(v) for v in robot.tcp_pose()])
+    except DeviceError as exc:
+        robot_info.error = _error(exc)
+    try:
+        camera_info = CameraInfo(url=settings.camera, opened=True,
+                                 resolution=list(camera.resolution))
+    except DeviceError as exc:
+        camera_info.error = _error(exc)
+    return DevicesPublic(robot=robot_info, camera=camera_info, workspace=workspace)

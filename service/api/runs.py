@@ -1,0 +1,114 @@
+"""Capture runs: create (and start), list, read, pause / resume / cancel, live events."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterator
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Query, status
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import StreamingResponse
+from sqlalchemy import select
+from sqlalchemy.orm import selectinload
+
+from service.api.deps import JobsDep, SessionDep
+from service.jobs import FINAL_RUN_STATES, Jobs, NotFoundError, run_counts
+from service.models import Run
+from service.schemas import Created, ErrorInfo, RunCreate, RunPublic, StationError
+
+router = APIRouter(prefix="/runs", tags=["runs"])
+
+#: Seconds between keep-alive comments on an idle event stream (proxies drop silent ones).
+KEEPALIVE_S = 15.0
+
+
+def run_public(run: Run) -> RunPublic:
+    return RunPublic(
+        id=run.id, state=run.state, robot=run.robot, setup=run.setup, target=run.target,
+        **run_counts(run),
+        error=None if run.error is None else ErrorInfo(code=run.error_code or "error",
+                                                       detail=run.error),
+        station_errors=[StationError(index=s.index, code=s.error_code, detail=s.error)
+                        for s in run.stations if s.error],
+        created_at=run.created_at, updated_at=run.updated_at)
+
+
+def load_run(session: SessionDep, run_id: str) -> Run:
+    run = session.get(Run, run_id)
+    if run is None:
+        raise NotFoundError(f"No run {run_id}.")
+    return run
+
+
+@router.post("", status_code=status.HTTP_201_CREATED, responses={
+    409: {"description": "the robot already has an active run"},
+    422: {"description": "malformed body, pose outside the workspace, no planning"}})
+def create_run(body: RunCreate, jobs: JobsDep) -> Created:
+    """Create a capture run and start capturing in the background."""
+    return Created(id=jobs.create_run(body).id)
+
+
+@router.get("")
+def list_runs(session: SessionDep,
+              limit: Annotated[int, Query(ge=1, le=500)] = 50) -> list[RunPublic]:
+    """Runs, newest first."""
+    runs = session.scalars(select(Run).options(selectinload(Run.stations))
+                           .order_by(Run.created_at.desc()).limit(limit))
+    return [run_public(r) for r in runs]
+
+
+@router.get("/{run_id}")
+def get_run(run_id: str, session: SessionDep) -> RunPublic:
+    """State, stations captured / skipped / planned, and errors."""
+    return run_public(load_run(session, run_id))
+
+
+@router.post("/{run_id}/pause")
+def pause_run(run_id: str, jobs: JobsDep, session: SessionDep) -> RunPublic:
+    """Stop after the station in progress (idempotent)."""
+    jobs.pause(run_id)
+    return run_public(load_run(session, run_id))
+
+
+@router.post("/{run_id}/resume")
+def resume_run(run_id: str, jobs: JobsDep, session: SessionDep) -> RunPublic:
+    """Continue a paused, interrupted or failed run at its next missing station."""
+    jobs.resume(run_id)
+    return run_public(load_run(session, run_id))
+
+
+@router.post("/{run_id}/cancel")
+def cancel_run(run_id: str, jobs: JobsDep, session: SessionDep) -> RunPublic:
+    """Stop for good (idempotent); stored stations stay available."""
+    jobs.cancel(run_id)
+    return run_public(load_run(session, run_id))
+
+
+@router.get("/{run_id}/events", response_class=StreamingResponse, responses={
+    200: {"content": {"text/event-stream": {}},
+          "description": "server-sent events: `state` (first, then on every change) and "
+                         "`station` (captured or skipped); the stream ends when the run does"}})
+async def run_events(run_id: str, jobs: JobsDep) -> StreamingResponse:
+    """Progress of a run as server-sent events."""
+    await run_in_threadpool(jobs.state_event, run_id)  # 404 before the stream starts
+    return StreamingResponse(_event_stream(jobs, run_id), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+
+
+async def _event_stream(jobs: Jobs, run_id: str) -> AsyncIterator[str]:
+    with jobs.events.listen(run_id) as queue:
+        event: dict[str, Any] = await run_in_threadpool(jobs.state_event, run_id)
+        seq = 0
+        while True:
+            seq += 1
+            yield f"id: {seq}\nevent: {event['type']}\ndata: {json.dumps(event)}\n\n"
+            if event["type"] == "state" and event["state"] in FINAL_RUN_STATES:
+                return
+            while True:
+                try:
+                    event = await asyncio.wait_for(queue.get(), KEEPALIVE_S)
+                    break
+                except TimeoutError:
+                    yield ": keep-alive\n\n"

@@ -1,0 +1,135 @@
+"""The FastAPI application: routers, the lifespan (database, devices, jobs), error mapping.
+
+``create_app(settings)`` builds an app; ``uvicorn --factory service.app:create_app`` serves one
+configured from the environment (``cellcal serve`` does the same with command-line options).
+Every domain error becomes JSON ``{"detail": <sentence>, "code": <stable code>}`` here, and
+only here.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import Depends, FastAPI, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from drivers.errors import DeviceError, WorkspaceError
+from service.api import calibrations, devices, health, runs, stations
+from service.api.deps import require_api_key
+from service.db import Database
+from service.jobs import (
+    AuthError,
+    ConflictError,
+    DeviceOpener,
+    Devices,
+    EventBus,
+    Jobs,
+    NotFoundError,
+    ServiceError,
+    UnprocessableError,
+    settings_opener,
+)
+from service.results import software_version
+from service.settings import Settings
+
+log = logging.getLogger("cellcal.service")
+
+#: Domain error -> HTTP status; the first class in an exception's MRO that is listed wins.
+ERROR_STATUS: dict[type[Exception], int] = {
+    AuthError: 401,
+    NotFoundError: 404,
+    ConflictError: 409,
+    UnprocessableError: 422,
+    WorkspaceError: 422,
+    DeviceError: 503,
+    ServiceError: 400,
+}
+_HTTP_CODES = {404: "not_found", 405: "method_not_allowed"}
+
+
+def create_app(settings: Settings | None = None, *,
+               open_devices: DeviceOpener | None = None) -> FastAPI:
+    """Build the app; ``open_devices`` replaces opening ``settings.robot`` / ``camera``."""
+    settings = settings if settings is not None else Settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        settings.data_dir.mkdir(parents=True, exist_ok=True)
+        db = Database(settings.database)
+        cell = Devices(open_devices or settings_opener(settings))
+        jobs = Jobs(settings, db, cell, EventBus())
+        jobs.recover()
+        app.state.db, app.state.devices, app.state.jobs = db, cell, jobs
+        await run_in_threadpool(_open_early, cell)
+        try:
+            yield
+        finally:
+            await run_in_threadpool(jobs.shutdown)
+            await run_in_threadpool(cell.close)
+            db.close()
+
+    app = FastAPI(
+        title="cellcal", version=software_version(), lifespan=lifespan,
+        description="Capture calibration stations with a robot and a camera, compute the "
+                    "camera intrinsics and the hand-eye transform. Every call but /health "
+                    "needs `Authorization: Bearer <CELLCAL_API_KEY>`. Units: metres and "
+                    "radians; poses are UR vectors [x, y, z, rx, ry, rz] (base_T_tcp).")
+    app.state.settings = settings
+    app.include_router(health.router)
+    for module in (runs, stations, calibrations, devices):
+        app.include_router(module.router, dependencies=[Depends(require_api_key)])
+    for exc_type in (ServiceError, DeviceError):
+        app.add_exception_handler(exc_type, _domain_error)
+    app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
+    return app
+
+
+def _open_early(cell: Devices) -> None:
+    """Connect at startup so problems show in the log at once; runs retry later."""
+    try:
+        cell.get()
+    except (DeviceError, ValueError) as exc:
+        log.warning("devices not available at startup: %s", exc)
+
+
+def _error(status: int, detail: str, code: str, **extra: Any) -> JSONResponse:
+    headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
+    return JSONResponse({"detail": detail, "code": code, **extra}, status_code=status,
+                        headers=headers)
+
+
+async def _domain_error(request: Request, exc: Exception) -> JSONResponse:
+    status = next(ERROR_STATUS[c] for c in type(exc).__mro__ if c in ERROR_STATUS)
+    code = getattr(exc, "code", "error")
+    return _error(status, str(exc), code)
+
+
+async def _validation_error(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    errors = exc.errors()
+    messages = [f"{_where(e['loc'])}: {e['msg']}" for e in errors]
+    more = f" (and {len(messages) - 1} more problems)" if len(messages) > 1 else ""
+    return _error(422, (messages[0] if messages else "invalid request") + more,
+                  "invalid_request",
+                  errors=[{"loc": list(e["loc"]), "msg": e["msg"]} for e in errors])
+
+
+async def _http_error(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, StarletteHTTPException)
+    return _error(exc.status_code, str(exc.detail), _HTTP_CODES.get(exc.status_code,
+                                                                    "http_error"))
+
+
+def _where(loc: tuple[Any, ...] | list[Any]) -> str:
+    """``('body', 'poses', 0, 2)`` -> ``body.poses[0][2]``."""
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out or "request"

@@ -1,0 +1,65 @@
+"""``cellcal serve``: run the REST service (FastAPI on uvicorn) for the configured cell.
+
+Configuration comes from ``CELLCAL_*`` environment variables (``service.settings``); the options
+here override them. Without ``CELLCAL_API_KEY`` the service makes up a key for this session and
+prints it, and it refuses to listen beyond loopback at all.
+"""
+
+from __future__ import annotations
+
+import argparse
+import secrets
+import sys
+from typing import Any
+
+from pydantic import ValidationError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the ``serve`` command to the ``cellcal`` parser."""
+    serve = subparsers.add_parser(
+        "serve", help="run the REST service",
+        description="Serve the calibration REST API (OpenAPI at /docs). Every call but /health "
+                    "needs 'Authorization: Bearer <CELLCAL_API_KEY>'. Settings come from "
+                    "CELLCAL_* environment variables (CELLCAL_DATA_DIR, CELLCAL_ROBOT, "
+                    "CELLCAL_CAMERA, CELLCAL_WORKSPACE_MIN/MAX, ...); options override them.")
+    serve.add_argument("--mock", action="store_true",
+                       help="simulate the cell: mock:// robot and camera")
+    serve.add_argument("--scene", metavar="SCENE_JSON",
+                       help="mock scene file (default: the built-in demo cell)")
+    serve.add_argument("--host", help="address to listen on (default 127.0.0.1)")
+    serve.add_argument("--port", type=int, help="TCP port (default 8000)")
+    serve.set_defaults(func=_serve)
+
+
+def _serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from service.app import create_app
+    from service.settings import Settings, is_loopback
+
+    overrides: dict[str, Any] = {k: v for k, v in (("host", args.host), ("port", args.port),
+                                                   ("scene", args.scene)) if v is not None}
+    if args.mock:
+        overrides.update(robot="mock://", camera="mock://")
+    try:
+        settings = Settings(**overrides)
+        if settings.api_key is None and is_loopback(settings.host):
+            key = secrets.token_urlsafe(24)
+            settings = Settings(**overrides, api_key=key)
+            print(f"cellcal: no CELLCAL_API_KEY set; this session's API key is {key}",
+                  file=sys.stderr)
+    except ValidationError as exc:
+        raise ValueError(f"configuration: {_describe(exc)}") from None
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port,
+                log_level="info")
+    return 0
+
+
+def _describe(exc: ValidationError) -> str:
+    """The first settings error as ``CELLCAL_NAME: what`` (or just what, for cross-checks)."""
+    err = exc.errors()[0]
+    msg = err["msg"].removeprefix("Value error, ")
+    more = f" (and {exc.error_count() - 1} more problems)" if exc.error_count() > 1 else ""
+    name = f"CELLCAL_{str(err['loc'][0]).upper()}: " if err["loc"] else ""
+    return f"{name}{msg}{more}"

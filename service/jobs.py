@@ -1,0 +1,692 @@
+"""Background work: capture runs in a thread per run, calibrations in worker processes.
+
+Capture (blocking device calls) never runs on the event loop: each run gets a thread that
+visits its planned poses in order and commits every station as soon as it is captured, so a
+crash loses at most the station in progress. Restart safety rests on the database:
+
+- a run row names its capture thread by an ``owner`` token; a thread writes stations and
+  changes the run state only while it still owns a ``capturing`` run (conditional updates),
+  so a paused, cancelled or resumed run sheds a stale thread at its next step;
+- at startup, runs left ``capturing`` by a dead service become ``interrupted``; ``resume``
+  gives the run a new owner, which continues from the first index without a station row;
+- ``(run, index)`` is unique, so no station is ever stored twice.
+
+Calibrations are CPU-bound: they run in a ``ProcessPoolExecutor`` (spawned workers) so the API
+stays responsive, and the result is stored when the future completes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures as cf
+import contextlib
+import logging
+import multiprocessing
+import os
+import threading
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from sqlalchemy import func, select, update
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from calib.geometry import check_ur_poses, matrix_from_ur_pose, ur_pose_from_matrix
+from calib.intrinsics import MIN_IMAGES
+from calib.planning import camera_view, plan_stations, rough_target_from_image
+from calib.target import Detection, detect_checkerboard
+from drivers.base import Camera, Robot
+from drivers.capture import capture_station
+from drivers.errors import (
+    CameraError,
+    CameraTimeoutError,
+    DeviceError,
+    EmergencyStopError,
+    ProtectiveStopError,
+    RobotConnectionError,
+)
+from drivers.registry import open_camera, open_robot
+from service.db import Database
+from service.models import (
+    ACTIVE_RUN_STATES,
+    Calibration,
+    Run,
+    Station,
+    new_id,
+    utcnow,
+)
+from service.schemas import CalibrationOptions, RunCreate
+from service.settings import Settings
+
+log = logging.getLogger("cellcal.service")
+
+#: Run states after which nothing more happens to a run unless someone resumes it.
+FINAL_RUN_STATES = ("done", "failed", "cancelled", "interrupted")
+#: Camera error codes that mean the camera is gone (stop the run, do not skip stations).
+_CAMERA_GONE = ("camera_not_open", "camera_not_found", "camera_open_failed",
+                "camera_disconnected")
+#: A failed station is tried this many times in all before it is skipped.
+_ATTEMPTS = 2
+
+
+# ---- domain errors (mapped to HTTP statuses in service.app) --------------------------------
+
+class ServiceError(Exception):
+    """A request the service refuses; ``code`` is stable, the message is for people."""
+
+    code = "service_error"
+
+    def __init__(self, detail: str, *, code: str | None = None) -> None:
+        super().__init__(detail)
+        self.detail = detail
+        if code is not None:
+            self.code = code
+
+
+class NotFoundError(ServiceError):
+    code = "not_found"
+
+
+class ConflictError(ServiceError):
+    code = "conflict"
+
+
+class UnprocessableError(ServiceError):
+    code = "invalid_request"
+
+
+class AuthError(ServiceError):
+    code = "unauthorized"
+
+
+# ---- devices -------------------------------------------------------------------------------
+
+DeviceOpener = Callable[[], tuple[Robot, Camera]]
+
+
+def settings_opener(settings: Settings) -> DeviceOpener:
+    """Open the configured robot and camera (``mock://`` ones share the scene)."""
+
+    def open_devices() -> tuple[Robot, Camera]:
+        scene = settings.mock_scene() if settings.uses_mock else None
+        robot = open_robot(settings.robot, scene=scene)
+        try:
+            camera = open_camera(settings.camera, robot=robot, scene=scene)
+        except BaseException:
+            robot.close()
+            raise
+        return robot, camera
+
+    return open_devices
+
+
+class Devices:
+    """The cell's robot and camera, opened on first use and reopened after a connection loss."""
+
+    def __init__(self, opener: DeviceOpener) -> None:
+        self._opener = opener
+        self._lock = threading.Lock()
+        self._devices: tuple[Robot, Camera] | None = None
+
+    def get(self) -> tuple[Robot, Camera]:
+        """The open devices; raises ``DeviceError`` (or ``ValueError``) if they cannot open."""
+        with self._lock:
+            if self._devices is None:
+                self._devices = self._opener()
+            return self._devices
+
+    def current(self) -> tuple[Robot, Camera] | None:
+        """The devices if they are open, without trying to open them."""
+        with self._lock:
+            return self._devices
+
+    def reset(self) -> None:
+        """Close the devices so that the next ``get`` connects again."""
+        with self._lock:
+            devices, self._devices = self._devices, None
+        if devices is not None:
+            for device in devices:
+                try:
+                    device.close()
+                except DeviceError as exc:
+                    log.warning("closing %s: %s", type(device).__name__, exc)
+
+    close = reset
+
+
+# ---- events --------------------------------------------------------------------------------
+
+class EventBus:
+    """Run events fanned out to server-sent-event listeners; publish from any thread."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._listeners: dict[str, set[tuple[asyncio.AbstractEventLoop,
+                                             asyncio.Queue[dict[str, Any]]]]] = {}
+
+    @contextlib.contextmanager
+    def listen(self, run_id: str) -> Iterator[asyncio.Queue[dict[str, Any]]]:
+        """A queue receiving the run's events while the block runs (call on the event loop)."""
+        entry = (asyncio.get_running_loop(), asyncio.Queue[dict[str, Any]]())
+        with self._lock:
+            self._listeners.setdefault(run_id, set()).add(entry)
+        try:
+            yield entry[1]
+        finally:
+            with self._lock:
+                self._listeners[run_id].discard(entry)
+                if not self._listeners[run_id]:
+                    del self._listeners[run_id]
+
+    def publish(self, run_id: str, event: dict[str, Any]) -> None:
+        with self._lock:
+            listeners = list(self._listeners.get(run_id, ()))
+        for loop, queue in listeners:
+            with contextlib.suppress(RuntimeError):  # the listener's loop has closed
+                loop.call_soon_threadsafe(queue.put_nowait, event)
+
+
+# ---- capture -------------------------------------------------------------------------------
+
+@dataclass
+class _Visit:
+    """What happened at one station, ready to be stored."""
+
+    state: str
+    tcp_pose: list[float] | None
+    image: np.ndarray | None
+    detection: dict[str, Any] | None
+    error: str | None
+    error_code: str | None
+    attempts: int
+
+
+def _detection_json(det: Detection) -> dict[str, Any]:
+    return {"ok": det.ok, "reason": det.reason, "sharpness": det.sharpness,
+            "coverage": det.coverage, "mean_contrast": det.mean_contrast,
+            "ambiguous": det.ambiguous,
+            "corners": None if det.corners is None else det.corners.tolist()}
+
+
+def _stops_run(exc: DeviceError) -> bool:
+    """True for faults that need a person (robot gone or stopped, camera gone)."""
+    if isinstance(exc, RobotConnectionError | ProtectiveStopError | EmergencyStopError):
+        return True
+    return (isinstance(exc, CameraError) and not isinstance(exc, CameraTimeoutError)
+            and exc.code in _CAMERA_GONE)
+
+
+def run_counts(run: Run) -> dict[str, int]:
+    """Stations planned, captured and skipped."""
+    captured = sum(1 for s in run.stations if s.state == "captured")
+    return {"stations_planned": len(run.poses), "stations_captured": captured,
+            "stations_skipped": len(run.stations) - captured}
+
+
+class Jobs:
+    """Starts, steers and records capture runs and calibrations."""
+
+    def __init__(self, settings: Settings, db: Database, devices: Devices,
+                 events: EventBus) -> None:
+        self.settings = settings
+        self.db = db
+        self.devices = devices
+        self.events = events
+        self.data_dir = Path(settings.data_dir)
+        self._robot_lock = threading.Lock()  # one thread drives the robot at a time
+        self._threads: dict[str, threading.Thread] = {}  # owner token -> capture thread
+        self._threads_lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._pool: cf.ProcessPoolExecutor | None = None
+        self._pool_lock = threading.Lock()
+
+    # ---- lifecycle -------------------------------------------------------------------------
+
+    def recover(self) -> None:
+        """After a restart: runs left capturing are interrupted, solves in flight failed."""
+        with self.db.session() as s:
+            runs = s.execute(
+                update(Run).where(Run.state == "capturing")
+                .values(state="interrupted", owner=None, error_code="interrupted",
+                        error="The service stopped while this run was capturing; resume it "
+                              "to continue from the next station.")).rowcount
+            cals = s.execute(
+                update(Calibration).where(Calibration.state == "running")
+                .values(state="failed", finished_at=utcnow(),
+                        error="The service stopped during the computation; start it "
+                              "again.")).rowcount
+            s.commit()
+        if runs or cals:
+            log.warning("recovered after restart: %d run(s) interrupted, %d calibration(s) "
+                        "failed", runs, cals)
+
+    def shutdown(self, timeout: float = 10.0) -> None:
+        """Stop the robot and the capture threads (their runs become ``interrupted``)."""
+        self._stopping.set()
+        with self._threads_lock:
+            threads = list(self._threads.values())
+        devices = self.devices.current()
+        if threads and devices is not None:
+            devices[0].stop()
+        for thread in threads:
+            thread.join(timeout)
+        with self._pool_lock:
+            if self._pool is not None:
+                self._pool.shutdown(wait=False, cancel_futures=True)
+                self._pool = None
+
+    # ---- runs ------------------------------------------------------------------------------
+
+    def create_run(self, body: RunCreate) -> Run:
+        """Validate the plan, store the run and start capturing; 409 if the robot is busy."""
+        target = (body.target.model_dump() if body.target is not None
+                  else self.settings.target())
+        setup = self.settings.calibration_setup()
+        if body.poses is not None:
+            poses = self._check_poses(body.poses)
+        else:
+            assert body.stations is not None
+            with self.db.session() as s:
+                if s.scalars(select(Run.id).where(Run.robot == self.settings.robot,
+                                                  Run.state.in_(ACTIVE_RUN_STATES))).first():
+                    raise self._busy()
+            poses = self._check_poses(self._plan(body.stations, target, setup))
+        token = new_id()
+        run = Run(robot=self.settings.robot, state="capturing", owner=token, setup=setup,
+                  target=target, poses=poses)
+        with self.db.session() as s:
+            s.add(run)
+            try:
+                s.commit()
+            except IntegrityError:
+                s.rollback()
+                raise self._busy() from None
+        self._start_capture(run.id, token)
+        return run
+
+    def pause(self, run_id: str) -> None:
+        """Stop after the station in progress; idempotent on a paused run."""
+        self._transition(run_id, ("capturing",), "paused", same_ok="paused")
+
+    def cancel(self, run_id: str) -> None:
+        """Give up a run for good; the robot is stopped if this run is moving it."""
+        token = self._transition(run_id, ("capturing", "paused", "interrupted", "failed"),
+                                 "cancelled", same_ok="cancelled")
+        with self._threads_lock:
+            moving = token in self._threads
+        devices = self.devices.current()
+        if moving and devices is not None:
+            devices[0].stop()
+
+    def resume(self, run_id: str) -> None:
+        """Continue a paused, interrupted or failed run at its first missing station."""
+        token = new_id()
+        with self.db.session() as s:
+            run = self._get_run(s, run_id)
+            if run.state == "capturing":
+                return
+            if run.state not in ("paused", "interrupted", "failed"):
+                raise ConflictError(f"Run {run_id} is {run.state}; only a paused, interrupted "
+                                    "or failed run can be resumed.", code="invalid_state")
+            try:
+                changed = s.execute(
+                    update(Run).where(Run.id == run_id, Run.state == run.state)
+                    .values(state="capturing", owner=token, error=None,
+                            error_code=None)).rowcount
+                s.commit()
+            except IntegrityError:
+                s.rollback()
+                raise self._busy() from None
+        if not changed:
+            raise ConflictError(f"Run {run_id} changed state meanwhile; read it and retry.",
+                                code="invalid_state")
+        self._publish_state(run_id)
+        self._start_capture(run_id, token)
+
+    def _transition(self, run_id: str, sources: tuple[str, ...], target: str, *,
+                    same_ok: str) -> str | None:
+        """Move a run from one of ``sources`` to ``target``; the old owner token."""
+        with self.db.session() as s:
+            run = self._get_run(s, run_id)
+            if run.state == same_ok:
+                return None
+            if run.state not in sources:
+                raise ConflictError(f"Run {run_id} is {run.state}; it cannot become {target}.",
+                                    code="invalid_state")
+            owner = run.owner
+            changed = s.execute(
+                update(Run).where(Run.id == run_id, Run.state == run.state)
+                .values(state=target, owner=None)).rowcount
+            s.commit()
+        if not changed:
+            raise ConflictError(f"Run {run_id} changed state meanwhile; read it and retry.",
+                                code="invalid_state")
+        self._publish_state(run_id)
+        return owner
+
+    def _plan(self, n: int, target: dict[str, Any], setup: str) -> list[list[float]]:
+        """Plan ``n`` stations around the board as seen from the robot's current pose.
+
+        The board pose comes from one image at the current pose; the hand-eye and the camera
+        from the mock scene or, on a real cell, from the configured rough guesses. The
+        distance band is 0.8 to 1.3 times the current camera-to-board distance.
+        """
+        if self.settings.uses_mock:
+            scene = self.settings.mock_scene()
+            X, K, dist = scene.hand_eye_matrix, scene.camera.k_matrix, scene.camera.dist_coeffs
+        elif self.settings.hand_eye_guess is None or self.settings.focal_px_guess is None:
+            raise UnprocessableError(
+                "Automatic planning on a real cell needs rough guesses: set "
+                "CELLCAL_HAND_EYE_GUESS ([x, y, z, rx, ry, rz]) and CELLCAL_FOCAL_PX_GUESS, or "
+                "give the stations as 'poses'.", code="planning_unavailable")
+        else:
+            X = matrix_from_ur_pose(np.asarray(self.settings.hand_eye_guess))
+            K, dist = None, None
+        robot, camera = self.devices.get()
+        with self._robot_lock:
+            P0 = matrix_from_ur_pose(robot.tcp_pose())
+            image = camera.grab(timeout=self.settings.grab_timeout_s)
+        h, w = image.shape[:2]
+        if K is None:
+            f = float(self.settings.focal_px_guess or 0.0)
+            K = np.array([[f, 0.0, w / 2.0], [0.0, f, h / 2.0], [0.0, 0.0, 1.0]])
+        corners = tuple(target["inner_corners"])
+        det = detect_checkerboard(image, corners)
+        if not det.ok:
+            raise UnprocessableError(
+                f"Cannot plan: the board is not in view at the robot's current pose "
+                f"({det.reason}). Move the robot so the camera sees the whole board.",
+                code="planning_failed")
+        try:
+            Y = rough_target_from_image(det.corners, K, corners, target["square_size_m"], P0,
+                                        X, setup=setup, dist=dist)
+            d0 = float(np.linalg.norm(camera_view(P0, X, Y, setup)[:3, 3]))
+            plan = plan_stations(
+                n, start_tcp_pose=P0, target_pose_guess=Y, hand_eye_guess=X, K=K,
+                image_size=(w, h), inner_corners=corners, square_size=target["square_size_m"],
+                distance_band=(0.8 * d0, 1.3 * d0), setup=setup, dist=dist,
+                workspace=(self.settings.workspace_min, self.settings.workspace_max))
+        except ValueError as exc:
+            raise UnprocessableError(f"Cannot plan {n} stations: {exc}.",
+                                     code="planning_failed") from None
+        return ur_pose_from_matrix(plan.tcp_poses).tolist()
+
+    def _check_poses(self, poses: list[list[float]]) -> list[list[float]]:
+        """Refuse poses that are malformed, implausible or outside the workspace box (422)."""
+        if len(poses) > self.settings.max_stations:
+            raise UnprocessableError(f"{len(poses)} poses; at most "
+                                     f"{self.settings.max_stations} per run.")
+        try:
+            check_ur_poses(np.asarray(poses, dtype=float), "poses")
+        except ValueError as exc:
+            raise UnprocessableError(str(exc), code="invalid_pose") from None
+        lo, hi = np.asarray(self.settings.workspace_min), np.asarray(self.settings.workspace_max)
+        for k, pose in enumerate(poses):
+            p = np.asarray(pose[:3])
+            if np.any(p < lo) or np.any(p > hi):
+                mm = ", ".join(f"{v * 1e3:.0f}" for v in p)
+                box = " x ".join(f"[{a * 1e3:.0f}, {b * 1e3:.0f}]" for a, b in zip(lo, hi,
+                                                                                     strict=True))
+                raise UnprocessableError(
+                    f"poses[{k}]: position ({mm}) mm is outside the workspace limits {box} mm "
+                    "(base frame); the run was not started.", code="outside_workspace")
+        return [[float(v) for v in pose] for pose in poses]
+
+    def _busy(self) -> ConflictError:
+        with self.db.session() as s:
+            active = s.scalars(select(Run.id).where(Run.robot == self.settings.robot,
+                                                    Run.state.in_(ACTIVE_RUN_STATES))).first()
+        return ConflictError(f"The robot already has an active run ({active}); cancel it or "
+                             "let it finish first.", code="robot_busy")
+
+    @staticmethod
+    def _get_run(s: Session, run_id: str) -> Run:
+        run = s.get(Run, run_id)
+        if run is None:
+            raise NotFoundError(f"No run {run_id}.")
+        return run
+
+    def _start_capture(self, run_id: str, token: str) -> None:
+        thread = threading.Thread(target=self._capture, args=(run_id, token),
+                                  name=f"capture-{run_id[:8]}", daemon=True)
+        with self._threads_lock:
+            self._threads[token] = thread
+        thread.start()
+
+    # ---- the capture thread ----------------------------------------------------------------
+
+    def _capture(self, run_id: str, token: str) -> None:
+        """Visit the run's missing stations in order while this thread owns the run."""
+        try:
+            with self._robot_lock:
+                self._capture_owned(run_id, token)
+        except DeviceError as exc:
+            if isinstance(exc, RobotConnectionError):
+                self.devices.reset()
+            self._finish(run_id, token, "failed", str(exc), exc.code)
+        except ValueError as exc:  # e.g. a malformed device URL
+            self._finish(run_id, token, "failed", str(exc), "invalid_configuration")
+        except Exception as exc:
+            log.exception("capture run %s", run_id)
+            self._finish(run_id, token, "failed",
+                         f"Internal error ({type(exc).__name__}: {exc}).", "internal_error")
+        finally:
+            with self._threads_lock:
+                self._threads.pop(token, None)
+
+    def _capture_owned(self, run_id: str, token: str) -> None:
+        robot, camera = self.devices.get()
+        while True:
+            if self._stopping.is_set():
+                self._finish(run_id, token, "interrupted",
+                             "The service stopped while this run was capturing; resume it to "
+                             "continue from the next station.", "interrupted")
+                return
+            with self.db.session() as s:
+                run = s.get(Run, run_id)
+                if run is None or run.owner != token or run.state != "capturing":
+                    return
+                stored = set(s.scalars(select(Station.index).where(Station.run_id == run_id)))
+                poses, target = run.poses, run.target
+            index = next((k for k in range(len(poses)) if k not in stored), None)
+            if index is None:
+                self._finish(run_id, token, "done")
+                return
+            visit = self._visit(robot, camera, run_id, token, poses[index],
+                                tuple(target["inner_corners"]))
+            if visit is not None:  # else: paused, cancelled, resumed elsewhere or stopping
+                self._store(run_id, token, index, poses[index], visit)
+
+    def _visit(self, robot: Robot, camera: Camera, run_id: str, token: str,
+               pose: list[float], inner_corners: tuple[int, int]) -> _Visit | None:
+        """Move, settle, grab, read the pose, detect; retry once; None if the run was taken."""
+        visit: _Visit | None = None
+        for attempt in range(1, _ATTEMPTS + 1):
+            try:
+                shot = capture_station(robot, camera, np.asarray(pose),
+                                       settle_timeout=self.settings.settle_timeout_s,
+                                       grab_timeout=self.settings.grab_timeout_s,
+                                       speed=self.settings.move_speed)
+            except DeviceError as exc:
+                if not self._wanted(run_id, token):
+                    return None
+                if _stops_run(exc):
+                    raise
+                visit = _Visit("skipped", None, None, None, str(exc), exc.code, attempt)
+                continue
+            det = detect_checkerboard(shot.image, inner_corners)
+            tcp = [float(v) for v in shot.tcp_pose]
+            if det.ok:
+                return _Visit("captured", tcp, shot.image, _detection_json(det), None, None,
+                              attempt)
+            visit = _Visit("skipped", tcp, shot.image, _detection_json(det),
+                           f"Checkerboard not found: {det.reason}.", "not_detected", attempt)
+            if not self._wanted(run_id, token):
+                return None
+        return visit
+
+    def _wanted(self, run_id: str, token: str) -> bool:
+        """True while the service runs and this thread owns the run (worth another try)."""
+        return not self._stopping.is_set() and self._owns(run_id, token)
+
+    def _owns(self, run_id: str, token: str) -> bool:
+        with self.db.session() as s:
+            return s.scalar(select(func.count()).select_from(Run).where(
+                Run.id == run_id, Run.owner == token, Run.state == "capturing")) == 1
+
+    def _store(self, run_id: str, token: str, index: int, pose: list[float],
+               visit: _Visit) -> None:
+        """Commit one station (image file first) unless the run is no longer ours."""
+        rel = None
+        if visit.image is not None:
+            rel = Path("runs") / run_id / f"{index:03d}-{token[:8]}.png"
+            _write_png(self.data_dir / rel, visit.image)
+        size = None if visit.image is None else [visit.image.shape[1], visit.image.shape[0]]
+        with self.db.session() as s:
+            if not self._owns(run_id, token):
+                stored = False
+            else:
+                s.add(Station(run_id=run_id, index=index, state=visit.state, target_pose=pose,
+                              tcp_pose=visit.tcp_pose, image_path=None if rel is None
+                              else rel.as_posix(), image_size=size,
+                              detection=visit.detection, error=visit.error,
+                              error_code=visit.error_code, attempts=visit.attempts))
+                try:
+                    s.commit()
+                    stored = True
+                except IntegrityError:  # another owner stored this index
+                    s.rollback()
+                    stored = False
+        if not stored:
+            if rel is not None:
+                (self.data_dir / rel).unlink(missing_ok=True)
+            return
+        event: dict[str, Any] = {"type": "station", "run_id": run_id, "index": index,
+                                 "state": visit.state}
+        if visit.error:
+            event["error"] = {"code": visit.error_code, "detail": visit.error}
+        self.events.publish(run_id, event)
+
+    def _finish(self, run_id: str, token: str, state: str, error: str | None = None,
+                code: str | None = None) -> None:
+        """End the run in ``state`` if this thread still owns it."""
+        with self.db.session() as s:
+            changed = s.execute(
+                update(Run).where(Run.id == run_id, Run.owner == token,
+                                  Run.state == "capturing")
+                .values(state=state, owner=None, error=error, error_code=code)).rowcount
+            s.commit()
+        if changed:
+            self._publish_state(run_id)
+
+    def state_event(self, run_id: str) -> dict[str, Any]:
+        """The run's state and counts as a ``state`` event (404 for an unknown run)."""
+        with self.db.session() as s:
+            run = self._get_run(s, run_id)
+            return {"type": "state", "run_id": run_id, "state": run.state, **run_counts(run),
+                    "error": None if run.error is None else {"code": run.error_code,
+                                                             "detail": run.error}}
+
+    def _publish_state(self, run_id: str) -> None:
+        self.events.publish(run_id, self.state_event(run_id))
+
+    # ---- calibrations ----------------------------------------------------------------------
+
+    def start_calibration(self, run_id: str, options: CalibrationOptions) -> Calibration:
+        """Queue a solve over the run's captured stations in a worker process."""
+        with self.db.session() as s:
+            run = self._get_run(s, run_id)
+            if run.state == "capturing":
+                raise ConflictError(f"Run {run_id} is still capturing; pause it or wait until "
+                                    "it is done.", code="invalid_state")
+            captured = [st for st in run.stations if st.state == "captured"]
+            if len(captured) < MIN_IMAGES:
+                raise UnprocessableError(
+                    f"Run {run_id} has {len(captured)} captured stations; a calibration needs "
+                    f"at least {MIN_IMAGES}.", code="too_few_stations")
+            payload = {
+                "run_id": run_id, "setup": run.setup, "target": run.target,
+                "ids": [f"{st.index:03d}" for st in captured],
+                "tcp_poses": [st.tcp_pose for st in captured],
+                "corners": [st.detection["corners"] for st in captured],
+                "ambiguous": [st.detection["ambiguous"] for st in captured],
+                "image_size": captured[0].image_size,
+                "options": options.model_dump(),
+            }
+            cal = Calibration(run_id=run_id, state="running", options=options.model_dump())
+            s.add(cal)
+            s.commit()
+        future = self._submit(payload)
+        future.add_done_callback(lambda f: self._calibration_done(cal.id, f))
+        return cal
+
+    def _submit(self, payload: dict[str, Any]) -> cf.Future[dict[str, Any]]:
+        with self._pool_lock:
+            if self._pool is None:
+                self._pool = cf.ProcessPoolExecutor(
+                    self.settings.calibration_workers,
+                    mp_context=multiprocessing.get_context("spawn"))
+            return self._pool.submit(solve_calibration, payload)
+
+    def _calibration_done(self, cal_id: str, future: cf.Future[dict[str, Any]]) -> None:
+        values: dict[str, Any] = {"finished_at": utcnow()}
+        try:
+            values.update(state="done", result=future.result())
+        except cf.CancelledError:
+            values.update(state="failed", error="The service stopped during the computation; "
+                                                "start it again.")
+        except ValueError as exc:
+            values.update(state="failed", error=str(exc))
+        except cf.process.BrokenProcessPool:
+            with self._pool_lock:
+                self._pool = None
+            values.update(state="failed", error="The calibration worker process died "
+                                                "(out of memory?); start it again.")
+        except Exception as exc:
+            log.error("calibration %s: %s: %s", cal_id, type(exc).__name__, exc)
+            values.update(state="failed",
+                          error=f"Internal error ({type(exc).__name__}: {exc}).")
+        with self.db.session() as s:
+            s.execute(update(Calibration).where(Calibration.id == cal_id).values(**values))
+            s.commit()
+
+
+def solve_calibration(payload: dict[str, Any]) -> dict[str, Any]:
+    """Worker-process entry: stored detections and robot poses -> result JSON document.
+
+    Top level (picklable) and self-contained: it imports the pipeline in the worker.
+    """
+    from calib.pipeline import calibrate_stations
+    from service.results import calibration_result_json
+
+    opts = payload["options"]
+    observations = [Detection(ok=True, corners=np.asarray(c, dtype=float), ambiguous=a)
+                    for c, a in zip(payload["corners"], payload["ambiguous"], strict=True)]
+    noise: dict[str, float] = {}
+    if opts["robot_noise_rot_deg"] is not None:
+        noise["robot_noise_rot"] = float(np.deg2rad(opts["robot_noise_rot_deg"]))
+    if opts["robot_noise_trans_mm"] is not None:
+        noise["robot_noise_trans"] = opts["robot_noise_trans_mm"] * 1e-3
+    result = calibrate_stations(
+        observations, payload["tcp_poses"], inner_corners=payload["target"]["inner_corners"],
+        square_size=payload["target"]["square_size_m"], setup=payload["setup"],
+        station_ids=payload["ids"], image_size=payload["image_size"], method=opts["method"],
+        estimate_nu=opts["estimate_nu"], estimate_kappa=opts["estimate_kappa"],
+        nu_method=opts["nu_method"], **noise)
+    return calibration_result_json(
+        result, command=f"POST /runs/{payload['run_id']}/calibrations")
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    """Write a PNG atomically (temporary file, then rename)."""
+    ok, data = cv2.imencode(".png", image)
+    if not ok:
+        raise OSError(f"could not encode the image for {path}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".png.tmp")
+    tmp.write_bytes(data.tobytes())
+    os.replace(tmp, path)

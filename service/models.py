@@ -1,0 +1,146 @@
+"""Stored state (SQLAlchemy 2 ORM): capture runs, their stations, calibrations, validations.
+
+Images live as PNG files under the data directory; rows hold their paths relative to it.
+Two constraints carry the service's guarantees, so they hold across threads, processes and
+restarts: a station index is stored at most once per run (``uq_stations_run_index``: a resumed
+run never duplicates a station), and a robot has at most one active (capturing or paused) run
+(``uq_runs_one_active_per_robot``, a partial unique index).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import uuid
+from typing import Any, ClassVar
+
+from sqlalchemy import (
+    JSON,
+    DateTime,
+    ForeignKey,
+    Index,
+    String,
+    Text,
+    TypeDecorator,
+    UniqueConstraint,
+    text,
+)
+from sqlalchemy.engine import Dialect
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+
+#: Run states in which the robot belongs to the run.
+ACTIVE_RUN_STATES = ("capturing", "paused")
+RUN_STATES = ("capturing", "paused", "done", "failed", "cancelled", "interrupted")
+STATION_STATES = ("captured", "skipped")
+CALIBRATION_STATES = ("running", "done", "failed")
+
+_ACTIVE_SQL = text("state IN ('capturing', 'paused')")
+
+
+def new_id() -> str:
+    """An opaque, unguessable identifier (32 hex digits)."""
+    return uuid.uuid4().hex
+
+
+def utcnow() -> dt.datetime:
+    return dt.datetime.now(dt.UTC)
+
+
+class UTCDateTime(TypeDecorator[dt.datetime]):
+    """A timestamp stored in UTC and read back timezone-aware (SQLite drops the zone)."""
+
+    impl = DateTime
+    cache_ok = True
+
+    def process_bind_param(self, value: dt.datetime | None,
+                           dialect: Dialect) -> dt.datetime | None:
+        return None if value is None else value.astimezone(dt.UTC).replace(tzinfo=None)
+
+    def process_result_value(self, value: dt.datetime | None,
+                             dialect: Dialect) -> dt.datetime | None:
+        return None if value is None else value.replace(tzinfo=dt.UTC)
+
+
+class Base(DeclarativeBase):
+    type_annotation_map: ClassVar[dict[Any, Any]] = {
+        dict[str, Any]: JSON, list[Any]: JSON, dt.datetime: UTCDateTime}
+
+
+class Run(Base):
+    """A capture run: planned TCP poses visited in order, one station per pose."""
+
+    __tablename__ = "runs"
+    __table_args__ = (
+        Index("uq_runs_one_active_per_robot", "robot", unique=True,
+              sqlite_where=_ACTIVE_SQL, postgresql_where=_ACTIVE_SQL),
+    )
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    robot: Mapped[str] = mapped_column(String(255))
+    state: Mapped[str] = mapped_column(String(16))
+    setup: Mapped[str] = mapped_column(String(16))
+    target: Mapped[dict[str, Any]]
+    poses: Mapped[list[Any]]
+    #: Token of the capture thread that may write stations; a new one on every (re)start.
+    owner: Mapped[str | None] = mapped_column(String(32))
+    error: Mapped[str | None] = mapped_column(Text)
+    error_code: Mapped[str | None] = mapped_column(String(64))
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+    updated_at: Mapped[dt.datetime] = mapped_column(default=utcnow, onupdate=utcnow)
+
+    stations: Mapped[list[Station]] = relationship(
+        back_populates="run", order_by="Station.index", cascade="all, delete-orphan")
+
+
+class Station(Base):
+    """One visited pose: the robot reading, the image file and the detection, or why not."""
+
+    __tablename__ = "stations"
+    __table_args__ = (UniqueConstraint("run_id", "index", name="uq_stations_run_index"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
+    run_id: Mapped[str] = mapped_column(ForeignKey("runs.id", ondelete="CASCADE"))
+    index: Mapped[int]
+    state: Mapped[str] = mapped_column(String(16))
+    target_pose: Mapped[list[Any]]
+    tcp_pose: Mapped[list[Any] | None]
+    image_path: Mapped[str | None] = mapped_column(String(512))
+    image_size: Mapped[list[Any] | None]
+    #: ``ok``, ``reason``, quality metrics, ``ambiguous`` and ``corners`` (N, 2) pixels.
+    detection: Mapped[dict[str, Any] | None]
+    error: Mapped[str | None] = mapped_column(Text)
+    error_code: Mapped[str | None] = mapped_column(String(64))
+    attempts: Mapped[int] = mapped_column(default=1)
+    captured_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+
+    run: Mapped[Run] = relationship(back_populates="stations")
+
+
+class Calibration(Base):
+    """A solve over a run's captured stations; ``result`` is the ``cellcal/result@1`` JSON."""
+
+    __tablename__ = "calibrations"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    run_id: Mapped[str] = mapped_column(ForeignKey("runs.id", ondelete="CASCADE"), index=True)
+    state: Mapped[str] = mapped_column(String(16))
+    options: Mapped[dict[str, Any]]
+    result: Mapped[dict[str, Any] | None]
+    error: Mapped[str | None] = mapped_column(Text)
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+    finished_at: Mapped[dt.datetime | None]
+
+
+class Validation(Base):
+    """A validation of a calibration (dot-hit run, pose prediction), with its report."""
+
+    __tablename__ = "validations"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    calibration_id: Mapped[str] = mapped_column(
+        ForeignKey("calibrations.id", ondelete="CASCADE"), index=True)
+    kind: Mapped[str] = mapped_column(String(32))
+    state: Mapped[str] = mapped_column(String(16))
+    result: Mapped[dict[str, Any] | None]
+    error: Mapped[str | None] = mapped_column(Text)
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+    finished_at: Mapped[dt.datetime | None]

@@ -1,0 +1,160 @@
+"""Request and response shapes of the REST API (pydantic): create shapes apart from public ones.
+
+Poses are UR vectors ``[x, y, z, rx, ry, rz]`` (metres, rotation vector in radians), base_T_tcp,
+as everywhere in cellcal (``docs/conventions.md``).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from calib.handeye import METHODS
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+Pose = Annotated[list[FiniteFloat], Field(min_length=6, max_length=6,
+                                          description="[x, y, z, rx, ry, rz], m and rad")]
+RunState = Literal["capturing", "paused", "done", "failed", "cancelled", "interrupted"]
+
+
+class _Input(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class TargetIn(_Input):
+    """The checkerboard to detect: ``inner_corners`` [cols, rows], nominal square size."""
+
+    inner_corners: Annotated[list[Annotated[int, Field(ge=2, le=100)]],
+                             Field(min_length=2, max_length=2)]
+    square_size_m: Annotated[float, Field(gt=0.0, lt=1.0, allow_inf_nan=False)]
+
+
+class RunCreate(_Input):
+    """Either ``stations`` (automatic planning) or explicit ``poses``; ``target`` optional."""
+
+    stations: Annotated[int, Field(ge=3, le=500)] | None = Field(
+        None, description="number of stations to plan automatically")
+    poses: Annotated[list[Pose], Field(min_length=1)] | None = Field(
+        None, description="TCP poses to visit in order")
+    target: TargetIn | None = Field(None, description="default: the configured checkerboard")
+
+    @model_validator(mode="after")
+    def _one_plan(self) -> RunCreate:
+        if (self.stations is None) == (self.poses is None):
+            raise ValueError("give either 'stations' (a number to plan) or 'poses' "
+                             "(a list of [x, y, z, rx, ry, rz]), not both or neither")
+        return self
+
+
+class Created(BaseModel):
+    id: str
+
+
+class ErrorInfo(BaseModel):
+    code: str
+    detail: str
+
+
+class StationError(BaseModel):
+    index: int
+    code: str | None
+    detail: str
+
+
+class RunPublic(BaseModel):
+    id: str
+    state: RunState
+    robot: str
+    setup: str
+    target: dict[str, Any]
+    stations_planned: int
+    stations_captured: int
+    stations_skipped: int
+    error: ErrorInfo | None = Field(None, description="why the run failed or stopped")
+    station_errors: list[StationError] = Field(
+        default_factory=list, description="stations skipped after a retry, with the reason")
+    created_at: dt.datetime
+    updated_at: dt.datetime
+
+
+class DetectionPublic(BaseModel):
+    ok: bool
+    reason: str | None = None
+    sharpness: float | None = None
+    coverage: float = 0.0
+    mean_contrast: float | None = None
+    ambiguous: bool = False
+    corners: list[list[float]] | None = Field(
+        None, description="pixels, shape (cols * rows, 2); only on the single-station view")
+
+
+class StationPublic(BaseModel):
+    index: int
+    state: Literal["captured", "skipped"]
+    target_pose: list[float] = Field(description="commanded TCP pose")
+    tcp_pose: list[float] | None = Field(description="TCP pose read after the grab")
+    detection: DetectionPublic | None
+    image_url: str | None
+    image_size: list[int] | None
+    error: ErrorInfo | None
+    attempts: int
+    captured_at: dt.datetime
+
+
+class CalibrationOptions(_Input):
+    """Solver options (``calib.pipeline.calibrate_stations``); noise levels are 1-sigma."""
+
+    method: Literal[METHODS] = "joint"  # type: ignore[valid-type]
+    estimate_kappa: bool = True
+    estimate_nu: bool = True
+    nu_method: Literal["images", "extrinsics"] = "images"
+    robot_noise_rot_deg: Annotated[float, Field(gt=0.0, le=5.0)] | None = Field(
+        None, description="robot rotation reading noise; default: the pipeline's")
+    robot_noise_trans_mm: Annotated[float, Field(gt=0.0, le=50.0)] | None = Field(
+        None, description="robot position reading noise; default: the pipeline's")
+
+
+class CalibrationCreate(_Input):
+    options: CalibrationOptions = Field(default_factory=CalibrationOptions)
+
+
+class CalibrationPublic(BaseModel):
+    id: str
+    run_id: str
+    state: Literal["running", "done", "failed"]
+    options: dict[str, Any]
+    result: dict[str, Any] | None = Field(None, description="cellcal/result@1 document")
+    error: str | None
+    created_at: dt.datetime
+    finished_at: dt.datetime | None
+
+
+class RobotInfo(BaseModel):
+    url: str
+    connected: bool
+    ready: bool = False
+    mode: str | None = None
+    protective_stop: bool = False
+    emergency_stop: bool = False
+    tcp_pose: list[float] | None = None
+    error: ErrorInfo | None = None
+
+
+class CameraInfo(BaseModel):
+    url: str
+    opened: bool
+    resolution: list[int] | None = None
+    error: ErrorInfo | None = None
+
+
+class DevicesPublic(BaseModel):
+    robot: RobotInfo
+    camera: CameraInfo
+    workspace: dict[str, list[float]] = Field(description="TCP box, base frame, metres")
+
+
+class Health(BaseModel):
+    status: Literal["ok"] = "ok"
+    version: str

@@ -1,0 +1,158 @@
+"""Service configuration from the environment (prefix ``CELLCAL_``), checked at startup.
+
+Bad configuration stops the service before it binds a port or touches a device: an unknown
+device URL scheme, an empty workspace box, a missing scene file, or a non-loopback host
+without an API key all raise a ``pydantic.ValidationError`` naming the setting.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+from pathlib import Path
+from typing import Annotated, Literal
+from urllib.parse import urlsplit
+
+from pydantic import Field, SecretStr, ValidationError, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from mocks.scene import MockScene, default_scene, load_scene
+from service.stationset import describe_validation_error
+
+Vector3 = tuple[float, float, float]
+ROBOT_SCHEMES = ("ur", "mock")
+CAMERA_SCHEMES = ("v4l2", "file", "mock")
+
+
+def is_loopback(host: str) -> bool:
+    """True for ``localhost`` and loopback addresses (127.0.0.0/8, ::1)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+class Settings(BaseSettings):
+    """Everything the service needs to start; each field is ``CELLCAL_<NAME>`` in the env."""
+
+    model_config = SettingsConfigDict(env_prefix="CELLCAL_", extra="ignore")
+
+    data_dir: Path = Field(Path("./cellcal-data"),
+                           description="where the database (default) and images live")
+    database_url: str | None = Field(
+        None, description="SQLAlchemy URL; default sqlite:///<data_dir>/cellcal.db")
+    api_key: SecretStr | None = Field(None, description="bearer token every call but /health "
+                                                        "needs")
+    host: str = "127.0.0.1"
+    port: Annotated[int, Field(ge=1, le=65535)] = 8000
+    robot: str = Field("mock://", description="robot URL: ur://HOST or mock://")
+    camera: str = Field("mock://", description="camera URL: v4l2:///dev/videoN, file:///path "
+                                               "or mock://")
+    scene: Path | None = Field(None, description="mock scene JSON for mock:// devices "
+                                                 "(default: the built-in cell)")
+    setup: Literal["eye_in_hand", "eye_to_hand"] | None = Field(
+        None, description="default: the scene's setup, else eye_in_hand")
+    target_inner_corners: tuple[int, int] | None = Field(
+        None, description="[cols, rows] of the checkerboard; default: the scene's board")
+    target_square_size_m: Annotated[float, Field(gt=0.0, lt=1.0)] | None = None
+    workspace_min: Vector3 = Field((-1.5, -1.5, 0.0),
+                                   description="lower corner of the TCP box, base frame, m")
+    workspace_max: Vector3 = Field((1.5, 1.5, 1.5),
+                                   description="upper corner of the TCP box, base frame, m")
+    hand_eye_guess: tuple[float, float, float, float, float, float] | None = Field(
+        None, description="rough hand_eye as [x, y, z, rx, ry, rz] (CAD) for automatic "
+                          "planning on a real cell; mock cells use the scene's")
+    focal_px_guess: Annotated[float, Field(gt=0.0)] | None = Field(
+        None, description="rough focal length in pixels for automatic planning on a real cell")
+    max_stations: Annotated[int, Field(ge=3, le=10000)] = 500
+    settle_timeout_s: Annotated[float, Field(gt=0.0)] = 5.0
+    grab_timeout_s: Annotated[float, Field(gt=0.0)] = 2.0
+    move_speed: Annotated[float, Field(gt=0.0, le=1.0)] = 0.25
+    calibration_workers: Annotated[int, Field(ge=1, le=16)] = 1
+
+    @field_validator("robot")
+    @classmethod
+    def _robot_scheme(cls, url: str) -> str:
+        if urlsplit(url).scheme.lower() not in ROBOT_SCHEMES:
+            raise ValueError(f"unknown robot address {url!r}; use ur://HOST or mock://")
+        return url
+
+    @field_validator("camera")
+    @classmethod
+    def _camera_scheme(cls, url: str) -> str:
+        if urlsplit(url).scheme.lower() not in CAMERA_SCHEMES:
+            raise ValueError(f"unknown camera address {url!r}; use v4l2:///dev/videoN, "
+                             "file:///path or mock://")
+        return url
+
+    @field_validator("scene")
+    @classmethod
+    def _scene_loads(cls, path: Path | None) -> Path | None:
+        if path is not None:
+            _read_scene(path)
+        return path
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Settings:
+        if any(lo >= hi for lo, hi in zip(self.workspace_min, self.workspace_max, strict=True)):
+            raise ValueError(f"workspace_min {list(self.workspace_min)} must be below "
+                             f"workspace_max {list(self.workspace_max)} on every axis")
+        if not is_loopback(self.host) and self.api_key is None:
+            raise ValueError(f"refusing to serve on {self.host} (not loopback) without an API "
+                             "key: set CELLCAL_API_KEY")
+        if self.api_key is not None and len(self.api_key.get_secret_value()) < 16:
+            raise ValueError("api_key must be at least 16 characters")
+        if urlsplit(self.camera).scheme.lower() == "mock" and not self.uses_mock:
+            raise ValueError("a mock:// camera renders what the mock robot sees: set the robot "
+                             "to mock:// too")
+        if (self.target_inner_corners is None) != (self.target_square_size_m is None):
+            raise ValueError("give target_inner_corners and target_square_size_m together")
+        if self.target_inner_corners is None and not self.uses_mock:
+            raise ValueError("a real robot needs the checkerboard: set "
+                             "CELLCAL_TARGET_INNER_CORNERS (e.g. [11, 8]) and "
+                             "CELLCAL_TARGET_SQUARE_SIZE_M")
+        if self.target_inner_corners is not None and min(self.target_inner_corners) < 2:
+            raise ValueError("target_inner_corners must be at least [2, 2] (cols, rows)")
+        return self
+
+    @property
+    def database(self) -> str:
+        """The SQLAlchemy URL in use."""
+        return self.database_url or f"sqlite:///{self.data_dir / 'cellcal.db'}"
+
+    @property
+    def uses_mock(self) -> bool:
+        """True when the robot is simulated (a mock camera needs a mock robot)."""
+        return urlsplit(self.robot).scheme.lower() == "mock"
+
+    def mock_scene(self) -> MockScene:
+        """The scene of the mock devices: the ``scene`` file or the built-in cell."""
+        return default_scene() if self.scene is None else _read_scene(self.scene)
+
+    def target(self) -> dict[str, object]:
+        """The checkerboard captured runs look for (``inner_corners``, nominal square size)."""
+        if self.target_inner_corners is not None:
+            return {"inner_corners": list(self.target_inner_corners),
+                    "square_size_m": self.target_square_size_m}
+        t = self.mock_scene().target
+        return {"inner_corners": list(t.inner_corners), "square_size_m": t.square_size_m}
+
+    def calibration_setup(self) -> str:
+        """``eye_in_hand`` or ``eye_to_hand``: the setting, else the scene's, for mocks."""
+        if self.setup is not None:
+            return self.setup
+        return self.mock_scene().setup if self.uses_mock else "eye_in_hand"
+
+
+def _read_scene(path: Path) -> MockScene:
+    """Load a scene file, turning every failure into a one-line ``ValueError``."""
+    try:
+        return load_scene(path)
+    except OSError as exc:
+        raise ValueError(f"scene {path}: {exc.strerror or exc}") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"scene {path}: not valid JSON ({exc})") from None
+    except ValidationError as exc:
+        raise ValueError(f"scene {path}: {describe_validation_error(exc)}") from None

@@ -1,0 +1,179 @@
+"""Station capture through the mock devices, the station-set files it writes, and calibrations
+from those files (PnP + hand-eye, and `cellcal calibrate`) that recover the scene hand-eye."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from calib.geometry import matrix_from_ur_pose, pose_error, ur_pose_from_matrix
+from calib.handeye import calibrate_hand_eye
+from calib.target import board_points, detect_checkerboard
+from drivers.capture import CapturedStation, capture_station
+from drivers.errors import RobotError
+from drivers.registry import open_camera, open_robot
+from mocks.devices import MockCamera, MockRobot
+from mocks.scene import default_scene, sample_station_poses
+from service import cli
+from service.stationset import load_station_set, station_record, write_station_set
+from tests.helpers import assert_pose_close
+
+SCENE = default_scene()
+TARGET = {"type": "checkerboard", "inner_corners": list(SCENE.target.inner_corners),
+          "square_size_m": SCENE.target.square_size_m}
+
+
+@pytest.fixture
+def rig() -> tuple[MockRobot, MockCamera]:
+    robot = open_robot("mock://", scene=SCENE)
+    camera = open_camera("mock://", robot=robot)
+    assert isinstance(robot, MockRobot) and isinstance(camera, MockCamera)
+    return robot, camera
+
+
+def station_targets(n: int, seed: int) -> np.ndarray:
+    return ur_pose_from_matrix(sample_station_poses(SCENE, n, np.random.default_rng(seed)))
+
+
+@pytest.mark.timeout(30)
+def test_capture_station_pairs_a_fresh_frame_with_the_settled_pose(rig) -> None:
+    robot, camera = rig
+    target = station_targets(1, 0)[0]
+    st = capture_station(robot, camera, target)
+    assert st.image.shape == (1024, 1280)
+    assert np.array_equal(st.tcp_pose, robot.tcp_pose())
+    np.testing.assert_array_equal(st.target_tcp_pose, target)
+    angle, dist = pose_error(matrix_from_ur_pose(st.tcp_pose), matrix_from_ur_pose(target))
+    assert dist < 1e-3 and angle < np.deg2rad(0.1)  # the scene's reading noise, no more
+    assert st.moved_at <= st.settled_at <= st.grabbed_at <= st.pose_read_at
+    assert detect_checkerboard(st.image, SCENE.target.inner_corners).ok
+
+
+class BumpedCamera:
+    """A camera whose grab coincides with the robot being pushed 1 mm."""
+
+    def __init__(self, camera: MockCamera, robot: MockRobot) -> None:
+        self.camera, self.robot = camera, robot
+
+    def grab(self, *, timeout: float = 2.0) -> np.ndarray:
+        pose = self.robot.tcp_pose()
+        pose[0] += 1e-3
+        self.robot.move_linear(pose)
+        return self.camera.grab(timeout=timeout)
+
+
+@pytest.mark.timeout(30)
+def test_capture_refuses_a_robot_that_moved_during_the_grab(rig) -> None:
+    robot, camera = rig
+    with pytest.raises(RobotError, match=r"robot moved by [\d.]+ mm") as err:
+        capture_station(robot, BumpedCamera(camera, robot), station_targets(1, 1)[0])
+    assert err.value.code == "moved_during_grab"
+
+
+def test_capture_validates_the_target(rig) -> None:
+    robot, camera = rig
+    with pytest.raises(ValueError, match="shape"):
+        capture_station(robot, camera, np.zeros(4))
+    with pytest.raises(ValueError, match="millimetres"):
+        capture_station(robot, camera, np.array([600.0, 0.0, 600.0, 0.0, 0.0, 0.0]))
+
+
+def _station(tcp_pose: list[float]) -> CapturedStation:
+    return CapturedStation(image=np.zeros((8, 8), np.uint8), tcp_pose=np.array(tcp_pose),
+                           target_tcp_pose=np.array(tcp_pose), moved_at=0.0, settled_at=0.0,
+                           grabbed_at=0.0, pose_read_at=0.0)
+
+
+def test_station_record() -> None:
+    pose = [0.5, 0.1, 0.4, 3.1, 0.0, 0.0]
+    assert station_record(_station(pose), "007.png") == {
+        "id": "007", "tcp_pose": pose, "image": "007.png"}
+
+
+def test_write_station_set_refuses_bad_input_and_overwrites(tmp_path: Path) -> None:
+    stations = [_station([0.5, 0.1, 0.4, 3.1, 0.0, 0.0])]
+    with pytest.raises(ValueError, match="inner_corners"):
+        write_station_set(tmp_path / "a", "eye_in_hand", {"square_size_m": 0.03}, stations)
+    with pytest.raises(ValueError, match="setup"):
+        write_station_set(tmp_path / "a", "eye_on_head", TARGET, stations)
+    assert not (tmp_path / "a").exists()  # nothing written for an invalid set
+    write_station_set(tmp_path / "a", "eye_in_hand", TARGET, stations)
+    with pytest.raises(FileExistsError, match="already exists"):
+        write_station_set(tmp_path / "a", "eye_in_hand", TARGET, stations)
+
+
+def pnp_observations(station_dir: Path, nu: float) -> tuple[np.ndarray, np.ndarray]:
+    """(base_T_tcp, cam_T_target), each (n, 4, 4), from a station set's images by PnP.
+
+    Stands in for the image pipeline: corners by ``detect_checkerboard``, poses by
+    ``cv2.solvePnP`` with the scene's intrinsics and ν (which the intrinsic bundle adjustment
+    estimates) on the *nominal* square size, so κ is left to the hand-eye solve.
+    """
+    stations = load_station_set(station_dir)
+    assert stations.target is not None
+    corners = tuple(stations.target.inner_corners)
+    obj = board_points(corners, stations.target.square_size_m, nu=nu)
+    P, C = [], []
+    for s in stations.stations:
+        image = cv2.imread(str(station_dir / s.image), cv2.IMREAD_UNCHANGED)
+        det = detect_checkerboard(image, corners)
+        assert det.ok, f"station {s.id}: {det.reason}"
+        ok, rvec, tvec = cv2.solvePnP(obj, det.corners, SCENE.camera.k_matrix,
+                                      SCENE.camera.dist_coeffs)
+        assert ok
+        P.append(s.tcp_pose)
+        C.append(np.concatenate([tvec.ravel(), rvec.ravel()]))
+    return matrix_from_ur_pose(np.array(P)), matrix_from_ur_pose(np.array(C))
+
+
+@pytest.fixture(scope="module")
+def captured_set(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[CapturedStation]]:
+    """Ten stations captured through mock:// devices and written as a station set."""
+    robot = open_robot("mock://", scene=SCENE)
+    camera = open_camera("mock://", robot=robot)
+    captured = [capture_station(robot, camera, p) for p in station_targets(10, 5)]
+    path = write_station_set(tmp_path_factory.mktemp("capture") / "run", SCENE.setup, TARGET,
+                             captured)
+    return path, captured
+
+
+@pytest.mark.timeout(60)
+def test_captured_station_set_format(captured_set) -> None:
+    path, captured = captured_set
+    doc = json.loads(path.read_text())
+    assert doc["format"] == "cellcal/stations@1" and doc["setup"] == "eye_in_hand"
+    assert doc["target"] == TARGET
+    assert [s["image"] for s in doc["stations"]] == [f"{k:03d}.png" for k in range(10)]
+    for s, st in zip(doc["stations"], captured, strict=True):
+        assert s["tcp_pose"] == st.tcp_pose.tolist()
+        assert np.array_equal(cv2.imread(str(path.parent / s["image"]), cv2.IMREAD_UNCHANGED),
+                              st.image)
+    assert len(load_station_set(path.parent).stations) == 10
+
+
+@pytest.mark.timeout(60)
+def test_captured_poses_and_images_recover_the_scene_hand_eye(captured_set) -> None:
+    path, _ = captured_set
+    P, C = pnp_observations(path.parent, SCENE.target.nu)
+    result = calibrate_hand_eye(P, C, setup=SCENE.setup, estimate_kappa=True)
+    # Robot readings carry 0.02 deg / 0.1 mm noise; ten stations pin X far below that.
+    assert_pose_close(result.hand_eye, SCENE.hand_eye_matrix, rot=np.deg2rad(0.03), trans=3e-4)
+    assert_pose_close(result.target_pose, SCENE.target_pose_matrix, rot=np.deg2rad(0.03),
+                      trans=5e-4)
+    assert result.kappa == pytest.approx(SCENE.target.kappa, abs=5e-4)
+
+
+@pytest.mark.timeout(120)
+def test_cellcal_calibrate_reads_a_capture(captured_set, capsys) -> None:
+    path, _ = captured_set
+    out = path.parent.parent / "result.json"
+    assert cli.main(["calibrate", str(path.parent), "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert_pose_close(np.array(doc["hand_eye"]["matrix"]), SCENE.hand_eye_matrix,
+                      rot=np.deg2rad(0.05), trans=5e-4)
+    assert doc["target"]["kappa"] == pytest.approx(SCENE.target.kappa, abs=3e-3)
+    assert doc["target"]["nu"] == pytest.approx(SCENE.target.nu, abs=1e-4)

@@ -1,0 +1,107 @@
+"""``cellcal calibrate`` on station sets with images: full result, rejected files, errors."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import cv2
+import numpy as np
+import pytest
+
+from calib.geometry import pose_error
+from service.cli import main
+from tests.test_pipeline import BOARD, SCENE, SQUARE, rendered_stations
+
+N = 12
+
+
+def write_image_set(path, *, intrinsics=None, inner_corners=BOARD, n=N):
+    """Station set of n rendered images (PNG, the first two JPEG) with noisy tcp poses."""
+    images, poses = rendered_stations()
+    path.mkdir(parents=True, exist_ok=True)
+    stations = []
+    for k in range(n):
+        name = f"{k:03d}.{'jpg' if k < 2 else 'png'}"
+        cv2.imwrite(str(path / name), images[k])
+        stations.append({"id": f"{k:03d}", "tcp_pose": poses[k], "image": name})
+    doc = {"format": "cellcal/stations@1", "setup": "eye_in_hand",
+           "target": {"type": "checkerboard", "inner_corners": list(inner_corners),
+                      "square_size_m": SQUARE},
+           "stations": stations}
+    if intrinsics:
+        doc["intrinsics"] = intrinsics
+    (path / "stations.json").write_text(json.dumps(doc))
+    return path
+
+
+def test_image_set_gives_the_full_result(tmp_path, capsys):
+    d = write_image_set(tmp_path / "set")
+    # a truncated JPEG, a truncated PNG, a file that is no image, a missing file
+    (d / "001.jpg").write_bytes((d / "001.jpg").read_bytes()[:5000])
+    (d / "002.png").write_bytes((d / "002.png").read_bytes()[:20000])
+    (d / "003.png").write_text("not an image")
+    (d / "004.png").unlink()
+    out = tmp_path / "result.json"
+    assert main(["calibrate", str(d), "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    rejected = {r["id"]: r["reason"] for r in doc["rejected"]}
+    assert rejected == {
+        "001": "image file '001.jpg' is truncated (incomplete copy or interrupted capture?)",
+        "002": "image file '002.png' is truncated (incomplete copy or interrupted capture?)",
+        "003": "image file '003.png' is not a readable image",
+        "004": "cannot read image file '004.png': No such file or directory"}
+    assert doc["format"] == "cellcal/result@1" and doc["method"] == "joint"
+    cam = doc["camera"]
+    assert cam["image_size"] == list(SCENE.camera.image_size) and len(cam["dist"]) == 5
+    assert np.abs(np.array(cam["K"]) - SCENE.camera.k_matrix).max() < 3.0
+    assert 0 < cam["rms_px"] < 0.2
+    t = doc["target"]
+    assert abs(t["kappa"] - SCENE.target.kappa) < 4 * t["kappa_sigma"]
+    assert abs(t["nu"] - SCENE.target.nu) < 4 * t["nu_sigma"]
+    rot, trans = pose_error(np.array(doc["hand_eye"]["matrix"]), SCENE.hand_eye_matrix)
+    assert rot < np.deg2rad(0.05) and trans < 0.5e-3
+    u = doc["uncertainty"]
+    assert len(u["hand_eye_trans_m"]) == 3 and len(u["target_pose_rot_rad"]) == 3
+    assert u["camera"]["fx"] > 0 and 0.5 < u["variance_factor"] < 2
+    assert [s["id"] for s in doc["stations"]] == ["000", *(f"{k:03d}" for k in range(5, N))]
+    assert all(s["mahalanobis"] is not None for s in doc["stations"])
+    assert {"E_R", "E_t", "loo_trans_m_mean", "chain_rms_px"} <= set(doc["validation"])
+    assert doc["options"]["nu_method"] == "images" and doc["software"]["version"]
+    assert "wrote" in capsys.readouterr().err
+
+
+def test_known_intrinsics_and_another_method(tmp_path):
+    K, dist = SCENE.camera.k_matrix.tolist(), SCENE.camera.dist
+    d = write_image_set(tmp_path / "set", intrinsics={"K": K, "dist": dist})
+    out = tmp_path / "r.json"
+    assert main(["calibrate", str(d), "--out", str(out), "--method", "sm"]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["method"] == "sm" and doc["camera"]["K"] == K and doc["rejected"] == []
+
+
+def test_wrong_inner_corners_is_one_clear_line(tmp_path, capsys):
+    d = write_image_set(tmp_path / "set", inner_corners=(10, 8), n=3)
+    assert main(["calibrate", str(d)]) == 2
+    err = capsys.readouterr().err
+    assert re.match(r"cellcal: error: only 0 of 3 stations usable, need at least 3 \(000: "
+                    r"board not found with 10x8 inner corners; a (11x8|8x11) grid is visible: "
+                    r"check inner_corners", err), err
+    assert err.count("\n") == 1
+
+
+def test_mixed_pose_and_image_stations_are_refused(tmp_path, capsys):
+    d = write_image_set(tmp_path / "set")
+    doc = json.loads((d / "stations.json").read_text())
+    doc["stations"][0].pop("image")
+    doc["stations"][0]["target_pose"] = [0.0, 0.0, 0.5, 0.0, 0.0, 0.0]
+    (d / "stations.json").write_text(json.dumps(doc))
+    assert main(["calibrate", str(d)]) == 2
+    assert "station 000 has a target_pose while others have images" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("n_images, bar", [(12, True), (4, False)])
+def test_progress_bar_only_for_many_images(tmp_path, capsys, n_images, bar):
+    d = write_image_set(tmp_path / "set", n=n_images)
+    assert main(["calibrate", str(d), "--method", "sm", "--out", str(tmp_path / "r.json")]) == 0
+    assert ("detecting corners" in capsys.readouterr().err) == bar

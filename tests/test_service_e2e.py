@@ -1,0 +1,149 @@
+"""End to end over real HTTP: the service in a uvicorn subprocess on 127.0.0.1 with the mock
+cell, driven with ``httpx``; a hard kill mid-run, then a restart and a resume.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+
+from calib.geometry import ur_pose_from_matrix
+from mocks.scene import default_scene, sample_station_poses
+
+REPO = Path(__file__).resolve().parents[1]
+KEY = "e2e-key-0123456789abcdef"
+AUTH = {"Authorization": f"Bearer {KEY}"}
+#: ``cellcal serve`` through its ``register`` hook (``service.cli`` wires it in the same way).
+SERVE = ("import argparse, sys; from service import cli_serve; "
+         "p = argparse.ArgumentParser(); cli_serve.register(p.add_subparsers()); "
+         "a = p.parse_args(sys.argv[1:]); sys.exit(a.func(a))")
+
+Server = Callable[[], str]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def start_server(tmp_path: Path) -> Iterator[Callable[[], tuple[str, subprocess.Popen[bytes]]]]:
+    """Start ``cellcal serve --mock`` on a free port over ``tmp_path``; every one is reaped."""
+    procs: list[subprocess.Popen[bytes]] = []
+
+    def start() -> tuple[str, subprocess.Popen[bytes]]:
+        port = _free_port()
+        env = {**os.environ, "CELLCAL_DATA_DIR": str(tmp_path), "CELLCAL_API_KEY": KEY}
+        log = tmp_path / f"serve-{len(procs)}.log"
+        with log.open("wb") as out:
+            proc = subprocess.Popen([sys.executable, "-c", SERVE, "serve", "--mock",
+                                     "--host", "127.0.0.1", "--port", str(port)],
+                                    cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT)
+        procs.append(proc)
+        url = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + 20
+        while True:
+            assert proc.poll() is None, f"the service exited at startup:\n{log.read_text()}"
+            try:
+                if httpx.get(f"{url}/health", timeout=1).status_code == 200:
+                    return url, proc
+            except httpx.TransportError:
+                pass
+            assert time.monotonic() < deadline, f"the service did not come up:\n{log.read_text()}"
+            time.sleep(0.1)
+
+    yield start
+    for proc in procs:
+        if proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+def _poses(n: int) -> list[list[float]]:
+    T = sample_station_poses(default_scene(), n, np.random.default_rng(11))
+    return ur_pose_from_matrix(T).tolist()
+
+
+def _wait(client: httpx.Client, path: str, until: Callable[[dict[str, Any]], bool],
+          timeout: float = 30.0) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout
+    while not until(doc := client.get(path).json()):
+        assert time.monotonic() < deadline, f"{path} stuck: {doc}"
+        time.sleep(0.1)
+    return doc
+
+
+def _events(client: httpx.Client, run_id: str) -> list[tuple[str, dict[str, Any]]]:
+    """Read the run's server-sent events until the service ends the stream."""
+    events = []
+    with client.stream("GET", f"/runs/{run_id}/events") as r:
+        assert r.headers["content-type"].startswith("text/event-stream")
+        kind = None
+        for line in r.iter_lines():
+            if line.startswith("event: "):
+                kind = line.removeprefix("event: ")
+            elif line.startswith("data: "):
+                events.append((kind, json.loads(line.removeprefix("data: "))))
+    return events
+
+
+@pytest.mark.timeout(60)
+def test_capture_watch_and_calibrate_over_http(start_server: Callable[[], Any]) -> None:
+    url, _ = start_server()
+    with httpx.Client(base_url=url, headers=AUTH, timeout=30) as client:
+        assert httpx.get(f"{url}/runs").status_code == 401
+        r = client.post("/runs", json={"poses": _poses(8)})
+        assert r.status_code == 201
+        run_id = r.json()["id"]
+        events = _events(client, run_id)
+        first, last = events[0][1], events[-1][1]
+        stations = [e for kind, e in events if kind == "station"]
+        assert events[0][0] == events[-1][0] == "state"
+        assert first["stations_captured"] + len(stations) == 8
+        assert [e["index"] for e in stations] == list(range(8 - len(stations), 8))
+        assert (last["state"], last["stations_captured"]) == ("done", 8)
+
+        r = client.post(f"/runs/{run_id}/calibrations", json={"options": {}})
+        assert r.status_code == 202
+        cal = _wait(client, f"/calibrations/{r.json()['id']}",
+                    lambda c: c["state"] != "running", timeout=45)
+        assert cal["state"] == "done", cal["error"]
+        assert cal["result"]["target"]["kappa"] == pytest.approx(1.005, abs=3e-3)
+
+
+@pytest.mark.timeout(60)
+def test_service_killed_mid_run_resumes_after_restart(start_server: Callable[[], Any]) -> None:
+    url, proc = start_server()
+    with httpx.Client(base_url=url, headers=AUTH, timeout=30) as client:
+        run_id = client.post("/runs", json={"poses": _poses(10)}).json()["id"]
+        _wait(client, f"/runs/{run_id}", lambda r: r["stations_captured"] >= 3)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(10)
+
+    url, _ = start_server()
+    with httpx.Client(base_url=url, headers=AUTH, timeout=30) as client:
+        run = client.get(f"/runs/{run_id}").json()
+        assert run["state"] == "interrupted"
+        assert 3 <= run["stations_captured"] < 10
+        assert client.post(f"/runs/{run_id}/resume").json()["state"] == "capturing"
+        run = _wait(client, f"/runs/{run_id}", lambda r: r["state"] != "capturing")
+        assert (run["state"], run["stations_captured"]) == ("done", 10)
+        indices = [s["index"] for s in client.get(f"/runs/{run_id}/stations").json()]
+        assert indices == list(range(10))
