@@ -18,7 +18,10 @@ per-image camera poses of the intrinsic stage (κ = 1, no joint stage).
 
 from __future__ import annotations
 
+import os
+from collections import deque
 from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -173,7 +176,7 @@ def calibrate_stations(observations: Iterable[Observation],
                    known_intrinsics=intrinsics is not None)
 
     items = observations if progress is None else progress(observations)
-    detections = [_detect(o, (cols, rows)) for o in items]
+    detections = _detect_all(items, (cols, rows))
     n = len(detections)
     ids = [f"{k:03d}" for k in range(n)] if station_ids is None else [str(s) for s in
                                                                         station_ids]
@@ -300,6 +303,25 @@ def calibrate_stations(observations: Iterable[Observation],
         sigmas=sigmas, stations=tuple(reports), rejected=tuple(rejected),
         validation=validation, variance_factor=None if joint is None
         else joint.variance_factor, **common)
+
+
+def _detect_all(items: Iterable[Observation], inner_corners: tuple[int, int], *,
+                workers: int | None = None) -> list[tuple[Detection, tuple[int, int] | None]]:
+    """``_detect`` over all observations on a few threads, in order.
+
+    OpenCV's detector releases the GIL, so threads use every core. At most ``2 x workers``
+    observations are in flight, so a generator of images still holds only a few in memory.
+    """
+    workers = workers or min(4, os.cpu_count() or 1)
+    out: list[tuple[Detection, tuple[int, int] | None]] = []
+    with ThreadPoolExecutor(workers) as pool:
+        pending: deque[Future] = deque()
+        for obs in items:
+            pending.append(pool.submit(_detect, obs, inner_corners))
+            if len(pending) >= 2 * workers:
+                out.append(pending.popleft().result())
+        out.extend(f.result() for f in pending)
+    return out
 
 
 def _detect(obs: Observation, inner_corners: tuple[int, int]
