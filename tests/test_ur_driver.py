@@ -7,6 +7,9 @@ start-up get their own emulator and address.
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -235,3 +238,35 @@ def test_unreachable_host_fails_fast() -> None:
     with pytest.raises(RobotConnectionError, match="Cannot reach the robot controller"):
         URRobot(host, connect_timeout=2.0).connect()
     assert time.monotonic() - t0 < 2.5
+
+
+def _cellcal(*argv: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "service.cli", *argv], capture_output=True,
+                          text=True, timeout=45)
+
+
+@pytest.mark.timeout(120)
+def test_cli_robot_pose_and_move_through_ur_rtde(emulator: EmulatorProcess) -> None:
+    """``cellcal robot pose|move --robot ur://HOST`` in their own process, through ur-rtde."""
+    assert emulator.command("emulator clear") == "emulator: faults cleared"
+    wait_ports(emulator.host)
+    url = f"ur://{emulator.host}"
+    first = _cellcal("robot", "pose", "--robot", url)
+    assert first.returncode == 0, first.stderr
+    start = np.array(json.loads(first.stdout)["tcp_pose"])
+    target = start + np.array([0.02, -0.01, -0.015, 0.0, 0.0, 0.0])
+    moved = _cellcal("robot", "move", "--robot", url,
+                     "--pose=" + ",".join(f"{v:.6f}" for v in target), "--speed", "0.5")
+    assert moved.returncode == 0, moved.stderr
+    assert_pose_close(np.array(json.loads(moved.stdout)["tcp_pose"]), target, rot=1e-5,
+                      trans=1e-5)
+    again = _cellcal("robot", "pose", "--robot", url)
+    assert_pose_close(np.array(json.loads(again.stdout)["tcp_pose"]), target, rot=1e-5,
+                      trans=1e-5)
+
+
+@pytest.mark.timeout(60)
+def test_cli_unreachable_controller_is_one_line() -> None:
+    proc = _cellcal("robot", "pose", "--robot", f"ur://{free_host()}")
+    assert proc.returncode != 0
+    assert proc.stderr.startswith("cellcal: error: ") and "Traceback" not in proc.stderr
