@@ -24,7 +24,8 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
 bench: $(STAMP)
-	$(PY) benchmarks/handeye_accuracy.py
+	$(PY) -m benchmarks.handeye_accuracy
+	$(PY) -m benchmarks.kappa_nu
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -5,8 +5,8 @@ number of motions), then a realistic eye-in-hand scene (15 stations, robot noise
 0.25 mm per reading, camera poses from PnP on 0.15 px corner noise) with RMS errors over many
 seeds, and the solver speed on 20 stations.
 
-    python benchmarks/handeye_accuracy.py            # full run (a few minutes)
-    python benchmarks/handeye_accuracy.py --quick    # smoke run
+    python -m benchmarks.handeye_accuracy            # full run (a few minutes)
+    python -m benchmarks.handeye_accuracy --quick    # smoke run
 
 Prints tables and writes benchmarks/results/handeye_accuracy.png.
 """

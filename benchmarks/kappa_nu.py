@@ -11,8 +11,8 @@
 (c) Speed: ``cellcal calibrate`` on 20 rendered 1280x1024 images against the OpenCV pipeline
     (detection + calibrateCamera + calibrateHandEye) on the same files, and on 200 stations.
 
-    python benchmarks/kappa_nu.py            # full run (about 10 min on 2 cores)
-    python benchmarks/kappa_nu.py --quick    # smoke run
+    python -m benchmarks.kappa_nu            # full run (about 10 min on 2 cores)
+    python -m benchmarks.kappa_nu --quick    # smoke run
 
 Prints tables and writes benchmarks/results/kappa_nu.png.
 """

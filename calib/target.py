@@ -27,6 +27,8 @@ import cv2
 import numpy as np
 
 #: SB detector flags, tried in order: fast first, exhaustive search only when that fails.
+#: Images at least this large (smaller side, px) are searched at half size first.
+_COARSE_MIN_SIZE = 960
 #: ``CALIB_CB_ACCURACY`` is left out: it is 4x slower and less accurate than :func:`_refine`.
 _SB_FLAG_SETS = (
     cv2.CALIB_CB_NORMALIZE_IMAGE,
@@ -116,10 +118,7 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
         return Detection(ok=False, sharpness=0.0, reason=(
             f"image is blank: grey levels span only {lo:.0f}..{hi:.0f} "
             "(nothing in view, lens cap, lighting or exposure?)"))
-    for flags in _SB_FLAG_SETS:
-        found, raw = cv2.findChessboardCornersSB(grey, (cols, rows), flags=flags)
-        if found:
-            break
+    found, raw = _find_grid(grey, (cols, rows))
     if not found:
         sharpness = _sharpness(grey)
         if sharpness < min_sharpness:
@@ -141,6 +140,26 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
         return Detection(ok=False, **metrics, reason=(
             f"image too blurred (sharpness {sharpness:.3f} < {min_sharpness:.3f})"))
     return Detection(ok=True, corners=corners, **metrics)
+
+
+def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int]
+               ) -> tuple[bool, np.ndarray | None]:
+    """OpenCV's SB detector, first on a half-size copy of a large image (about 4x faster).
+
+    Half-size corners are scaled back (a half-size pixel centre x sits at 2x + 0.5) and are
+    only a start for :func:`_refine` at full resolution; when the half-size search fails
+    (small or distant board) the full image is searched.
+    """
+    if min(grey.shape) >= _COARSE_MIN_SIZE:
+        found, raw = cv2.findChessboardCornersSB(cv2.pyrDown(grey), inner_corners,
+                                                 flags=_SB_FLAG_SETS[0])
+        if found:
+            return True, raw * 2.0 + 0.5
+    for flags in _SB_FLAG_SETS:
+        found, raw = cv2.findChessboardCornersSB(grey, inner_corners, flags=flags)
+        if found:
+            return True, raw
+    return False, None
 
 
 def order_corners(grey: np.ndarray, corners: np.ndarray,
