@@ -324,8 +324,12 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--seeds", type=int, default=60)
     ap.add_argument("--skip-speed", action="store_true")
+    ap.add_argument("--speed-only", action="store_true", help="only part (c)")
     args = ap.parse_args()
     seeds = 4 if args.quick else args.seeds
+    if args.speed_only:
+        speed(repeats=1 if args.quick else 3, n_large=40 if args.quick else 200)
+        return
     print("# (a) traditional calibration with a wrongly assumed board (truth nu = kappa = 1)")
     tr = trends(3 if args.quick else 10)
     print(f"{'assumed':>8} {'fx %':>8} {'cx %':>8} {'ext t mm':>9} {'ext r deg':>10} "
