@@ -315,11 +315,8 @@ def test_predicted_sigmas_match_monte_carlo() -> None:
 
 
 @pytest.mark.slow
-def test_speed_200_images() -> None:
-    import time
-
+def test_200_images() -> None:
+    """Scale check; the time it takes is measured in benchmarks/kappa_nu.py, not here."""
     views, _ = synthetic_views(np.random.default_rng(7), 200)
-    start = time.perf_counter()
     res = calibrate_intrinsics(views, BOARD, SQUARE, SIZE)
-    assert time.perf_counter() - start < 5.0
     assert abs(res.nu - 0.9975) < 3 * res.sigmas["nu"]

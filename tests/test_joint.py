@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -128,13 +126,12 @@ def test_bad_arguments_are_named():
 
 
 @pytest.mark.slow
-def test_two_hundred_stations_in_a_few_seconds():
+def test_two_hundred_stations_converge():
+    """Scale check; the time it takes is measured in benchmarks/kappa_nu.py, not here."""
     rng = np.random.default_rng(7)
     data = synthetic_stations("eye_in_hand", 200, rng, pixel_noise=0.1, robot_noise=True)
-    start = time.perf_counter()
     res = solve_joint(data["corners"], data["P"], inner_corners=BOARD, square_size=SQUARE,
                       sigma_px=0.1, outlier_sigma=None, **start_values(data, rng))
-    assert time.perf_counter() - start < 10.0  # about 5 s on one idle core
     assert res.converged and abs(res.kappa - KAPPA) < 4 * res.sigmas["kappa"]
 
 
