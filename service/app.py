@@ -20,7 +20,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from drivers.errors import DeviceError, WorkspaceError
-from service.api import calibrations, devices, health, runs, stations
+from service.api import calibrations, devices, health, runs, stations, validations
 from service.api.deps import require_api_key
 from service.db import Database
 from service.jobs import (
@@ -82,7 +82,7 @@ def create_app(settings: Settings | None = None, *,
                     "radians; poses are UR vectors [x, y, z, rx, ry, rz] (base_T_tcp).")
     app.state.settings = settings
     app.include_router(health.router)
-    for module in (runs, stations, calibrations, devices):
+    for module in (runs, stations, calibrations, validations, devices):
         app.include_router(module.router, dependencies=[Depends(require_api_key)])
     for exc_type in (ServiceError, DeviceError):
         app.add_exception_handler(exc_type, _domain_error)

@@ -118,10 +118,11 @@ def _truncated(data: bytes) -> bool:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from service.demo import run_demo
+    from service.demo import run_demo, run_pose_demo
 
-    run_demo(seed=args.seed, stations=args.stations)
-    return 0
+    if args.poses_only:
+        return run_pose_demo(seed=args.seed, stations=args.stations)
+    return run_demo(stations=args.stations, scene=args.scene, out=args.out)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -152,9 +153,21 @@ def build_parser() -> argparse.ArgumentParser:
                           "default); extrinsics: from the hand-eye residuals (Method #2)")
     cal.set_defaults(func=_calibrate)
 
-    demo = sub.add_parser("demo", help="simulate a cell, calibrate it, compare with the truth")
-    demo.add_argument("--seed", type=int, default=1)
-    demo.add_argument("--stations", type=int, default=15)
+    demo = sub.add_parser(
+        "demo", help="run the service on a simulated cell: capture, calibrate, validate",
+        description="Start the REST service with mock devices on a free loopback port, plan "
+                    "and capture 15 stations, calibrate, run the dot-hit validation, export "
+                    "the result, and compare everything with the simulated cell's truth. The "
+                    "service and its data are removed at the end.")
+    demo.add_argument("--scene", type=Path, metavar="SCENE_JSON",
+                      help="mock scene file (default: the built-in eye-in-hand cell)")
+    demo.add_argument("--out", type=Path, metavar="DIR",
+                      help="where to write the result JSON and its exports (default: a new "
+                           "temporary directory, kept)")
+    demo.add_argument("--poses-only", action="store_true",
+                      help="instead: compare every hand-eye method on simulated poses")
+    demo.add_argument("--seed", type=int, default=1, help="--poses-only: simulation seed")
+    demo.add_argument("--stations", type=int, default=15, help=argparse.SUPPRESS)
     demo.set_defaults(func=_demo)
     cli_devices.register(sub)
     cli_serve.register(sub)

@@ -1,20 +1,294 @@
-"""``cellcal demo``: a simulated eye-in-hand cell, calibrated by every method, against the truth.
+"""``cellcal demo``: the whole service flow on a simulated cell, checked against its truth.
 
-The robot readings carry UR-class noise (0.05 deg / 0.25 mm) and the camera poses come from PnP
-on corners with 0.15 px noise, as in the hand-eye accuracy benchmark.
+The service runs as a real ``cellcal serve --mock`` (uvicorn) in a subprocess on a free
+loopback port, with a generated API key and a temporary data directory that are gone when the
+demo ends, also on Ctrl-C. The demo is its client over HTTP: plan and capture stations
+(progress from the run's event stream), calibrate, run the dot-hit validation, export the
+result, then compare with the mock scene's truth.
+
+``cellcal demo --poses-only`` is the older pose-level comparison of every hand-eye method.
 """
 
 from __future__ import annotations
 
+import contextlib
+import json
+import os
+import secrets
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+import httpx
 import numpy as np
 from tqdm import tqdm
 
 from calib.geometry import pose_error
 from calib.handeye import METHODS, calibrate_hand_eye
 from mocks.posesim import default_cell, simulate
+from mocks.scene import MockScene, default_scene, load_scene
+from service.exports import FORMATS
+
+#: Seconds to wait for the service to answer /health, and for a calibration or validation.
+STARTUP_TIMEOUT_S = 30.0
+JOB_TIMEOUT_S = 90.0
+#: Longest silence on the event stream (the service sends a keep-alive every 15 s).
+EVENT_GAP_S = 60.0
 
 
-def run_demo(*, seed: int = 1, stations: int = 15) -> None:
+class DemoError(RuntimeError):
+    """A step of the demo failed; the message says which and why."""
+
+
+def run_demo(*, stations: int = 15, scene: Path | None = None, out: Path | None = None) -> int:
+    """Run the service flow on a mock cell and print a summary; 0, or 1 after one error line.
+
+    ``out`` receives the result JSON and its exports (default: a new temporary directory,
+    kept).
+    """
+    started = time.monotonic()
+    out = Path(tempfile.mkdtemp(prefix="cellcal-demo-")) if out is None else out
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with _service(scene) as client:
+            run, result, report, files = _flow(client, stations, out)
+        truth = default_scene() if scene is None else load_scene(scene)
+    except (DemoError, httpx.HTTPError, OSError) as exc:
+        print(f"cellcal: error: demo: {exc}", file=sys.stderr)
+        return 1
+    print(_summary(truth, run, result, report, out, files, time.monotonic() - started))
+    return 0
+
+
+# ---- the service in a subprocess -----------------------------------------------------------
+
+@contextlib.contextmanager
+def _service(scene: Path | None) -> Iterator[httpx.Client]:
+    """``cellcal serve --mock`` on a free loopback port; stopped and its data removed on exit.
+
+    The service gets its own process group, so the calibration worker it spawns is stopped
+    with it; SIGTERM to the demo unwinds like Ctrl-C.
+    """
+    data = Path(tempfile.mkdtemp(prefix="cellcal-demo-data-"))
+    key = secrets.token_urlsafe(24)
+    port = _free_port()
+    url = f"http://127.0.0.1:{port}"
+    log = data / "serve.log"
+    cmd = [sys.executable, "-m", "service.cli", "serve", "--mock", "--host", "127.0.0.1",
+           "--port", str(port), *(["--scene", str(scene)] if scene is not None else [])]
+    env = {**os.environ, "CELLCAL_DATA_DIR": str(data / "service"), "CELLCAL_API_KEY": key}
+    previous = _raise_on_sigterm()
+    proc = None
+    try:
+        with log.open("wb") as sink:
+            proc = subprocess.Popen(cmd, env=env, stdout=sink, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL, start_new_session=True)
+        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {key}"},
+                          timeout=30.0) as client:
+            _wait_healthy(client, proc, log)
+            print(f"service: {url} (mock cell{'' if scene is None else f' {scene}'}; data in "
+                  f"{data}, removed on exit)", file=sys.stderr, flush=True)
+            yield client
+    finally:
+        if proc is not None:
+            _stop(proc)
+        shutil.rmtree(data, ignore_errors=True)
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _raise_on_sigterm() -> Callable[[int, FrameType | None], Any] | int | None:
+    """Make SIGTERM raise ``KeyboardInterrupt`` (main thread only); the previous handler."""
+    def interrupt(signum: int, frame: FrameType | None) -> None:
+        raise KeyboardInterrupt
+
+    with contextlib.suppress(ValueError):  # not the main thread
+        return signal.signal(signal.SIGTERM, interrupt)
+    return None
+
+
+def _wait_healthy(client: httpx.Client, proc: subprocess.Popen[bytes], log: Path) -> None:
+    deadline = time.monotonic() + STARTUP_TIMEOUT_S
+    while True:
+        if proc.poll() is not None:
+            lines = log.read_text(errors="replace").strip().splitlines()
+            why = next((ln.removeprefix("cellcal: error: ") for ln in reversed(lines)
+                        if ln.startswith("cellcal: error: ")), lines[-1] if lines else "")
+            raise DemoError(f"the service exited at startup: {why}")
+        with contextlib.suppress(httpx.TransportError):
+            if client.get("/health", timeout=1.0).status_code == 200:
+                return
+        if time.monotonic() > deadline:
+            raise DemoError(f"the service did not answer within {STARTUP_TIMEOUT_S:g} s")
+        time.sleep(0.1)
+
+
+def _stop(proc: subprocess.Popen[bytes]) -> None:
+    """SIGTERM to the service's process group, SIGKILL if it is still there after 10 s."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, sig)
+        try:
+            proc.wait(10.0)
+            return
+        except subprocess.TimeoutExpired:
+            continue
+
+
+# ---- the flow, as a cell controller would drive it ----------------------------------------
+
+def _call(client: httpx.Client, method: str, path: str, expect: int,
+          **kwargs: Any) -> httpx.Response:
+    r = client.request(method, path, **kwargs)
+    if r.status_code != expect:
+        try:
+            detail = r.json()["detail"]
+        except (ValueError, KeyError, TypeError):
+            detail = r.text.strip()
+        raise DemoError(f"{method} {path}: HTTP {r.status_code}: {detail}")
+    return r
+
+
+def _poll(client: httpx.Client, path: str, what: str) -> dict[str, Any]:
+    """GET ``path`` until its state is no longer ``running``; the document if ``done``."""
+    deadline = time.monotonic() + JOB_TIMEOUT_S
+    while (doc := _call(client, "GET", path, 200).json())["state"] == "running":
+        if time.monotonic() > deadline:
+            raise DemoError(f"{what} did not finish within {JOB_TIMEOUT_S:g} s")
+        time.sleep(0.2)
+    if doc["state"] != "done":
+        raise DemoError(f"{what} {doc['state']}: {doc['error']}")
+    return doc
+
+
+def _timed(label: str, step: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+    print(f"{label} ...", end="", file=sys.stderr, flush=True)
+    t0 = time.monotonic()
+    doc = step()
+    print(f" {time.monotonic() - t0:.1f} s", file=sys.stderr)
+    return doc
+
+
+def _flow(client: httpx.Client, stations: int, out: Path
+          ) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any] | None, list[str]]:
+    """Capture, calibrate, validate (eye-in-hand), export into ``out``; (run, result,
+    validation report or None, file names written)."""
+    run_id = _call(client, "POST", "/runs", 201, json={"stations": stations}).json()["id"]
+    run = _watch_capture(client, run_id, stations)
+    cal_id = _call(client, "POST", f"/runs/{run_id}/calibrations", 202, json={}).json()["id"]
+    result = _timed("calibrating", lambda: _poll(client, f"/calibrations/{cal_id}",
+                                                 "the calibration"))["result"]
+    report = None
+    if result["setup"] == "eye_in_hand":  # eye-to-hand, the board rides on the tool
+        val_id = _call(client, "POST", f"/calibrations/{cal_id}/validations", 202,
+                       json={}).json()["id"]
+        report = _timed("dot-hit validation", lambda: _poll(client, f"/validations/{val_id}",
+                                                            "the validation"))["result"]
+    files = []
+    for fmt in FORMATS:
+        r = _call(client, "GET", f"/calibrations/{cal_id}/export", 200, params={"format": fmt})
+        files.append(r.headers["content-disposition"].split('filename="')[1].rstrip('"'))
+        (out / files[-1]).write_bytes(r.content)
+    return run, result, report, files
+
+
+def _watch_capture(client: httpx.Client, run_id: str, stations: int) -> dict[str, Any]:
+    """Follow the run's server-sent events with a progress bar; the final state event."""
+    state: dict[str, Any] = {}
+    with tqdm(total=stations, desc="capturing", unit="station", file=sys.stderr) as bar, \
+            client.stream("GET", f"/runs/{run_id}/events",
+                          timeout=httpx.Timeout(30.0, read=EVENT_GAP_S)) as r:
+        if r.status_code != 200:
+            raise DemoError(f"GET /runs/{run_id}/events: HTTP {r.status_code}")
+        for line in r.iter_lines():
+            if not line.startswith("data: "):
+                continue
+            event = json.loads(line.removeprefix("data: "))
+            if event["type"] == "state":
+                state = event
+                bar.total = event["stations_planned"]
+                bar.n = event["stations_captured"] + event["stations_skipped"]
+                bar.refresh()
+            else:
+                bar.update(1)
+    if state.get("state") != "done":
+        error = (state.get("error") or {}).get("detail", "the event stream ended early")
+        raise DemoError(f"capture run {state.get('state', 'lost')}: {error}")
+    return state
+
+
+# ---- the summary -----------------------------------------------------------------------------
+
+def _summary(truth: MockScene, run: dict[str, Any], result: dict[str, Any],
+             report: dict[str, Any] | None, out: Path, files: list[str], wall_s: float) -> str:
+    """What a person wants to read: errors against the truth, with the reported σ."""
+    unc = result["uncertainty"]
+    cam, target = result["camera"], result["target"]
+    he_r, he_t = pose_error(np.asarray(result["hand_eye"]["matrix"]), truth.hand_eye_matrix)
+    tp_r, tp_t = pose_error(np.asarray(result["target_pose"]["matrix"]),
+                            truth.target_pose_matrix)
+    sd_r = np.degrees(np.linalg.norm(unc["hand_eye_rot_rad"]))
+    sd_t = np.linalg.norm(unc["hand_eye_trans_m"]) * 1e3
+    K, K_true = np.asarray(cam["K"]), truth.camera.k_matrix
+    intr = "  ".join(f"{name} {K[i, j] - K_true[i, j]:+.2f} (σ {unc['camera'][name]:.2f})"
+                     for name, i, j in (("fx", 0, 0), ("fy", 1, 1), ("cx", 0, 2),
+                                        ("cy", 1, 2)))
+    used = len(result["stations"])
+    lines = [
+        "",
+        f"Calibration of a simulated {result['setup'].replace('_', '-')} cell: "
+        f"{run['stations_captured']} stations captured, {used} used, method {result['method']}, "
+        f"reprojection RMS {cam['rms_px']:.3f} px",
+        "  error against the mock truth (estimate - true)",
+        f"    hand-eye      {np.degrees(he_r):.4f} deg  {he_t * 1e3:.3f} mm   "
+        f"(1-σ {sd_r:.4f} deg, {sd_t:.3f} mm, norm over axes)",
+        f"    target pose   {np.degrees(tp_r):.4f} deg  {tp_t * 1e3:.3f} mm",
+        f"    intrinsics    {intr} px",
+        f"  board scale     κ {target['kappa']:.5f} ± {target['kappa_sigma']:.5f}   "
+        f"true {truth.target.kappa:.5f}",
+        f"  board aspect    ν {target['nu']:.5f} ± {target['nu_sigma']:.5f}   "
+        f"true {truth.target.nu:.5f}",
+        "",
+    ]
+    if report is None:
+        lines.append("Dot-hit validation: skipped (eye-to-hand: the board rides on the tool)")
+    else:
+        lines.append(f"Dot-hit validation (SM eq. 24): probe tip "
+                     f"{np.linalg.norm(report['probe'][:3]) * 1e3:.0f} mm from the TCP, error = "
+                     "true probe tip to true board point")
+        lines += [f"    {p['id']:<12} {p['error_m'] * 1e3:6.3f} mm" for p in report["points"]]
+        err = report["error_m"]
+        lines.append(f"    {'mean':<12} {err['mean'] * 1e3:6.3f} mm   max "
+                     f"{err['max'] * 1e3:.3f} mm")
+    lines += ["",
+              f"Result: {out / files[0]}",
+              f"  exports next to it: {', '.join(files[1:])}",
+              f"Wall time {wall_s:.1f} s"]
+    return "\n".join(lines)
+
+
+# ---- the pose-level comparison -----------------------------------------------------------
+
+def run_pose_demo(*, seed: int = 1, stations: int = 15) -> int:
+    """Every hand-eye method on simulated robot and camera poses, against the truth.
+
+    The robot readings carry UR-class noise (0.05 deg / 0.25 mm) and the camera poses come
+    from PnP on corners with 0.15 px noise, as in the hand-eye accuracy benchmark.
+    """
     cell = default_cell("eye_in_hand")
     P, C = simulate(cell, stations, np.random.default_rng(seed))
     print(f"Simulated eye-in-hand cell: {stations} stations, robot noise 0.05 deg / 0.25 mm, "
@@ -33,3 +307,4 @@ def run_demo(*, seed: int = 1, stations: int = 15) -> None:
     sd_r = np.degrees(np.linalg.norm(joint.sigmas["hand_eye_rot_rad"]))
     print(f"\njoint (default) reports 1-sigma hand-eye uncertainty: {sd_r:.4f} deg, "
           f"{sd_t:.3f} mm (norm over axes)")
+    return 0

@@ -13,6 +13,11 @@ crash loses at most the station in progress. Restart safety rests on the databas
 
 Calibrations are CPU-bound: they run in a ``ProcessPoolExecutor`` (spawned workers) so the API
 stays responsive, and the result is stored when the future completes.
+
+Validations (the dot-hit run, SM eq. 24) move the robot in a thread like a capture run. The
+robot does one motion job at a time: a validation is refused while a run is active (capturing
+or paused) and a run while a validation is running; within the service ``_motion_lock`` makes
+each check and the row that claims the robot one step.
 """
 
 from __future__ import annotations
@@ -35,10 +40,16 @@ from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from calib.geometry import check_ur_poses, matrix_from_ur_pose, ur_pose_from_matrix
+from calib.geometry import (
+    check_ur_poses,
+    make_transform,
+    matrix_from_ur_pose,
+    rotation_angle,
+    ur_pose_from_matrix,
+)
 from calib.intrinsics import MIN_IMAGES
 from calib.planning import camera_view, plan_stations, rough_target_from_image
-from calib.target import Detection, detect_checkerboard
+from calib.target import Detection, board_points, detect_checkerboard
 from drivers.base import Camera, Robot
 from drivers.capture import capture_station
 from drivers.errors import (
@@ -48,6 +59,7 @@ from drivers.errors import (
     EmergencyStopError,
     ProtectiveStopError,
     RobotConnectionError,
+    WorkspaceError,
 )
 from drivers.registry import open_camera, open_robot
 from service.db import Database
@@ -56,11 +68,13 @@ from service.models import (
     Calibration,
     Run,
     Station,
+    Validation,
     new_id,
     utcnow,
 )
-from service.schemas import CalibrationOptions, RunCreate
+from service.schemas import CalibrationOptions, RunCreate, ValidationCreate
 from service.settings import Settings
+from service.validation_run import GroundTruth, probe_points, run_dot_hit
 
 log = logging.getLogger("cellcal.service")
 
@@ -238,7 +252,8 @@ class Jobs:
         self.events = events
         self.data_dir = Path(settings.data_dir)
         self._robot_lock = threading.Lock()  # one thread drives the robot at a time
-        self._threads: dict[str, threading.Thread] = {}  # owner token -> capture thread
+        self._motion_lock = threading.Lock()  # check "robot free" and claim it in one step
+        self._threads: dict[str, threading.Thread] = {}  # run owner / validation id -> thread
         self._threads_lock = threading.Lock()
         self._stopping = threading.Event()
         self._pool: cf.ProcessPoolExecutor | None = None
@@ -247,7 +262,8 @@ class Jobs:
     # ---- lifecycle -------------------------------------------------------------------------
 
     def recover(self) -> None:
-        """After a restart: runs left capturing are interrupted, solves in flight failed."""
+        """After a restart: runs left capturing are interrupted, solves and validations in
+        flight failed."""
         with self.db.session() as s:
             runs = s.execute(
                 update(Run).where(Run.state == "capturing")
@@ -259,13 +275,19 @@ class Jobs:
                 .values(state="failed", finished_at=utcnow(),
                         error="The service stopped during the computation; start it "
                               "again.")).rowcount
+            vals = s.execute(
+                update(Validation).where(Validation.state == "running")
+                .values(state="failed", finished_at=utcnow(),
+                        error="The service stopped during the validation; start it "
+                              "again.")).rowcount
             s.commit()
-        if runs or cals:
+        if runs or cals or vals:
             log.warning("recovered after restart: %d run(s) interrupted, %d calibration(s) "
-                        "failed", runs, cals)
+                        "and %d validation(s) failed", runs, cals, vals)
 
     def shutdown(self, timeout: float = 10.0) -> None:
-        """Stop the robot and the capture threads (their runs become ``interrupted``)."""
+        """Stop the robot and the motion threads (runs become ``interrupted``, validations
+        ``failed``)."""
         self._stopping.set()
         with self._threads_lock:
             threads = list(self._threads.values())
@@ -290,15 +312,13 @@ class Jobs:
             poses = self._check_poses(body.poses)
         else:
             assert body.stations is not None
-            with self.db.session() as s:
-                if s.scalars(select(Run.id).where(Run.robot == self.settings.robot,
-                                                  Run.state.in_(ACTIVE_RUN_STATES))).first():
-                    raise self._busy()
+            self._check_robot_free()
             poses = self._check_poses(self._plan(body.stations, target, setup))
         token = new_id()
         run = Run(robot=self.settings.robot, state="capturing", owner=token, setup=setup,
                   target=target, poses=poses)
-        with self.db.session() as s:
+        with self._motion_lock, self.db.session() as s:
+            self._check_robot_free()
             s.add(run)
             try:
                 s.commit()
@@ -325,13 +345,15 @@ class Jobs:
     def resume(self, run_id: str) -> None:
         """Continue a paused, interrupted or failed run at its first missing station."""
         token = new_id()
-        with self.db.session() as s:
+        with self._motion_lock, self.db.session() as s:
             run = self._get_run(s, run_id)
             if run.state == "capturing":
                 return
             if run.state not in ("paused", "interrupted", "failed"):
                 raise ConflictError(f"Run {run_id} is {run.state}; only a paused, interrupted "
                                     "or failed run can be resumed.", code="invalid_state")
+            if self._running_validation(s) is not None:
+                raise self._busy()
             try:
                 changed = s.execute(
                     update(Run).where(Run.id == run_id, Run.state == run.state)
@@ -424,22 +446,47 @@ class Jobs:
             check_ur_poses(np.asarray(poses, dtype=float), "poses")
         except ValueError as exc:
             raise UnprocessableError(str(exc), code="invalid_pose") from None
-        lo, hi = np.asarray(self.settings.workspace_min), np.asarray(self.settings.workspace_max)
         for k, pose in enumerate(poses):
-            p = np.asarray(pose[:3])
-            if np.any(p < lo) or np.any(p > hi):
-                mm = ", ".join(f"{v * 1e3:.0f}" for v in p)
-                box = " x ".join(f"[{a * 1e3:.0f}, {b * 1e3:.0f}]" for a, b in zip(lo, hi,
-                                                                                     strict=True))
-                raise UnprocessableError(
-                    f"poses[{k}]: position ({mm}) mm is outside the workspace limits {box} mm "
-                    "(base frame); the run was not started.", code="outside_workspace")
+            if (outside := self._outside_workspace(pose)) is not None:
+                raise UnprocessableError(f"poses[{k}]: {outside}; the run was not started.",
+                                         code="outside_workspace")
         return [[float(v) for v in pose] for pose in poses]
+
+    def _outside_workspace(self, pose: Any) -> str | None:
+        """Why UR pose ``pose`` (6,) lies outside the workspace box, or None if inside."""
+        lo, hi = np.asarray(self.settings.workspace_min), np.asarray(self.settings.workspace_max)
+        p = np.asarray(pose[:3], dtype=float)
+        if np.all(p >= lo) and np.all(p <= hi):
+            return None
+        mm = ", ".join(f"{v * 1e3:.0f}" for v in p)
+        box = " x ".join(f"[{a * 1e3:.0f}, {b * 1e3:.0f}]" for a, b in zip(lo, hi, strict=True))
+        return f"position ({mm}) mm is outside the workspace limits {box} mm (base frame)"
+
+    def _check_workspace(self, pose: np.ndarray) -> None:
+        """Raise ``WorkspaceError`` for a commanded UR pose (6,) outside the workspace box."""
+        if (outside := self._outside_workspace(pose)) is not None:
+            raise WorkspaceError(f"Target {outside}; the robot was not moved.")
+
+    @staticmethod
+    def _running_validation(s: Session) -> str | None:
+        return s.scalars(select(Validation.id).where(Validation.state == "running")).first()
+
+    def _check_robot_free(self) -> None:
+        """409 while a run is active on the robot or a validation moves it."""
+        with self.db.session() as s:
+            if self._running_validation(s) is not None or s.scalars(
+                    select(Run.id).where(Run.robot == self.settings.robot,
+                                         Run.state.in_(ACTIVE_RUN_STATES))).first():
+                raise self._busy()
 
     def _busy(self) -> ConflictError:
         with self.db.session() as s:
+            validation = self._running_validation(s)
             active = s.scalars(select(Run.id).where(Run.robot == self.settings.robot,
                                                     Run.state.in_(ACTIVE_RUN_STATES))).first()
+        if validation is not None and active is None:
+            return ConflictError(f"The robot is running validation {validation}; let it finish "
+                                 "first.", code="robot_busy")
         return ConflictError(f"The robot already has an active run ({active}); cancel it or "
                              "let it finish first.", code="robot_busy")
 
@@ -653,6 +700,177 @@ class Jobs:
         with self.db.session() as s:
             s.execute(update(Calibration).where(Calibration.id == cal_id).values(**values))
             s.commit()
+
+    # ---- validations -----------------------------------------------------------------------
+
+    def start_validation(self, cal_id: str, body: ValidationCreate) -> Validation:
+        """Check the request, claim the robot and start the dot-hit run in a thread."""
+        with self.db.session() as s:
+            cal = s.get(Calibration, cal_id)
+            if cal is None:
+                raise NotFoundError(f"No calibration {cal_id}.")
+            if cal.state != "done":
+                raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished "
+                                    "calibration can be validated.", code="invalid_state")
+            run = self._get_run(s, cal.run_id)
+            robot_url, target, result = run.robot, run.target, cal.result
+        if robot_url != self.settings.robot:
+            raise UnprocessableError(f"Calibration {cal_id} was captured with robot "
+                                     f"{robot_url}; this service drives {self.settings.robot}.",
+                                     code="other_robot")
+        plan = dot_hit_plan(result or {}, target, body)
+        with self._motion_lock, self.db.session() as s:
+            self._check_robot_free()
+            val = Validation(calibration_id=cal_id, kind="dot_hit", state="running")
+            s.add(val)
+            s.commit()
+        thread = threading.Thread(target=self._validate, args=(val.id, plan),
+                                  name=f"validate-{val.id[:8]}", daemon=True)
+        with self._threads_lock:
+            self._threads[val.id] = thread
+        thread.start()
+        return val
+
+    def _validate(self, val_id: str, plan: DotHitPlan) -> None:
+        """The validation thread: observe the board, touch the points, store the report."""
+        values: dict[str, Any] = {"state": "failed"}
+        try:
+            with self._robot_lock:
+                values.update(state="done", result=self._dot_hit(plan))
+        except (DeviceError, ServiceError, ValueError) as exc:
+            if isinstance(exc, RobotConnectionError):
+                self.devices.reset()
+            values["error"] = ("The service stopped during the validation; start it again."
+                               if self._stopping.is_set() else str(exc))
+        except Exception as exc:
+            log.exception("validation %s", val_id)
+            values["error"] = f"Internal error ({type(exc).__name__}: {exc})."
+        finally:
+            with self._threads_lock:
+                self._threads.pop(val_id, None)
+        with self.db.session() as s:
+            s.execute(update(Validation).where(Validation.id == val_id)
+                      .values(finished_at=utcnow(), **values))
+            s.commit()
+
+    def _dot_hit(self, plan: DotHitPlan) -> dict[str, Any]:
+        """Observe the board from where the robot stands (eq. 24 needs a current view), then
+        touch each point; the report document."""
+        robot, camera = self.devices.get()
+        tcp_pose = robot.tcp_pose()
+        image = camera.grab(timeout=self.settings.grab_timeout_s)
+        det = detect_checkerboard(image, plan.inner_corners)
+        if not det.ok:
+            raise UnprocessableError(
+                f"The board is not in view at the robot's current pose ({det.reason}); move "
+                "the robot so the camera sees the whole board, then validate again.",
+                code="board_not_visible")
+        P = matrix_from_ur_pose(tcp_pose)
+        C, rms_px = plan.observe(det, P)
+        truth = self._ground_truth(robot, plan)
+        report = run_dot_hit(robot, plan.points, setup=plan.setup, hand_eye=plan.hand_eye,
+                             tcp_T_probe=plan.probe, observation=(P, C),
+                             workspace_check=self._check_workspace, ground_truth=truth)
+        return {"kind": "dot_hit", "probe": ur_pose_from_matrix(plan.probe).tolist(),
+                "observation": {"tcp_pose": [float(v) for v in tcp_pose],
+                                "cam_T_target": ur_pose_from_matrix(C).tolist(),
+                                "rms_px": rms_px},
+                "ground_truth": None if truth is None else "mock scene",
+                **report.to_json()}
+
+    def _ground_truth(self, robot: Robot, plan: DotHitPlan) -> GroundTruth | None:
+        """The mock cell's truth: its board through the true target pose, the robot's true pose.
+
+        The points are given on the calibration's (κ, ν-scaled) grid; the scale to the true
+        grid is folded into ``board_pose`` so each point maps to its true corner.
+        """
+        if not self.settings.uses_mock or not hasattr(robot, "true_pose"):
+            return None
+        scene = self.settings.mock_scene()
+        t = scene.target
+        s = t.square_size_m * t.kappa / (plan.square_size * plan.kappa)
+        scale = np.diag([s * t.nu / plan.nu, s, 1.0, 1.0])
+        return GroundTruth(board_pose=scene.target_pose_matrix @ scale,
+                           tcp_pose=lambda: robot.true_pose)  # type: ignore[attr-defined]
+
+
+@dataclass(frozen=True)
+class DotHitPlan:
+    """A checked dot-hit request with the calibration it tests (arrays in metres)."""
+
+    setup: str
+    K: np.ndarray  # shape (3, 3)
+    dist: np.ndarray  # shape (n,)
+    hand_eye: np.ndarray  # shape (4, 4)
+    target_pose: np.ndarray  # shape (4, 4)
+    inner_corners: tuple[int, int]
+    square_size: float
+    kappa: float
+    nu: float
+    probe: np.ndarray  # shape (4, 4), tcp_T_probe
+    points: dict[str, np.ndarray]  # id -> shape (3,), (κ, ν-scaled) target frame
+
+    def observe(self, det: Detection, T_base_tcp: np.ndarray) -> tuple[np.ndarray, float]:
+        """cam_T_target (4, 4) at true scale by PnP on the κ, ν-scaled board, and its RMS (px).
+
+        A symmetric board's origin is taken at the end that agrees with the calibration's
+        target pose.
+        """
+        grid = board_points(self.inner_corners, self.square_size, kappa=self.kappa, nu=self.nu)
+        assert det.corners is not None
+        best: tuple[float, np.ndarray, np.ndarray] | None = None
+        for corners in ([det.corners, det.corners[::-1]] if det.ambiguous else [det.corners]):
+            ok, rvec, tvec = cv2.solvePnP(grid, corners, self.K, self.dist)
+            if not ok:
+                continue
+            C = make_transform(cv2.Rodrigues(rvec)[0], tvec.ravel())
+            board = T_base_tcp @ self.hand_eye @ C
+            miss = float(rotation_angle(board[:3, :3].T @ self.target_pose[:3, :3]))
+            if best is None or miss < best[0]:
+                uv = cv2.projectPoints(grid, rvec, tvec, self.K, self.dist)[0].reshape(-1, 2)
+                best = (miss, C, uv - corners)
+        if best is None:
+            raise UnprocessableError("PnP failed on the board seen at the robot's current "
+                                     "pose.", code="board_not_visible")
+        return best[1], float(np.sqrt(np.mean(np.sum(best[2] ** 2, axis=1))))
+
+
+def dot_hit_plan(result: dict[str, Any], target: dict[str, Any],
+                 body: ValidationCreate) -> DotHitPlan:
+    """Check a dot-hit request against a result document and the run's board (422 if not)."""
+    if result.get("setup") != "eye_in_hand":
+        raise UnprocessableError(
+            "The dot-hit validation probes the calibration board, which an eye-to-hand cell "
+            "carries on the tool; it is available for eye-in-hand calibrations only.",
+            code="unsupported_setup")
+    camera, hand_eye = result.get("camera"), result.get("hand_eye")
+    if not camera or not hand_eye or not result.get("target_pose"):
+        raise UnprocessableError("The dot-hit validation needs a camera model and a hand-eye "
+                                 "in the result.", code="incomplete_result")
+    try:
+        probe = check_ur_poses(np.asarray(body.probe, dtype=float), "probe")[0]
+    except ValueError as exc:
+        raise UnprocessableError(str(exc), code="invalid_probe") from None
+    if np.linalg.norm(probe[:3, 3]) > 1.0:
+        raise UnprocessableError(f"probe: the tip is {np.linalg.norm(probe[:3, 3]):.3g} m from "
+                                 "the TCP, more than 1 m: give metres.", code="invalid_probe")
+    kappa, nu = float(result["target"]["kappa"]), float(result["target"]["nu"])
+    corners = (int(target["inner_corners"][0]), int(target["inner_corners"][1]))
+    square = float(target["square_size_m"])
+    points = probe_points(corners, square, kappa=kappa, nu=nu)
+    if body.points is not None:
+        unknown = [p for p in body.points if p not in points]
+        if unknown:
+            raise UnprocessableError(f"points: unknown id {unknown[0]!r}; choose from "
+                                     f"{', '.join(points)}.", code="unknown_point")
+        points = {p: points[p] for p in dict.fromkeys(body.points)}
+    return DotHitPlan(
+        setup="eye_in_hand", K=np.asarray(camera["K"], dtype=float),
+        dist=np.asarray(camera["dist"], dtype=float),
+        hand_eye=np.asarray(hand_eye["matrix"], dtype=float),
+        target_pose=np.asarray(result["target_pose"]["matrix"], dtype=float),
+        inner_corners=corners, square_size=square, kappa=kappa, nu=nu, probe=probe,
+        points=points)
 
 
 def solve_calibration(payload: dict[str, Any]) -> dict[str, Any]:

@@ -12,11 +12,15 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from calib.handeye import METHODS
+from service.exports import FORMATS
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 Pose = Annotated[list[FiniteFloat], Field(min_length=6, max_length=6,
                                           description="[x, y, z, rx, ry, rz], m and rad")]
 RunState = Literal["capturing", "paused", "done", "failed", "cancelled", "interrupted"]
+ExportFormat = Literal[FORMATS]  # type: ignore[valid-type]
+#: tcp_T_probe of the default dot-hit probe: 10 cm along tool z.
+DEFAULT_PROBE = (0.0, 0.0, 0.1, 0.0, 0.0, 0.0)
 
 
 class _Input(BaseModel):
@@ -126,6 +130,33 @@ class CalibrationPublic(BaseModel):
     state: Literal["running", "done", "failed"]
     options: dict[str, Any]
     result: dict[str, Any] | None = Field(None, description="cellcal/result@1 document")
+    error: str | None
+    created_at: dt.datetime
+    finished_at: dt.datetime | None
+
+
+class ValidationCreate(_Input):
+    """A dot-hit run (SM eq. 24): the robot touches board points with a probe."""
+
+    probe: Pose = Field(default_factory=lambda: list(DEFAULT_PROBE),
+                        description="tcp_T_probe [x, y, z, rx, ry, rz]: the probe tip in the "
+                                    "TCP frame, the probe along its z axis; default a 10 cm "
+                                    "probe along tool z")
+    points: Annotated[list[str], Field(min_length=1, max_length=100)] | None = Field(
+        None, description="ids of the board points to touch, from corner_0_0, "
+                          "corner_<cols-1>_0, corner_0_<rows-1>, corner_<cols-1>_<rows-1>, "
+                          "centre; default all five")
+
+
+class ValidationPublic(BaseModel):
+    id: str
+    calibration_id: str
+    kind: Literal["dot_hit"]
+    state: Literal["running", "done", "failed"]
+    result: dict[str, Any] | None = Field(
+        None, description="the report: probe, the board observation, per point id, "
+                          "commanded and reached probe-tip positions (base frame, m) and "
+                          "error_m against the truth (mock cells), and error_m mean / max")
     error: str | None
     created_at: dt.datetime
     finished_at: dt.datetime | None

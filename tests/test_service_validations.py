@@ -1,0 +1,260 @@
+"""Dot-hit validations (``POST /calibrations/{id}/validations``) on the mock cell.
+
+One real capture and calibration is made per module; each test then opens its own app on
+that database (fresh mock devices, the robot at the scene's start pose, where the camera sees
+the board) with the settings it needs.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from drivers.base import Camera, Robot
+from mocks.scene import default_scene
+from service.app import create_app
+from service.jobs import settings_opener
+from service.models import Calibration, Run, Validation
+from tests.test_exports import full_result
+from tests.test_service_api import AUTH, GatedCamera, finished, poses, settings, wait_run
+
+SCENE = default_scene()
+POINTS = ["corner_0_0", "corner_10_0", "corner_0_7", "corner_10_7", "centre"]
+
+Client = Callable[..., TestClient]
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str, str]:
+    """(data dir, run id, calibration id) of a planned 8-station run, calibrated."""
+    data = tmp_path_factory.mktemp("validations")
+    with TestClient(create_app(settings(data))) as c:
+        c.headers.update(AUTH)
+        r = c.post("/runs", json={"stations": 8})
+        assert r.status_code == 201, r.text
+        run_id = r.json()["id"]
+        assert wait_run(c, run_id, finished)["state"] == "done"
+        cal_id = c.post(f"/runs/{run_id}/calibrations", json={}).json()["id"]
+        cal = wait_for(c, f"/calibrations/{cal_id}", timeout=45)
+        assert cal["state"] == "done", cal["error"]
+    return data, run_id, cal_id
+
+
+@pytest.fixture
+def app_on(calibrated: tuple[Path, str, str]) -> Iterator[Client]:
+    """Open an app on the calibrated database: ``app_on(**settings)``; all are closed."""
+    clients: list[TestClient] = []
+
+    def make(open_devices: Callable[[], tuple[Robot, Camera]] | None = None,
+             **overrides: Any) -> TestClient:
+        c = TestClient(create_app(settings(calibrated[0], **overrides),
+                                  open_devices=open_devices))
+        c.__enter__()
+        clients.append(c)
+        c.headers.update(AUTH)
+        return c
+
+    yield make
+    for c in reversed(clients):
+        c.__exit__(None, None, None)
+
+
+def wait_for(client: TestClient, path: str, timeout: float = 20.0) -> dict[str, Any]:
+    """Poll ``path`` until its state is no longer ``running``."""
+    deadline = time.monotonic() + timeout
+    while (doc := client.get(path).json())["state"] == "running":
+        assert time.monotonic() < deadline, f"{path} stuck: {doc}"
+        time.sleep(0.05)
+    return doc
+
+
+def validate(client: TestClient, cal_id: str, body: dict[str, Any] | None = None
+             ) -> dict[str, Any]:
+    r = client.post(f"/calibrations/{cal_id}/validations", json=body or {})
+    assert r.status_code == 202, r.text
+    return wait_for(client, f"/validations/{r.json()['id']}")
+
+
+def true_pose(client: TestClient) -> np.ndarray:
+    return client.app.state.devices.get()[0].true_pose
+
+
+@pytest.mark.timeout(90)
+def test_dot_hit_touches_the_true_points_within_a_millimetre(
+        app_on: Client, calibrated: tuple[Path, str, str]) -> None:
+    client = app_on()
+    cal_id = calibrated[2]
+    start = true_pose(client)
+    val = validate(client, cal_id)
+    assert (val["state"], val["kind"], val["error"]) == ("done", "dot_hit", None)
+    report = val["result"]
+    assert [p["id"] for p in report["points"]] == POINTS
+    assert report["probe"] == [0.0, 0.0, 0.1, 0.0, 0.0, 0.0]
+    assert report["ground_truth"] == "mock scene"
+    assert report["observation"]["rms_px"] < 0.5
+    errors = np.array([p["error_m"] for p in report["points"]])
+    assert errors.max() < 1e-3, errors
+    assert report["error_m"] == pytest.approx({"mean": errors.mean(), "max": errors.max()})
+    Y = SCENE.target_pose_matrix
+    truth = dict(zip(POINTS[:4], SCENE.true_board_points()[[0, 10, 77, 87]] @ Y[:3, :3].T
+                     + Y[:3, 3], strict=True))
+    for p in report["points"][:4]:  # commanded and reached near the true corner
+        assert np.linalg.norm(np.subtract(p["commanded"], truth[p["id"]])) < 1e-3
+        assert np.linalg.norm(np.subtract(p["reached"], truth[p["id"]])) < 1.5e-3
+    assert np.allclose(true_pose(client)[:3, 3], start[:3, 3], atol=2e-3)  # back at the start
+    listed = client.get(f"/calibrations/{cal_id}/validations").json()
+    assert val["id"] in [v["id"] for v in listed]
+
+
+@pytest.mark.timeout(30)
+def test_chosen_points_with_another_probe(app_on: Client,
+                                          calibrated: tuple[Path, str, str]) -> None:
+    probe = [0.01, 0.0, 0.15, 0.0, 0.0, 0.5]
+    val = validate(app_on(), calibrated[2], {"probe": probe, "points": ["centre", "corner_0_0"]})
+    assert val["state"] == "done", val["error"]
+    assert [p["id"] for p in val["result"]["points"]] == ["centre", "corner_0_0"]
+    assert np.allclose(val["result"]["probe"], probe)
+    assert val["result"]["error_m"]["max"] < 1e-3
+
+
+@pytest.mark.timeout(30)
+def test_outside_the_workspace_is_refused_before_moving(
+        app_on: Client, calibrated: tuple[Path, str, str]) -> None:
+    client = app_on(workspace_min=(-1.5, -1.5, 0.15))  # the TCP cannot go below 15 cm
+    start = true_pose(client)
+    val = validate(client, calibrated[2])
+    assert val["state"] == "failed" and val["result"] is None
+    assert "outside the workspace limits" in val["error"]
+    assert val["error"].endswith("the robot was not moved.")
+    np.testing.assert_array_equal(true_pose(client), start)
+
+
+@pytest.mark.timeout(30)
+def test_board_out_of_view_fails_the_validation(app_on: Client,
+                                                calibrated: tuple[Path, str, str]) -> None:
+    client = app_on()
+    client.app.state.devices.get()[1].grab = lambda **_: np.full((1024, 1280), 128, np.uint8)
+    val = validate(client, calibrated[2])
+    assert val["state"] == "failed"
+    assert val["error"].startswith("The board is not in view at the robot's current pose")
+
+
+@pytest.mark.timeout(30)
+def test_the_robot_does_one_motion_job_at_a_time(app_on: Client,
+                                                 calibrated: tuple[Path, str, str]) -> None:
+    gate = threading.Event()
+    mocks = settings_opener(settings(calibrated[0]))
+
+    def hanging() -> tuple[Robot, Camera]:
+        robot, camera = mocks()
+        return robot, GatedCamera(camera, 0, gate)  # type: ignore[return-value]
+
+    client = app_on(open_devices=hanging)
+    cal_id = calibrated[2]
+    interrupted = Run(robot="mock://", state="interrupted", setup="eye_in_hand",
+                      target={"inner_corners": [11, 8], "square_size_m": 0.03}, poses=poses(2))
+    with client.app.state.db.session() as s:
+        s.add(interrupted)
+        s.commit()
+    r = client.post(f"/calibrations/{cal_id}/validations", json={})
+    assert r.status_code == 202
+    val_id = r.json()["id"]
+    for path, body in [(f"/calibrations/{cal_id}/validations", {}), ("/runs", {"stations": 5}),
+                       ("/runs", {"poses": poses(2)}), (f"/runs/{interrupted.id}/resume", None)]:
+        r = client.post(path, json=body)
+        assert r.status_code == 409, (path, r.text)
+        assert r.json() == {"detail": f"The robot is running validation {val_id}; let it "
+                                      "finish first.", "code": "robot_busy"}
+    gate.set()
+    assert wait_for(client, f"/validations/{val_id}")["state"] == "done"
+    assert client.get(f"/runs/{interrupted.id}").json()["state"] == "interrupted"
+    client.post(f"/runs/{interrupted.id}/cancel")
+
+
+@pytest.mark.timeout(30)
+def test_an_active_run_holds_the_robot(app_on: Client,
+                                       calibrated: tuple[Path, str, str]) -> None:
+    client = app_on()
+    run_id = client.post("/runs", json={"stations": 5}).json()["id"]
+    client.post(f"/runs/{run_id}/pause")
+    r = client.post(f"/calibrations/{calibrated[2]}/validations", json={})
+    assert r.status_code == 409
+    assert r.json()["code"] == "robot_busy" and run_id in r.json()["detail"]
+    client.post(f"/runs/{run_id}/cancel")
+
+
+@pytest.mark.timeout(20)
+@pytest.mark.parametrize("method, path", [
+    ("POST", "/calibrations/nope/validations"), ("GET", "/calibrations/nope/validations"),
+    ("GET", "/validations/nope")])
+def test_unknown_ids_are_404(app_on: Client, method: str, path: str) -> None:
+    r = app_on().request(method, path, json={})
+    assert r.status_code == 404
+    assert r.json()["code"] == "not_found"
+
+
+@pytest.mark.timeout(20)
+@pytest.mark.parametrize("state", ["running", "failed"])
+def test_unfinished_calibration_is_409(app_on: Client, calibrated: tuple[Path, str, str],
+                                       state: str) -> None:
+    client = app_on()
+    cal_id = add_calibration(client, calibrated[1], state=state)
+    r = client.post(f"/calibrations/{cal_id}/validations", json={})
+    assert r.status_code == 409
+    assert r.json()["code"] == "invalid_state"
+
+
+@pytest.mark.timeout(20)
+@pytest.mark.parametrize("body, code, match", [
+    ({"points": ["corner_3_3"]}, "unknown_point", "unknown id 'corner_3_3'; choose from "
+                                                  "corner_0_0, corner_10_0"),
+    ({"points": []}, "invalid_request", "body.points"),
+    ({"probe": [0.0, 0.0, 1.5, 0.0, 0.0, 0.0]}, "invalid_probe", "1.5 m from the TCP"),
+    ({"probe": [0.0, 0.0, 100.0, 0.0, 0.0, 0.0]}, "invalid_probe", "millimetres"),
+    ({"probe": [0.0, 0.0, 0.1]}, "invalid_request", "body.probe"),
+    ({"speed": 1}, "invalid_request", "speed"),
+])
+def test_bad_request_is_422(app_on: Client, calibrated: tuple[Path, str, str],
+                            body: dict[str, Any], code: str, match: str) -> None:
+    r = app_on().post(f"/calibrations/{calibrated[2]}/validations", json=body)
+    assert r.status_code == 422
+    assert r.json()["code"] == code
+    assert match in r.json()["detail"]
+
+
+@pytest.mark.timeout(20)
+def test_eye_to_hand_is_422(app_on: Client, calibrated: tuple[Path, str, str]) -> None:
+    client = app_on()
+    cal_id = add_calibration(client, calibrated[1], result=full_result("eye_to_hand"))
+    r = client.post(f"/calibrations/{cal_id}/validations", json={})
+    assert r.status_code == 422
+    assert r.json()["code"] == "unsupported_setup"
+
+
+@pytest.mark.timeout(20)
+def test_a_validation_cut_by_a_restart_is_failed(app_on: Client,
+                                                 calibrated: tuple[Path, str, str]) -> None:
+    client = app_on()
+    with client.app.state.db.session() as s:
+        val = Validation(calibration_id=calibrated[2], kind="dot_hit", state="running")
+        s.add(val)
+        s.commit()
+    after = app_on().get(f"/validations/{val.id}").json()
+    assert after["state"] == "failed"
+    assert "stopped during the validation" in after["error"]
+
+
+def add_calibration(client: TestClient, run_id: str, state: str = "done",
+                    result: dict[str, Any] | None = None) -> str:
+    with client.app.state.db.session() as s:
+        cal = Calibration(run_id=run_id, state=state, options={}, result=result)
+        s.add(cal)
+        s.commit()
+    return cal.id
