@@ -113,7 +113,7 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
     grey, reason = _as_grey(image)
     if grey is None:
         return Detection(ok=False, reason=reason)
-    lo, hi = np.percentile(grey, [1, 99])
+    lo, hi = _grey_range(grey)
     if hi - lo < min_contrast:
         return Detection(ok=False, sharpness=0.0, reason=(
             f"image is blank: grey levels span only {lo:.0f}..{hi:.0f} "
@@ -140,6 +140,14 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
         return Detection(ok=False, **metrics, reason=(
             f"image too blurred (sharpness {sharpness:.3f} < {min_sharpness:.3f})"))
     return Detection(ok=True, corners=corners, **metrics)
+
+
+def _grey_range(grey: np.ndarray) -> tuple[float, float]:
+    """1st and 99th percentile grey levels of a uint8 image, from its 256-bin histogram
+    (exact for integer levels, and several times faster than ``np.percentile``)."""
+    cdf = np.cumsum(np.bincount(grey.ravel(), minlength=256))
+    lo, hi = np.searchsorted(cdf, [0.01 * cdf[-1], 0.99 * cdf[-1]])
+    return float(lo), float(hi)
 
 
 def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int]
@@ -237,7 +245,7 @@ def _sharpness(grey: np.ndarray) -> float:
     gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 8.0
     mag = np.sqrt(gx * gx + gy * gy).ravel()
     top = np.partition(mag, int(0.99 * mag.size))[int(0.99 * mag.size):]
-    lo, hi = np.percentile(g, [1, 99])
+    lo, hi = _grey_range(grey)
     return float(top.mean() / max(hi - lo, 1.0))
 
 
@@ -255,7 +263,7 @@ def _diagnose_missing_board(grey: np.ndarray, inner_corners: tuple[int, int]) ->
         return f"board not found ({cols}x{rows} inner corners expected)"
     grid_rows, grid_cols = meta.shape[:2]
     grid = pts.reshape(grid_rows, grid_cols, 2).astype(float)
-    lo, hi = np.percentile(grey, [1, 99])
+    lo, hi = _grey_range(grey)
     if abs(_even_square_darkness(grey, grid)) < 0.25 * (hi - lo):
         return f"board not found ({cols}x{rows} inner corners expected)"
     pts = grid.reshape(-1, 2)

@@ -10,12 +10,11 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query, status
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
-from sqlalchemy import select
-from sqlalchemy.orm import selectinload
+from sqlalchemy import func, select
 
 from service.api.deps import JobsDep, SessionDep
-from service.jobs import FINAL_RUN_STATES, Jobs, NotFoundError, run_counts
-from service.models import Run
+from service.jobs import FINAL_RUN_STATES, Jobs, NotFoundError
+from service.models import Run, Station
 from service.schemas import Created, ErrorInfo, RunCreate, RunPublic, StationError
 
 router = APIRouter(prefix="/runs", tags=["runs"])
@@ -24,14 +23,25 @@ router = APIRouter(prefix="/runs", tags=["runs"])
 KEEPALIVE_S = 15.0
 
 
-def run_public(run: Run) -> RunPublic:
+def run_public(session: SessionDep, run: Run) -> RunPublic:
+    """The public view of a run; station counts and errors come from small SQL queries, never
+    from loading every station (with its corners), so polling stays fast on long runs."""
+    by_state = dict(session.execute(
+        select(Station.state, func.count()).where(Station.run_id == run.id)
+        .group_by(Station.state)).all())
+    errors = session.execute(
+        select(Station.index, Station.error_code, Station.error)
+        .where(Station.run_id == run.id, Station.error.is_not(None))
+        .order_by(Station.index)).all()
+    captured = by_state.get("captured", 0)
     return RunPublic(
         id=run.id, state=run.state, robot=run.robot, setup=run.setup, target=run.target,
-        **run_counts(run),
+        stations_planned=len(run.poses), stations_captured=captured,
+        stations_skipped=sum(by_state.values()) - captured,
         error=None if run.error is None else ErrorInfo(code=run.error_code or "error",
                                                        detail=run.error),
-        station_errors=[StationError(index=s.index, code=s.error_code, detail=s.error)
-                        for s in run.stations if s.error],
+        station_errors=[StationError(index=i, code=code, detail=detail)
+                        for i, code, detail in errors],
         created_at=run.created_at, updated_at=run.updated_at)
 
 
@@ -54,36 +64,35 @@ def create_run(body: RunCreate, jobs: JobsDep) -> Created:
 def list_runs(session: SessionDep,
               limit: Annotated[int, Query(ge=1, le=500)] = 50) -> list[RunPublic]:
     """Runs, newest first."""
-    runs = session.scalars(select(Run).options(selectinload(Run.stations))
-                           .order_by(Run.created_at.desc()).limit(limit))
-    return [run_public(r) for r in runs]
+    runs = session.scalars(select(Run).order_by(Run.created_at.desc()).limit(limit))
+    return [run_public(session, r) for r in runs]
 
 
 @router.get("/{run_id}")
 def get_run(run_id: str, session: SessionDep) -> RunPublic:
     """State, stations captured / skipped / planned, and errors."""
-    return run_public(load_run(session, run_id))
+    return run_public(session, load_run(session, run_id))
 
 
 @router.post("/{run_id}/pause")
 def pause_run(run_id: str, jobs: JobsDep, session: SessionDep) -> RunPublic:
     """Stop after the station in progress (idempotent)."""
     jobs.pause(run_id)
-    return run_public(load_run(session, run_id))
+    return run_public(session, load_run(session, run_id))
 
 
 @router.post("/{run_id}/resume")
 def resume_run(run_id: str, jobs: JobsDep, session: SessionDep) -> RunPublic:
     """Continue a paused, interrupted or failed run at its next missing station."""
     jobs.resume(run_id)
-    return run_public(load_run(session, run_id))
+    return run_public(session, load_run(session, run_id))
 
 
 @router.post("/{run_id}/cancel")
 def cancel_run(run_id: str, jobs: JobsDep, session: SessionDep) -> RunPublic:
     """Stop for good (idempotent); stored stations stay available."""
     jobs.cancel(run_id)
-    return run_public(load_run(session, run_id))
+    return run_public(session, load_run(session, run_id))
 
 
 @router.get("/{run_id}/events", response_class=StreamingResponse, responses={
