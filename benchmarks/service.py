@@ -312,7 +312,7 @@ def time_get_run(jobs: Any, run_id: str, reps: int = TIME_GET_REPS) -> HandlerTi
 
     def handler() -> None:
         with jobs.db.session() as s:
-            run_public(s.get(Run, run_id)).model_dump_json()
+            run_public(s, s.get(Run, run_id)).model_dump_json()
 
     def counted() -> None:
         with jobs.db.session() as s:

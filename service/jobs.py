@@ -1,8 +1,10 @@
 """Background work: capture runs in a thread per run, calibrations in worker processes.
 
 Capture (blocking device calls) never runs on the event loop: each run gets a thread that
-visits its planned poses in order and commits every station as soon as it is captured, so a
-crash loses at most the station in progress. Restart safety rests on the database:
+visits its planned poses in order (move, settle, grab, read the pose) and hands each frame to
+a worker thread that detects the corners, writes the PNG and commits the station while the
+next one is captured. At most two stations are in flight and they are committed in index
+order, so a crash loses at most those two. Restart safety rests on the database:
 
 - a run row names its capture thread by an ``owner`` token; a thread writes stations and
   changes the run state only while it still owns a ``capturing`` run (conditional updates),
@@ -217,6 +219,23 @@ class _Visit:
     error: str | None
     error_code: str | None
     attempts: int
+
+
+@dataclass
+class _Shot:
+    """A frame taken at a station for the worker, or the device error of its last try."""
+
+    index: int
+    pose: list[float]
+    attempt: int
+    tcp_pose: list[float] | None
+    image: np.ndarray | None
+    error: str | None = None
+    error_code: str | None = None
+
+
+#: What the worker made of a station.
+_STORED, _RETRY, _LOST = "stored", "retry", "lost"
 
 
 def _detection_json(det: Detection) -> dict[str, Any]:
@@ -526,55 +545,121 @@ class Jobs:
                 self._threads.pop(token, None)
 
     def _capture_owned(self, run_id: str, token: str) -> None:
-        robot, camera = self.devices.get()
-        while True:
-            if self._stopping.is_set():
-                self._finish(run_id, token, "interrupted",
-                             "The service stopped while this run was capturing; resume it to "
-                             "continue from the next station.", "interrupted")
-                return
-            with self.db.session() as s:
-                run = s.get(Run, run_id)
-                if run is None or run.owner != token or run.state != "capturing":
-                    return
-                stored = set(s.scalars(select(Station.index).where(Station.run_id == run_id)))
-                poses, target = run.poses, run.target
-            index = next((k for k in range(len(poses)) if k not in stored), None)
-            if index is None:
-                self._finish(run_id, token, "done")
-                return
-            visit = self._visit(robot, camera, run_id, token, poses[index],
-                                tuple(target["inner_corners"]))
-            if visit is not None:  # else: paused, cancelled, resumed elsewhere or stopping
-                self._store(run_id, token, index, poses[index], visit)
+        """Visit the missing stations in index order, two stations in flight.
 
-    def _visit(self, robot: Robot, camera: Camera, run_id: str, token: str,
-               pose: list[float], inner_corners: tuple[int, int]) -> _Visit | None:
-        """Move, settle, grab, read the pose, detect; retry once; None if the run was taken."""
-        visit: _Visit | None = None
-        for attempt in range(1, _ATTEMPTS + 1):
+        This thread moves, settles, grabs and reads the pose; one worker thread detects the
+        corners, writes the PNG and commits the station (``_develop``), so station ``k`` is
+        developed while station ``k + 1`` is being captured. A frame goes to the worker only
+        once the worker's previous station is settled (stored, or sent back for its retry and
+        then stored), so stations are committed in index order and at most two are in flight:
+        the one in the worker and the one being captured.
+
+        In-flight stations are committed exactly when this thread still owns the run at
+        commit time (the check in ``_store``). Pause, cancel or a takeover by another owner
+        therefore discard them (their PNG files are removed); resume captures them again.
+        On shutdown or a device fault that stops the run, no new frame is taken, the worker
+        finishes the station it holds (stored, since the run is still ours, but not retried)
+        and then the run becomes ``interrupted`` or ``failed``; a frame captured but not yet
+        handed over is dropped.
+        """
+        robot, camera = self.devices.get()
+        with self.db.session() as s:
+            run = s.get(Run, run_id)
+            if run is None or run.owner != token or run.state != "capturing":
+                return
+            stored = set(s.scalars(select(Station.index).where(Station.run_id == run_id)))
+            poses, inner = run.poses, tuple(run.target["inner_corners"])
+        todo = [k for k in range(len(poses)) if k not in stored]
+        complete = False
+        with cf.ThreadPoolExecutor(1, thread_name_prefix=f"develop-{run_id[:8]}") as worker:
+            def develop(shot: _Shot) -> cf.Future[str]:
+                return worker.submit(self._develop, run_id, token, shot, inner)
+
+            def settle(shot: _Shot, future: cf.Future[str]) -> bool:
+                """Wait for the worker's station, re-capturing it for its retry; True if
+                it was stored, False if the run is no longer ours (or the service stops)."""
+                while (outcome := future.result()) == _RETRY:
+                    if not self._wanted(run_id, token):
+                        return False
+                    again = self._shoot(robot, camera, run_id, token, shot.index,
+                                        shot.pose, shot.attempt + 1)
+                    if again is None:
+                        return False
+                    shot, future = again, develop(again)
+                return outcome == _STORED
+
+            in_worker: tuple[_Shot, cf.Future[str]] | None = None
             try:
-                shot = capture_station(robot, camera, np.asarray(pose),
-                                       settle_timeout=self.settings.settle_timeout_s,
-                                       grab_timeout=self.settings.grab_timeout_s,
-                                       speed=self.settings.move_speed)
+                for index in todo:
+                    if self._stopping.is_set() or not self._owns(run_id, token):
+                        break
+                    shot = self._shoot(robot, camera, run_id, token, index, poses[index], 1)
+                    if shot is None or self._stopping.is_set():  # None: no longer ours
+                        break
+                    if in_worker is not None:
+                        done, in_worker = settle(*in_worker), None
+                        if not done:
+                            break
+                    in_worker = (shot, develop(shot))
+                else:
+                    complete = in_worker is None or settle(*in_worker)
+                    in_worker = None
+                if in_worker is not None:  # stopped early: let the worker finish, no retry
+                    in_worker[1].result()
+            except BaseException as exc:  # the worker still finishes its station
+                if in_worker is not None and (
+                        lost := in_worker[1].exception()) not in (None, exc):
+                    log.error("run %s, station %d: %s: %s", run_id, in_worker[0].index,
+                              type(lost).__name__, lost)
+                raise
+        if self._stopping.is_set():
+            self._finish(run_id, token, "interrupted",
+                         "The service stopped while this run was capturing; resume it to "
+                         "continue from the next station.", "interrupted")
+        elif complete:
+            self._finish(run_id, token, "done")
+
+    def _shoot(self, robot: Robot, camera: Camera, run_id: str, token: str, index: int,
+               pose: list[float], first_attempt: int) -> _Shot | None:
+        """Move, settle, grab and read the pose, retrying a device error once; None if the
+        run was taken meanwhile. Raises the device errors that stop the run."""
+        shot: _Shot | None = None
+        for attempt in range(first_attempt, _ATTEMPTS + 1):
+            try:
+                taken = capture_station(robot, camera, np.asarray(pose),
+                                        settle_timeout=self.settings.settle_timeout_s,
+                                        grab_timeout=self.settings.grab_timeout_s,
+                                        speed=self.settings.move_speed)
             except DeviceError as exc:
                 if not self._wanted(run_id, token):
                     return None
                 if _stops_run(exc):
                     raise
-                visit = _Visit("skipped", None, None, None, str(exc), exc.code, attempt)
+                shot = _Shot(index, pose, attempt, None, None, str(exc), exc.code)
                 continue
+            return _Shot(index, pose, attempt, [float(v) for v in taken.tcp_pose],
+                         taken.image)
+        return shot
+
+    def _develop(self, run_id: str, token: str, shot: _Shot,
+                 inner_corners: tuple[int, int]) -> str:
+        """The worker's part of a station: detect, write the PNG and commit (``_STORED``),
+        or ``_RETRY`` for a first detection failure, or ``_LOST`` if the run is not ours."""
+        if shot.image is None:
+            visit = _Visit("skipped", None, None, None, shot.error, shot.error_code,
+                           shot.attempt)
+        else:
             det = detect_checkerboard(shot.image, inner_corners)
-            tcp = [float(v) for v in shot.tcp_pose]
             if det.ok:
-                return _Visit("captured", tcp, shot.image, _detection_json(det), None, None,
-                              attempt)
-            visit = _Visit("skipped", tcp, shot.image, _detection_json(det),
-                           f"Checkerboard not found: {det.reason}.", "not_detected", attempt)
-            if not self._wanted(run_id, token):
-                return None
-        return visit
+                visit = _Visit("captured", shot.tcp_pose, shot.image, _detection_json(det),
+                               None, None, shot.attempt)
+            elif shot.attempt < _ATTEMPTS:
+                return _RETRY
+            else:
+                visit = _Visit("skipped", shot.tcp_pose, shot.image, _detection_json(det),
+                               f"Checkerboard not found: {det.reason}.", "not_detected",
+                               shot.attempt)
+        return _STORED if self._store(run_id, token, shot.index, shot.pose, visit) else _LOST
 
     def _wanted(self, run_id: str, token: str) -> bool:
         """True while the service runs and this thread owns the run (worth another try)."""
@@ -586,8 +671,9 @@ class Jobs:
                 Run.id == run_id, Run.owner == token, Run.state == "capturing")) == 1
 
     def _store(self, run_id: str, token: str, index: int, pose: list[float],
-               visit: _Visit) -> None:
-        """Commit one station (image file first) unless the run is no longer ours."""
+               visit: _Visit) -> bool:
+        """Commit one station (image file first) unless the run is no longer ours; True if
+        it was stored."""
         rel = None
         if visit.image is not None:
             rel = Path("runs") / run_id / f"{index:03d}-{token[:8]}.png"
@@ -611,12 +697,13 @@ class Jobs:
         if not stored:
             if rel is not None:
                 (self.data_dir / rel).unlink(missing_ok=True)
-            return
+            return False
         event: dict[str, Any] = {"type": "station", "run_id": run_id, "index": index,
                                  "state": visit.state}
         if visit.error:
             event["error"] = {"code": visit.error_code, "detail": visit.error}
         self.events.publish(run_id, event)
+        return True
 
     def _finish(self, run_id: str, token: str, state: str, error: str | None = None,
                 code: str | None = None) -> None:
