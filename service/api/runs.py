@@ -10,10 +10,10 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query, status
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
-from sqlalchemy import func, select
+from sqlalchemy import select
 
 from service.api.deps import JobsDep, SessionDep
-from service.jobs import FINAL_RUN_STATES, Jobs, NotFoundError
+from service.jobs import FINAL_RUN_STATES, Jobs, NotFoundError, run_counts
 from service.models import Run, Station
 from service.schemas import Created, ErrorInfo, RunCreate, RunPublic, StationError
 
@@ -26,18 +26,13 @@ KEEPALIVE_S = 15.0
 def run_public(session: SessionDep, run: Run) -> RunPublic:
     """The public view of a run; station counts and errors come from small SQL queries, never
     from loading every station (with its corners), so polling stays fast on long runs."""
-    by_state = dict(session.execute(
-        select(Station.state, func.count()).where(Station.run_id == run.id)
-        .group_by(Station.state)).all())
     errors = session.execute(
         select(Station.index, Station.error_code, Station.error)
         .where(Station.run_id == run.id, Station.error.is_not(None))
         .order_by(Station.index)).all()
-    captured = by_state.get("captured", 0)
     return RunPublic(
         id=run.id, state=run.state, robot=run.robot, setup=run.setup, target=run.target,
-        stations_planned=len(run.poses), stations_captured=captured,
-        stations_skipped=sum(by_state.values()) - captured,
+        **run_counts(session, run),
         error=None if run.error is None else ErrorInfo(code=run.error_code or "error",
                                                        detail=run.error),
         station_errors=[StationError(index=i, code=code, detail=detail)
