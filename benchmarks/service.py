@@ -41,8 +41,6 @@ import os
 import pstats
 import secrets
 import signal
-import socket
-import subprocess
 import sys
 import tempfile
 import threading
@@ -87,12 +85,6 @@ def import_repo_service() -> None:
 
 # ---- (a) the real service over HTTP --------------------------------------------------------
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def clean_env(**extra: str) -> dict[str, str]:
     """This environment without any ``CELLCAL_*`` setting of the caller, plus ``extra``."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("CELLCAL_")}
@@ -102,36 +94,11 @@ def clean_env(**extra: str) -> dict[str, str]:
 @contextlib.contextmanager
 def serve(data_dir: Path, key: str) -> Iterator[str]:
     """``cellcal serve --mock`` on a free loopback port; yields the base URL, always reaped."""
-    port = free_port()
-    log = data_dir / "serve.log"
-    env = clean_env(CELLCAL_DATA_DIR=str(data_dir / "data"), CELLCAL_API_KEY=key)
-    with log.open("wb") as out:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "serve", "--mock", "--host", "127.0.0.1",
-             "--port", str(port)], cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT)
-    try:
-        url = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + STARTUP_TIMEOUT_S
-        while True:
-            if proc.poll() is not None:
-                raise RuntimeError(f"the service exited at startup:\n{log.read_text()}")
-            try:
-                if httpx.get(f"{url}/health", timeout=1.0).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"the service did not come up:\n{log.read_text()}")
-            time.sleep(0.1)
-        yield url
-    finally:
-        if proc.poll() is None:
-            proc.terminate()
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+    from service.local import local_service
+
+    with local_service(data_dir / "data", key, env=clean_env(),
+                       startup_timeout=STARTUP_TIMEOUT_S) as service:
+        yield service.url
 
 
 @dataclass

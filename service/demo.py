@@ -13,12 +13,9 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 import secrets
 import shutil
 import signal
-import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -36,9 +33,9 @@ from calib.handeye import METHODS, calibrate_hand_eye
 from mocks.posesim import default_cell, simulate
 from mocks.scene import MockScene, default_scene, load_scene
 from service.exports import FORMATS
+from service.local import ServiceStartError, local_service
 
 #: Seconds to wait for the service to answer /health, and for a calibration or validation.
-STARTUP_TIMEOUT_S = 30.0
 JOB_TIMEOUT_S = 90.0
 #: Longest silence on the event stream (the service sends a keep-alive every 15 s).
 EVENT_GAP_S = 60.0
@@ -74,41 +71,24 @@ def run_demo(*, stations: int = 15, scene: Path | None = None, out: Path | None 
 def _service(scene: Path | None) -> Iterator[httpx.Client]:
     """``cellcal serve --mock`` on a free loopback port; stopped and its data removed on exit.
 
-    The service gets its own process group, so the calibration worker it spawns is stopped
-    with it; SIGTERM to the demo unwinds like Ctrl-C.
+    SIGTERM to the demo unwinds like Ctrl-C, so the service is stopped either way.
     """
     data = Path(tempfile.mkdtemp(prefix="cellcal-demo-data-"))
-    key = secrets.token_urlsafe(24)
-    port = _free_port()
-    url = f"http://127.0.0.1:{port}"
-    log = data / "serve.log"
-    cmd = [sys.executable, "-m", "service.cli", "serve", "--mock", "--host", "127.0.0.1",
-           "--port", str(port), *(["--scene", str(scene)] if scene is not None else [])]
-    env = {**os.environ, "CELLCAL_DATA_DIR": str(data / "service"), "CELLCAL_API_KEY": key}
     previous = _raise_on_sigterm()
-    proc = None
     try:
-        with log.open("wb") as sink:
-            proc = subprocess.Popen(cmd, env=env, stdout=sink, stderr=subprocess.STDOUT,
-                                    stdin=subprocess.DEVNULL, start_new_session=True)
-        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {key}"},
-                          timeout=30.0) as client:
-            _wait_healthy(client, proc, log)
-            print(f"service: {url} (mock cell{'' if scene is None else f' {scene}'}; data in "
-                  f"{data}, removed on exit)", file=sys.stderr, flush=True)
+        with local_service(data / "service", secrets.token_urlsafe(24), scene=scene,
+                           log=data / "serve.log") as service, \
+                httpx.Client(base_url=service.url, timeout=30.0,
+                             headers={"Authorization": f"Bearer {service.key}"}) as client:
+            print(f"service: {service.url} (mock cell{'' if scene is None else f' {scene}'}; "
+                  f"data in {data}, removed on exit)", file=sys.stderr, flush=True)
             yield client
+    except ServiceStartError as exc:
+        raise DemoError(str(exc)) from None
     finally:
-        if proc is not None:
-            _stop(proc)
         shutil.rmtree(data, ignore_errors=True)
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _raise_on_sigterm() -> Callable[[int, FrameType | None], Any] | int | None:
@@ -119,34 +99,6 @@ def _raise_on_sigterm() -> Callable[[int, FrameType | None], Any] | int | None:
     with contextlib.suppress(ValueError):  # not the main thread
         return signal.signal(signal.SIGTERM, interrupt)
     return None
-
-
-def _wait_healthy(client: httpx.Client, proc: subprocess.Popen[bytes], log: Path) -> None:
-    deadline = time.monotonic() + STARTUP_TIMEOUT_S
-    while True:
-        if proc.poll() is not None:
-            lines = log.read_text(errors="replace").strip().splitlines()
-            why = next((ln.removeprefix("cellcal: error: ") for ln in reversed(lines)
-                        if ln.startswith("cellcal: error: ")), lines[-1] if lines else "")
-            raise DemoError(f"the service exited at startup: {why}")
-        with contextlib.suppress(httpx.TransportError):
-            if client.get("/health", timeout=1.0).status_code == 200:
-                return
-        if time.monotonic() > deadline:
-            raise DemoError(f"the service did not answer within {STARTUP_TIMEOUT_S:g} s")
-        time.sleep(0.1)
-
-
-def _stop(proc: subprocess.Popen[bytes]) -> None:
-    """SIGTERM to the service's process group, SIGKILL if it is still there after 10 s."""
-    for sig in (signal.SIGTERM, signal.SIGKILL):
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, sig)
-        try:
-            proc.wait(10.0)
-            return
-        except subprocess.TimeoutExpired:
-            continue
 
 
 # ---- the flow, as a cell controller would drive it ----------------------------------------

@@ -4,12 +4,9 @@ cell, driven with ``httpx``; a hard kill mid-run, then a restart and a resume.
 
 from __future__ import annotations
 
+import contextlib
 import json
-import os
 import signal
-import socket
-import subprocess
-import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -21,59 +18,23 @@ import pytest
 
 from calib.geometry import ur_pose_from_matrix
 from mocks.scene import default_scene, sample_station_poses
+from service.local import local_service
 
 REPO = Path(__file__).resolve().parents[1]
 KEY = "e2e-key-0123456789abcdef"
 AUTH = {"Authorization": f"Bearer {KEY}"}
-#: ``cellcal serve`` through its ``register`` hook (``service.cli`` wires it in the same way).
-SERVE = ("import argparse, sys; from service import cli_serve; "
-         "p = argparse.ArgumentParser(); cli_serve.register(p.add_subparsers()); "
-         "a = p.parse_args(sys.argv[1:]); sys.exit(a.func(a))")
-
-Server = Callable[[], str]
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+Server = Callable[[], tuple[str, Any]]
 
 
 @pytest.fixture
-def start_server(tmp_path: Path) -> Iterator[Callable[[], tuple[str, subprocess.Popen[bytes]]]]:
+def start_server(tmp_path: Path) -> Iterator[Server]:
     """Start ``cellcal serve --mock`` on a free port over ``tmp_path``; every one is reaped."""
-    procs: list[subprocess.Popen[bytes]] = []
+    with contextlib.ExitStack() as stack:
+        def start() -> tuple[str, Any]:
+            service = stack.enter_context(local_service(tmp_path / "data", KEY))
+            return service.url, service.proc
 
-    def start() -> tuple[str, subprocess.Popen[bytes]]:
-        port = _free_port()
-        env = {**os.environ, "CELLCAL_DATA_DIR": str(tmp_path), "CELLCAL_API_KEY": KEY}
-        log = tmp_path / f"serve-{len(procs)}.log"
-        with log.open("wb") as out:
-            proc = subprocess.Popen([sys.executable, "-c", SERVE, "serve", "--mock",
-                                     "--host", "127.0.0.1", "--port", str(port)],
-                                    cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT)
-        procs.append(proc)
-        url = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 20
-        while True:
-            assert proc.poll() is None, f"the service exited at startup:\n{log.read_text()}"
-            try:
-                if httpx.get(f"{url}/health", timeout=1).status_code == 200:
-                    return url, proc
-            except httpx.TransportError:
-                pass
-            assert time.monotonic() < deadline, f"the service did not come up:\n{log.read_text()}"
-            time.sleep(0.1)
-
-    yield start
-    for proc in procs:
-        if proc.poll() is None:
-            proc.terminate()
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        yield start
 
 
 def _poses(n: int) -> list[list[float]]:
