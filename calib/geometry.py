@@ -142,6 +142,24 @@ def check_ur_poses(poses: np.ndarray, name: str, *,
     return _check_translation_units(matrix_from_ur_pose(poses), name, max_translation)
 
 
+def check_ur_pose(pose: np.ndarray, name: str) -> np.ndarray:
+    """Validate one UR pose vector, shape (6,); return it as a 4x4 transform."""
+    pose = np.asarray(pose, dtype=float)
+    if pose.shape != (6,):
+        raise ValueError(f"{name}: expected [x, y, z, rx, ry, rz], got shape {pose.shape}")
+    return check_ur_poses(pose, name)[0]
+
+
+def check_joint_positions(q: np.ndarray, name: str = "q") -> np.ndarray:
+    """Validate six joint angles in radians; return them as float, shape (6,)."""
+    angles = np.asarray(q, dtype=float)
+    if angles.shape != (6,) or not np.isfinite(angles).all():
+        raise ValueError(f"{name}: expected 6 finite joint angles in radians, got {q!r}")
+    if np.abs(angles).max() > 2.0 * np.pi:
+        raise ValueError(f"{name}: joint angles beyond ±2π rad: were degrees given?")
+    return angles
+
+
 def _check_translation_units(T: np.ndarray, name: str, max_translation: float) -> np.ndarray:
     dist = np.linalg.norm(T[:, :3, 3], axis=1)
     if (dist > max_translation).any():

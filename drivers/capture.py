@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.geometry import check_ur_poses, matrix_from_ur_pose, pose_error
+from calib.geometry import check_ur_pose, matrix_from_ur_pose, pose_error
 from drivers.base import Camera, Robot
 from drivers.errors import RobotError
 
@@ -45,10 +45,8 @@ def capture_station(robot: Robot, camera: Camera, tcp_target: np.ndarray, *,
     or was bumped) and the station is refused with ``RobotError`` (code
     ``moved_during_grab``) rather than pairing an image with the wrong pose.
     """
+    check_ur_pose(tcp_target, "tcp_target")
     target = np.asarray(tcp_target, dtype=float)
-    if target.shape != (6,):
-        raise ValueError(f"tcp_target: expected [x, y, z, rx, ry, rz], got shape {target.shape}")
-    check_ur_poses(target, "tcp_target")
     moved_at = time.time()
     robot.move_linear(target, speed=speed, acceleration=acceleration)
     robot.wait_settled(timeout=settle_timeout)

@@ -27,7 +27,7 @@ import numpy as np
 import rtde_control
 import rtde_receive
 
-from calib.geometry import check_ur_poses
+from calib.geometry import check_joint_positions, check_ur_pose
 from drivers.base import RobotSession, RobotStatus
 from drivers.errors import (
     EmergencyStopError,
@@ -265,21 +265,13 @@ class URRobot(RobotSession):
     def move_linear(self, pose: np.ndarray, *, speed: float = 0.25,
                     acceleration: float = 1.2) -> None:
         """Move the TCP in a straight line to ``pose`` (shape (6,)); returns once settled."""
-        pose = np.asarray(pose, dtype=float)
-        if pose.shape != (6,):
-            raise ValueError(f"pose: expected [x, y, z, rx, ry, rz], got shape {pose.shape}")
-        check_ur_poses(pose, "pose")  # finite, metres
-        self._move("moveL", pose, speed, acceleration)
+        check_ur_pose(pose, "pose")  # shape, finite, metres
+        self._move("moveL", np.asarray(pose, dtype=float), speed, acceleration)
 
     def move_joint(self, q: np.ndarray, *, speed: float = 1.05,
                    acceleration: float = 1.4) -> None:
         """Move in joint space to ``q`` (shape (6,), radians); returns once settled."""
-        q = np.asarray(q, dtype=float)
-        if q.shape != (6,) or not np.isfinite(q).all():
-            raise ValueError(f"q: expected 6 finite joint angles in radians, got {q!r}")
-        if np.abs(q).max() > 2.0 * np.pi:
-            raise ValueError("q: joint angles beyond ±2π rad: were degrees given?")
-        self._move("moveJ", q, speed, acceleration)
+        self._move("moveJ", check_joint_positions(q), speed, acceleration)
 
     def _move(self, method: str, target: np.ndarray, speed: float, acceleration: float) -> None:
         if speed <= 0.0 or acceleration <= 0.0:

@@ -30,7 +30,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from calib.geometry import check_ur_poses, perturb, ur_pose_from_matrix
+from calib.geometry import (
+    check_joint_positions,
+    check_ur_pose,
+    perturb,
+    ur_pose_from_matrix,
+)
 from drivers.base import CameraSession, RobotSession, RobotStatus
 from drivers.errors import (
     CameraError,
@@ -198,10 +203,7 @@ class MockRobot(RobotSession):
     def move_linear(self, pose: np.ndarray, *, speed: float = 0.25,
                     acceleration: float = 1.2) -> None:
         """Move the TCP in a straight line to ``pose`` (shape (6,)); blocks until there."""
-        pose = np.asarray(pose, dtype=float)
-        if pose.shape != (6,):
-            raise ValueError(f"pose: expected [x, y, z, rx, ry, rz], got shape {pose.shape}")
-        T1 = check_ur_poses(pose, "pose")[0]
+        T1 = check_ur_pose(pose, "pose")
         with self._lock:
             T0 = self._T.copy()
         slerp = Slerp([0.0, 1.0], Rotation.from_matrix([T0[:3, :3], T1[:3, :3]]))
@@ -220,11 +222,7 @@ class MockRobot(RobotSession):
     def move_joint(self, q: np.ndarray, *, speed: float = 1.05,
                    acceleration: float = 1.4) -> None:
         """Move in joint space to ``q`` (shape (6,), radians); the TCP follows UR5e FK."""
-        q1 = np.asarray(q, dtype=float)
-        if q1.shape != (6,) or not np.isfinite(q1).all():
-            raise ValueError(f"q: expected 6 finite joint angles in radians, got {q!r}")
-        if np.abs(q1).max() > 2.0 * np.pi:
-            raise ValueError("q: joint angles beyond ±2π rad: were degrees given?")
+        q1 = check_joint_positions(q)
         q0 = self.joint_positions()
 
         def path(s: float) -> tuple[np.ndarray, np.ndarray | None]:

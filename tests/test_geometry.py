@@ -77,3 +77,15 @@ def test_check_ur_poses_rejects_bad_shapes_and_values():
         check_ur_poses([[np.nan, 0, 0, 0, 0, 0]], "tcp_pose")
     T = check_ur_poses([[0.4, 0.1, 0.3, 0.0, 3.1, 0.0]], "tcp_pose")
     assert T.shape == (1, 4, 4)
+
+
+def test_single_pose_and_joint_checks():
+    from calib.geometry import check_joint_positions, check_ur_pose
+    assert check_ur_pose([0.4, 0.1, 0.3, 0.0, 3.1, 0.0], "pose").shape == (4, 4)
+    with pytest.raises(ValueError, match=r"pose: expected \[x, y, z, rx, ry, rz\], got shape"):
+        check_ur_pose([[0.4, 0.1, 0.3, 0.0, 3.1, 0.0]], "pose")
+    assert check_joint_positions([0.0, -1.5, 1.5, -1.5, -1.57, 0.0]).shape == (6,)
+    with pytest.raises(ValueError, match="q: expected 6 finite joint angles"):
+        check_joint_positions([0.0, np.nan, 0, 0, 0, 0])
+    with pytest.raises(ValueError, match="were degrees given"):
+        check_joint_positions([0.0, -90.0, 90.0, 0, 0, 0])
