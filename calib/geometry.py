@@ -13,6 +13,9 @@ from scipy.spatial.transform import Rotation
 
 #: Largest translation we accept as metres; anything beyond is almost surely millimetres.
 MAX_TRANSLATION_M = 20.0
+#: Largest rotation-vector norm we accept as radians: π plus a margin for rounded printouts
+#: (three decimals per component shift the norm by < 1e-3). A larger norm is degrees.
+MAX_ROTVEC_NORM_RAD = np.pi + 0.01
 
 
 def matrix_from_ur_pose(pose: np.ndarray) -> np.ndarray:
@@ -130,7 +133,11 @@ def check_transforms(T: np.ndarray, name: str, *, max_translation: float = MAX_T
 
 def check_ur_poses(poses: np.ndarray, name: str, *,
                    max_translation: float = MAX_TRANSLATION_M) -> np.ndarray:
-    """Validate UR pose vectors (N, 6) and return them as 4x4 transforms (N, 4, 4)."""
+    """Validate UR pose vectors (N, 6) and return them as 4x4 transforms (N, 4, 4).
+
+    Refuses NaN/inf, a rotation vector longer than π (+ a rounding margin, i.e. degrees)
+    and translations beyond ``max_translation`` metres (millimetres), naming the index.
+    """
     poses = np.asarray(poses, dtype=float)
     if poses.ndim == 1:
         poses = poses[None]
@@ -139,6 +146,12 @@ def check_ur_poses(poses: np.ndarray, name: str, *,
     bad = ~np.isfinite(poses).all(axis=1)
     if bad.any():
         raise ValueError(f"{name}[{int(np.argmax(bad))}] contains NaN or inf")
+    angle = np.linalg.norm(poses[:, 3:], axis=1)
+    if (angle > MAX_ROTVEC_NORM_RAD).any():
+        i = int(np.argmax(angle))
+        raise ValueError(
+            f"{name}[{i}] rotation vector has norm {angle[i]:.3g}, more than π rad: "
+            "rotations must be rotation vectors in radians (were degrees given?)")
     return _check_translation_units(matrix_from_ur_pose(poses), name, max_translation)
 
 
@@ -147,7 +160,10 @@ def check_ur_pose(pose: np.ndarray, name: str) -> np.ndarray:
     pose = np.asarray(pose, dtype=float)
     if pose.shape != (6,):
         raise ValueError(f"{name}: expected [x, y, z, rx, ry, rz], got shape {pose.shape}")
-    return check_ur_poses(pose, name)[0]
+    try:
+        return check_ur_poses(pose, name)[0]
+    except ValueError as exc:  # one pose: name it without the stack index
+        raise ValueError(str(exc).replace(f"{name}[0]", name, 1)) from None
 
 
 def check_joint_positions(q: np.ndarray, name: str = "q") -> np.ndarray:

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from pydantic import ValidationError
 
-from calib.geometry import check_ur_poses
+from calib.geometry import check_ur_pose
 from calib.target import MIN_CONTRAST
 from drivers.base import Camera, Robot
 from drivers.errors import DeviceError
@@ -108,7 +108,7 @@ def _parse_pose(text: str) -> np.ndarray:
     if pose.shape != (6,):
         raise ValueError(f"--pose {text!r}: expected six numbers x,y,z,rx,ry,rz, "
                          f"got {pose.size}")
-    check_ur_poses(pose, "--pose")
+    check_ur_pose(pose, "--pose")
     return pose
 
 

@@ -15,9 +15,17 @@ from typing import Annotated, Any, Literal
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
-from calib.geometry import check_ur_poses
+from calib.geometry import check_ur_pose, check_ur_poses
 from drivers.capture import CapturedStation
 
 STATIONS_FILE = "stations.json"
@@ -52,6 +60,15 @@ class Station(BaseModel):
     tcp_pose: PoseVector | None = None
     image: str | None = None
     target_pose: PoseVector | None = None
+
+    @field_validator("tcp_pose", "target_pose")
+    @classmethod
+    def _plausible_pose(cls, pose: list[float] | None,
+                        info: ValidationInfo) -> list[float] | None:
+        """Metres and radians, checked when the file is read (before any image is)."""
+        if pose is not None:
+            check_ur_pose(pose, str(info.field_name))
+        return pose
 
     @model_validator(mode="after")
     def _one_observation(self) -> Station:
@@ -112,11 +129,13 @@ def load_station_set(directory: str | Path) -> StationSet:
 def describe_validation_error(exc: ValidationError) -> str:
     """The first pydantic error as ``where: what`` (e.g. ``stations[3].tcp_pose[2]: …``)."""
     err = exc.errors()[0]
+    cause = err.get("ctx", {}).get("error") if err["type"] == "value_error" else None
+    msg = str(cause) if isinstance(cause, ValueError) else err["msg"]
     where = ""
     for part in err["loc"]:
         where += f"[{part}]" if isinstance(part, int) else (f".{part}" if where else str(part))
     more = f" (and {exc.error_count() - 1} more problems)" if exc.error_count() > 1 else ""
-    return f"{where or 'file'}: {err['msg']}{more}"
+    return f"{where or 'file'}: {msg}{more}"
 
 
 def station_record(station: CapturedStation, image_name: str) -> dict[str, Any]:

@@ -62,6 +62,11 @@ def _mm(doc):
         s["tcp_pose"][:3] = [1000.0 * v for v in s["tcp_pose"][:3]]
 
 
+def _deg(doc):
+    doc["stations"][2]["tcp_pose"][3:] = [float(np.rad2deg(v)) for v in
+                                          doc["stations"][2]["tcp_pose"][3:]]
+
+
 def _two(doc):
     doc["stations"] = doc["stations"][:2]
 
@@ -80,9 +85,12 @@ def _fmt(doc):
 
 @pytest.mark.parametrize("mutate, message", [
     (_nan, r"stations\[3\]\.tcp_pose\[1\]: Input should be a finite number"),
-    (_mm, r"tcp_pose\[\d+\] translation is .* m, more than 20 m: .*millimetres"),
+    (_mm, r"stations\[0\]\.tcp_pose: tcp_pose translation is .* m, more than 20 m: "
+          r".*millimetres"),
+    (_deg, r"stations\[2\]\.tcp_pose: tcp_pose rotation vector has norm 1.*, more than π "
+           r"rad: .*radians \(were degrees given\?\)"),
     (_two, r"need at least 3 stations, got 2"),
-    (_both, r"stations\[0\]: Value error, a station carries either an 'image' or a"),
+    (_both, r"stations\[0\]: a station carries either an 'image' or a"),
     (_dup, r"station ids must be unique, repeated: 000"),
     (_fmt, r"format: Input should be 'cellcal/stations@1'"),
 ])

@@ -70,6 +70,9 @@ def test_robot_move(capsys) -> None:
 @pytest.mark.parametrize(("argv", "message", "exit_code"), [
     (["--pose", "0.6,0,0.5"], "expected six numbers", 2),
     (["--pose", "600,0,500,3.1,0,0"], "were millimetres given?", 2),
+    (["--pose", "0.6,0,0.5,178,11,0"], "--pose rotation vector has norm 178, more than π rad: "
+                                      "rotations must be rotation vectors in radians (were "
+                                      "degrees given?)", 2),
     (["--pose", "0.6,0,-0.2,3.1,0,0"], "outside the workspace limits", 1),
     (["--pose", "0.6,0,0.5,3.1,0,0", "--speed", "0"], "must be positive", 2),
 ])
@@ -77,6 +80,16 @@ def test_robot_move_errors(capsys, argv: list[str], message: str, exit_code: int
     code, out, err = run(capsys, "robot", "move", "--robot", "mock://", *argv)
     assert code == exit_code and out == ""
     assert_one_line_error(err, message)
+
+
+def test_robot_move_in_degrees_is_refused_before_the_robot_is_touched(
+        capsys, monkeypatch: pytest.MonkeyPatch) -> None:
+    opened = []
+    monkeypatch.setattr("service.cli_devices.open_robot", lambda *a, **k: opened.append(a))
+    code, out, err = run(capsys, "robot", "move", "--robot", "mock://",
+                         "--pose=0.6,-0.05,0.55,177.6,11.5,0")
+    assert (code, out, opened) == (2, "", [])
+    assert_one_line_error(err, "were degrees given?")
 
 
 @pytest.mark.timeout(30)

@@ -3,6 +3,7 @@ import pytest
 
 from calib.geometry import (
     check_transforms,
+    check_ur_pose,
     check_ur_poses,
     invert,
     matrix_from_ur_pose,
@@ -77,6 +78,19 @@ def test_check_ur_poses_rejects_bad_shapes_and_values():
         check_ur_poses([[np.nan, 0, 0, 0, 0, 0]], "tcp_pose")
     T = check_ur_poses([[0.4, 0.1, 0.3, 0.0, 3.1, 0.0]], "tcp_pose")
     assert T.shape == (1, 4, 4)
+
+
+def test_rotation_vectors_in_degrees_are_refused():
+    deg = [[0.4, 0.1, 0.3, 0.0, 0.3, 0.0], [0.4, 0.1, 0.3, 0.0, 177.6, 11.0]]
+    with pytest.raises(ValueError, match=r"tcp_pose\[1\] rotation vector has norm 178, more "
+                                         r"than π rad: .*radians \(were degrees given\?\)"):
+        check_ur_poses(deg, "tcp_pose")
+    with pytest.raises(ValueError, match=r"^pose rotation vector has norm 3.16"):
+        check_ur_pose([0.4, 0.1, 0.3, 0.0, np.pi + 0.02, 0.0], "pose")
+    # A half turn printed with three decimals per component is still radians.
+    half_turn = np.round(np.pi * np.array([0.6, 0.8, 0.0]), 3) + np.array([5e-4, 5e-4, 0.0])
+    assert np.linalg.norm(half_turn) > np.pi
+    assert check_ur_pose([0.4, 0.1, 0.3, *half_turn], "pose").shape == (4, 4)
 
 
 def test_single_pose_and_joint_checks():

@@ -157,6 +157,8 @@ def test_settings_fail_fast(tmp_path: Path, overrides: dict[str, Any], match: st
     ({"stations": 2}, "invalid_request", r"body\.stations"),
     ({"poses": [*poses(2), [0.4, 0.1, -0.2, 0.0, 3.1, 0.0]]}, "outside_workspace",
      r"poses\[2\].*outside the workspace"),
+    ({"poses": [poses(2)[0], [0.4, 0.1, 0.3, 0.0, 177.6, 0.0]]}, "invalid_pose",
+     r"poses\[1\] rotation vector has norm 178, more than π rad: .*were degrees given\?"),
 ])
 def test_malformed_or_unsafe_run_is_422(client: TestClient, body: dict[str, Any], code: str,
                                         match: str) -> None:
