@@ -14,13 +14,11 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import cv2
-import numpy as np
-
 from calib.handeye import METHODS, calibrate_hand_eye
-from calib.target import Detection
 from drivers.errors import DeviceError
 from service import cli_devices, cli_serve
+from service.image_files import DEFAULT_MAX_PIXELS, read_station_image
+from service.stationset import DEFAULT_MAX_STATIONS
 
 if TYPE_CHECKING:
     from service.stationset import StationSet
@@ -36,7 +34,7 @@ PROGRESS_MIN_IMAGES = 10
 def _calibrate(args: argparse.Namespace) -> int:
     from service.stationset import load_station_set
 
-    stations = load_station_set(args.station_dir)
+    stations = load_station_set(args.station_dir, max_stations=args.max_stations)
     command = " ".join(["cellcal", *sys.argv[1:]])
     if stations.pose_only:
         from service.results import hand_eye_result_json
@@ -71,7 +69,8 @@ def _calibrate_images(args: argparse.Namespace, stations: StationSet,
                          "have images; a station set is either pose-only or image-based")
     target = stations.target
     directory = Path(args.station_dir)
-    images = (_read_image(directory, s.image) for s in stations.stations)
+    images = (read_station_image(directory, s.image, max_pixels=args.max_image_pixels)
+              for s in stations.stations)
     n = len(stations.stations)
 
     def progress(items: Iterable[Any]) -> Iterable[Any]:
@@ -86,35 +85,6 @@ def _calibrate_images(args: argparse.Namespace, stations: StationSet,
         station_ids=[s.id for s in stations.stations], intrinsics=intrinsics,
         method=args.method, nu_method=args.nu_method, progress=progress)
     return calibration_result_json(result, command=command)
-
-
-def _read_image(directory: Path, name: str) -> np.ndarray | Detection:
-    """The image ``directory/name`` as grey uint8, or a rejected Detection saying why not."""
-    path = directory / name
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        return Detection(ok=False, reason=f"cannot read image file '{name}': "
-                                          f"{exc.strerror or exc}")
-    if _truncated(data):
-        return Detection(ok=False, reason=f"image file '{name}' is truncated (incomplete copy "
-                                          "or interrupted capture?)")
-    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        return Detection(ok=False, reason=f"image file '{name}' is not a readable image")
-    return image
-
-
-def _truncated(data: bytes) -> bool:
-    """True for a JPEG without its end marker or a PNG without its IEND chunk.
-
-    OpenCV decodes a truncated JPEG anyway (grey below the cut), so this is checked first.
-    """
-    if data.startswith(b"\xff\xd8"):
-        return not data.rstrip(b"\x00\r\n ").endswith(b"\xff\xd9")
-    if data.startswith(b"\x89PNG"):
-        return b"IEND" not in data[-16:]
-    return False
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -151,6 +121,11 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--nu-method", default="images", choices=("images", "extrinsics"),
                      help="images: board aspect ratio nu from the corner residuals (Method #1, "
                           "default); extrinsics: from the hand-eye residuals (Method #2)")
+    cal.add_argument("--max-stations", type=int, default=DEFAULT_MAX_STATIONS, metavar="N",
+                     help=f"refuse sets of more stations (default {DEFAULT_MAX_STATIONS})")
+    cal.add_argument("--max-image-pixels", type=int, default=DEFAULT_MAX_PIXELS, metavar="N",
+                     help="reject images larger than this, width x height, read from the file "
+                          f"header before decoding (default {DEFAULT_MAX_PIXELS})")
     cal.set_defaults(func=_calibrate)
 
     demo = sub.add_parser(

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -29,6 +30,10 @@ from calib.geometry import check_ur_pose, check_ur_poses
 from drivers.capture import CapturedStation
 
 STATIONS_FILE = "stations.json"
+#: Default largest station count of a set; every stage scales linearly up to it.
+DEFAULT_MAX_STATIONS = 50_000
+#: ``stations.json`` bytes allowed per station (a pose-only station takes about 250).
+FILE_BYTES_PER_STATION = 2048
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 PoseVector = Annotated[list[FiniteFloat], Field(min_length=6, max_length=6)]
@@ -87,8 +92,7 @@ class StationSet(BaseModel):
 
     @model_validator(mode="after")
     def _consistent(self) -> StationSet:
-        ids = [s.id for s in self.stations]
-        dup = sorted({i for i in ids if ids.count(i) > 1})
+        dup = sorted(i for i, k in Counter(s.id for s in self.stations).items() if k > 1)
         if dup:
             raise ValueError(f"station ids must be unique, repeated: {', '.join(dup)}")
         if any(s.image for s in self.stations) and self.target is None:
@@ -110,16 +114,31 @@ class StationSet(BaseModel):
         return P, C
 
 
-def load_station_set(directory: str | Path) -> StationSet:
-    """Read and validate ``DIR/stations.json``; raise ``ValueError`` with one clear line."""
+def load_station_set(directory: str | Path, *,
+                     max_stations: int = DEFAULT_MAX_STATIONS) -> StationSet:
+    """Read and validate ``DIR/stations.json``; raise ``ValueError`` with one clear line.
+
+    The file size is checked before it is read and the station count before the stations are
+    validated, so an oversized set costs neither memory nor time.
+    """
     path = Path(directory) / STATIONS_FILE
     if not path.is_file():
-        raise ValueError(f"{path}: no such file (a station set is a directory with "
-                         "stations.json)")
+        raise ValueError(f"{path}: " + ("not a regular file" if path.exists() else
+                                        "no such file (a station set is a directory with "
+                                        "stations.json)"))
+    max_bytes = FILE_BYTES_PER_STATION * max_stations
+    if path.stat().st_size > max_bytes:
+        raise ValueError(f"{path}: {path.stat().st_size / 1e6:.0f} MB, more than the "
+                         f"{max_bytes / 1e6:.0f} MB allowed for {max_stations} stations")
     try:
         raw = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ValueError(f"{path}: not valid JSON ({exc})") from None
+    n = len(raw["stations"]) if isinstance(raw, dict) and isinstance(raw.get("stations"),
+                                                                     list) else 0
+    if n > max_stations:
+        raise ValueError(f"{path}: {n} stations, more than the {max_stations} allowed "
+                         "(--max-stations)")
     try:
         return StationSet.model_validate(raw)
     except ValidationError as exc:

@@ -49,7 +49,7 @@ def test_image_set_gives_the_full_result(tmp_path, capsys):
     assert rejected == {
         "001": "image file '001.jpg' is truncated (incomplete copy or interrupted capture?)",
         "002": "image file '002.png' is truncated (incomplete copy or interrupted capture?)",
-        "003": "image file '003.png' is not a readable image",
+        "003": "image file '003.png' is not a readable image (PNG or JPEG expected)",
         "004": "cannot read image file '004.png': No such file or directory"}
     assert doc["format"] == "cellcal/result@1" and doc["method"] == "joint"
     cam = doc["camera"]
