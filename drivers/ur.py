@@ -108,7 +108,12 @@ class URRobot(RobotSession):
     # ---- connection -------------------------------------------------------------------------
 
     def connect(self) -> None:
-        """Connect (again): probe the controller, then start ur-rtde and its control program."""
+        """Connect (again): probe the controller, start ur-rtde and its control program.
+
+        Returns once ``status()`` shows the program running (``RobotError`` code
+        ``program_not_started`` otherwise); after a dropped connection this is how to
+        reconnect.
+        """
         with self._lock:
             self.close()
             self._probe()
@@ -118,7 +123,7 @@ class URRobot(RobotSession):
             except RuntimeError as err:
                 self.close()
                 raise self._connect_error(err) from err
-            self._wait_first_data()
+            self._wait_program_running()
 
     def close(self) -> None:
         """Disconnect both interfaces. Safe to call twice and after a lost connection."""
@@ -168,15 +173,34 @@ class URRobot(RobotSession):
                 "Check that the controller is switched on, the network cable is plugged in and "
                 "the IP address is right.") from None
 
-    def _wait_first_data(self) -> None:
-        """Block until the receive interface holds a real state (its thread starts async)."""
+    def _wait_program_running(self) -> None:
+        """Block until the receive interface shows the control program running, or raise.
+
+        The receive interface is a second RTDE connection with its own stream, started before
+        the control interface (re)starts the program; right after the constructors return its
+        latest package may still predate the program (or show the stop of the previous one on
+        a reconnect). ``connect()`` returns only once this stream, which ``status()`` reads,
+        shows it running.
+        """
         deadline = time.monotonic() + self.connect_timeout
-        while time.monotonic() < deadline:
-            if self._receive.getTimestamp() > 0.0:
+        while True:
+            try:
+                streaming = self._receive.getTimestamp() > 0.0
+                running = bool(int(self._receive.getRobotStatus()) & _STATUS_PROGRAM_RUNNING)
+            except RuntimeError:
+                streaming = running = False
+            if streaming and running:
                 return
+            if time.monotonic() > deadline:
+                break
             time.sleep(0.005)
         self.close()
-        raise RobotConnectionError(f"The robot controller at {self.host} sends no data.")
+        if not streaming:
+            raise RobotConnectionError(f"The robot controller at {self.host} sends no data.")
+        raise RobotError(
+            f"The robot at {self.host} did not report the remote-control program running "
+            f"within {self.connect_timeout:g} s after starting it. Check the teach pendant for "
+            "a message, then connect again.", code="program_not_started")
 
     def _connect_error(self, err: RuntimeError) -> RobotError:
         """Translate a ur-rtde constructor failure into a typed error."""

@@ -8,6 +8,10 @@ Run it as its own process (the client's constructors hold the GIL while they blo
 
     python -m mocks.ur_emulator --host 127.0.0.2 [--instant] [--fault NAME[=VALUE] ...]
 
+``--host auto`` serves on the first loopback address from 127.0.0.2 whose ports are free and
+prints it as the first line on stdout; the ports stay bound until the process exits, so test
+sessions running side by side never share an address.
+
 It serves, on that one address, the dashboard (29999), the script port (30003, where the client
 uploads its ``def rtde_control(): ... end`` program) and RTDE (30004). Instead of interpreting
 URScript it runs a native twin of that program's main loop: the register handshake on
@@ -27,10 +31,12 @@ Faults (``--fault`` at start, or at run time over the dashboard as
 - ``protective_stop_during_move``: the next move stops half way; safety bit 2, program stopped.
 - ``emergency_stop_during_move``: the same with an emergency stop (safety bit 7).
 - ``program_never_starts``: uploaded programs never reach PLAYING.
-- ``drop_during_move[=SECONDS]``: the next move closes every connection and refuses new ones
+- ``drop_during_move[=SECONDS]``: the next move closes every connection and resets new ones
   for SECONDS (default 1). ``emulator drop [SECONDS]`` does the same at once.
 - ``slow_replies=SECONDS``: every RTDE and dashboard reply is delayed.
 - ``local_control``: ``is in remote control`` answers ``false``.
+- ``program_status_lag=SECONDS``: ``robot_status_bits`` shows a started program running only
+  SECONDS later (``runtime_state`` at once), like a receive stream that lags the control one.
 
 The dashboard commands ``unlock protective stop`` and ``close safety popup`` clear a protective
 stop as on a real controller. ``emulator state`` answers one JSON line (process id, joints,
@@ -41,6 +47,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import json
 import os
 import re
@@ -134,8 +141,14 @@ SCRIPT_READY, SCRIPT_DONE = 1, 2
 
 TICK = 0.008  # 125 Hz: motion update period and maximum RTDE stream rate
 MIN_STREAM_PERIOD = TICK
+#: Last octets of the loopback addresses ``--host auto`` tries, in order (127.0.0.200 and up
+#: stay free for tests that need an address where nothing listens).
+AUTO_HOSTS = range(2, 200)
 FAULT_NAMES = ("protective_stop_during_move", "emergency_stop_during_move",
-               "program_never_starts", "drop_during_move", "slow_replies", "local_control")
+               "program_never_starts", "drop_during_move", "slow_replies", "local_control",
+               "program_status_lag")
+#: Faults whose value is a time in seconds (default 1).
+TIMED_FAULTS = ("drop_during_move", "slow_replies", "program_status_lag")
 
 
 def field_type(name: str) -> str | None:
@@ -186,6 +199,7 @@ class Faults:
     drop_during_move: float = 0.0
     slow_replies: float = 0.0
     local_control: bool = False
+    program_status_lag: float = 0.0
 
     def set(self, spec: str) -> None:
         """Apply ``NAME`` or ``NAME=VALUE``; raise ValueError for an unknown name or value."""
@@ -193,7 +207,7 @@ class Faults:
         name = name.strip()
         if name not in FAULT_NAMES:
             raise ValueError(f"unknown fault {name!r}; known: {', '.join(FAULT_NAMES)}")
-        if name in ("drop_during_move", "slow_replies"):
+        if name in TIMED_FAULTS:
             setattr(self, name, float(value) if value else 1.0)
         else:
             setattr(self, name, True)
@@ -235,6 +249,7 @@ class Controller:
         self.out_double: dict[int, float] = {}
         self.reg_offset = 0
         self._program_id = 0  # incremented on every start/stop: stale twin loops exit
+        self._program_started = 0.0  # monotonic time the running program started
         self._ring: tuple[float, np.ndarray] | None = None  # (start, speed) after a motion
 
     # ---- values streamed to RTDE clients -------------------------------------------------
@@ -252,6 +267,8 @@ class Controller:
                 return self.out_double.get(idx, 0.0)
             return False
         running = self.runtime_state == RUNTIME_PLAYING
+        shown_running = running and (time.monotonic() - self._program_started
+                                     >= self.faults.program_status_lag)
         special = {
             "timestamp": time.monotonic() - self.t0,
             "actual_q": self.q, "target_q": self.q, "actual_qd": self.qd, "target_qd": self.qd,
@@ -260,7 +277,7 @@ class Controller:
             "robot_mode": ROBOT_MODE_RUNNING, "safety_mode": self.safety_mode,
             "safety_status": self.safety_mode, "runtime_state": self.runtime_state,
             "robot_status_bits": ROBOT_STATUS_POWER_ON
-            | (ROBOT_STATUS_PROGRAM_RUNNING if running else 0),
+            | (ROBOT_STATUS_PROGRAM_RUNNING if shown_running else 0),
             "safety_status_bits": self.safety_bits, "speed_scaling": 1.0,
             "target_speed_fraction": 1.0, "actual_main_voltage": 48.0,
             "actual_robot_voltage": 48.0, "joint_temperatures": np.full(6, 30.0),
@@ -302,6 +319,7 @@ class Controller:
                 return  # a stopped robot does not start programs
             self.reg_offset = reg_offset
             self.runtime_state = RUNTIME_PLAYING
+            self._program_started = time.monotonic()
             self.out_int[reg_offset] = SCRIPT_READY
             program_id = self._program_id
         threading.Thread(target=self._twin_loop, args=(program_id,), daemon=True).start()
@@ -600,6 +618,19 @@ class RtdeSession:
             time.sleep(period)
 
 
+def _bind(host: str, port: int) -> socket.socket:
+    """A listening TCP socket on (host, port)."""
+    s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind((host, port))
+        s.listen(16)
+    except OSError:
+        s.close()
+        raise
+    return s
+
+
 def _pack(rtype: str, value: object) -> bytes:
     """Big-endian bytes of ``value`` as RTDE type ``rtype``; None packs as zeros."""
     fmt = TYPE_FORMATS.get(rtype)
@@ -626,12 +657,27 @@ class Emulator:
     # ---- connections ----------------------------------------------------------------------
 
     def _listen(self) -> None:
-        for port in (DASHBOARD_PORT, SCRIPT_PORT, RTDE_PORT):
-            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            s.bind((self.host, port))
-            s.listen(16)
-            self._listeners[port] = s
+        """Bind the three ports on ``self.host``, or on the first free 127.0.0.N for ``auto``.
+
+        The ports are held until the process exits (a drop resets connections instead of
+        releasing them), so no other emulator can take this address while this one lives.
+        """
+        candidates = ([f"127.0.0.{n}" for n in AUTO_HOSTS] if self.host == "auto"
+                      else [self.host])
+        for host in candidates:
+            try:
+                self._listeners = {port: _bind(host, port)
+                                   for port in (DASHBOARD_PORT, SCRIPT_PORT, RTDE_PORT)}
+            except OSError as err:
+                self._unlisten()
+                if len(candidates) == 1:
+                    raise
+                if err.errno not in (errno.EADDRINUSE, errno.EADDRNOTAVAIL):
+                    raise
+                continue
+            self.host = host
+            return
+        raise OSError(errno.EADDRINUSE, "every address in 127.0.0.2..199 is taken")
 
     def _unlisten(self) -> None:
         for s in self._listeners.values():
@@ -639,7 +685,7 @@ class Emulator:
         self._listeners.clear()
 
     def drop(self, seconds: float) -> None:
-        """Close every connection and refuse new ones for ``seconds``, like a cable pulled."""
+        """Close every connection and reset new ones for ``seconds``, like a cable pulled."""
         self._refuse_until = time.monotonic() + seconds
         with self._conns_lock:
             conns, self._conns = list(self._conns), set()
@@ -649,33 +695,34 @@ class Emulator:
             c.close()
 
     def serve_forever(self) -> None:
-        """Accept on all three ports; each connection gets its own thread."""
+        """Accept on all three ports; each connection gets its own thread.
+
+        The first line on stdout names the address served (``ur_emulator listening on HOST
+        ports ...``): with ``--host auto`` that is how the caller learns it.
+        """
         handlers = {DASHBOARD_PORT: self._dashboard, SCRIPT_PORT: self._script,
                     RTDE_PORT: self._rtde}
         self._listen()
         print(f"ur_emulator listening on {self.host} ports 29999 30003 30004", flush=True)
+        sel = selectors.DefaultSelector()
+        for port, s in self._listeners.items():
+            sel.register(s, selectors.EVENT_READ, port)
         while True:
-            if time.monotonic() < self._refuse_until:
-                if self._listeners:
-                    self._unlisten()
-                time.sleep(0.02)
-                continue
-            if not self._listeners:
-                self._listen()
-            sel = selectors.DefaultSelector()
-            for port, s in self._listeners.items():
-                sel.register(s, selectors.EVENT_READ, port)
             for key, _ in sel.select(timeout=0.05):
                 try:
                     conn, _ = key.fileobj.accept()
                 except OSError:
+                    continue
+                if time.monotonic() < self._refuse_until:  # dropped: reset at once
+                    conn.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER,
+                                    struct.pack("ii", 1, 0))
+                    conn.close()
                     continue
                 conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
                 with self._conns_lock:
                     self._conns.add(conn)
                 threading.Thread(target=self._run, args=(handlers[key.data], conn),
                                  daemon=True).start()
-            sel.close()
 
     def _run(self, handler: Callable[[socket.socket], None], conn: socket.socket) -> None:
         try:
@@ -778,7 +825,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--host", default="127.0.0.2",
                         help="loopback address to serve on (not 127.0.0.1, so the client runs its "
-                             "remote-control check)")
+                             "remote-control check), or 'auto' for the first free one")
     parser.add_argument("--instant", action="store_true", help="motions take no time")
     parser.add_argument("--settle-time", type=float, default=0.15,
                         help="seconds the reported TCP speed rings out after a timed motion")

@@ -75,6 +75,23 @@ def test_reads_pose_consistent_with_joints(robot: URRobot) -> None:
     assert_pose_close(robot.tcp_pose(), fk_pose(robot.joint_positions()), trans=1e-9)
 
 
+@pytest.mark.timeout(30)
+def test_connect_waits_for_the_program_on_the_status_stream(emulator: EmulatorProcess) -> None:
+    """The receive stream shows a (re)started program late: connect waits for it, or fails."""
+    emulator.command("emulator clear")
+    try:
+        emulator.command("emulator fault program_status_lag=0.5")
+        with URRobot(emulator.host, connect_timeout=3.0) as bot:
+            status = bot.status()  # read at once: connect returned only when it shows running
+            assert status.program_running and status.ready
+        emulator.command("emulator fault program_status_lag=60")
+        with pytest.raises(RobotError, match="did not report the remote-control program") as info:
+            URRobot(emulator.host, connect_timeout=1.0).connect()
+        assert info.value.code == "program_not_started"
+    finally:
+        emulator.command("emulator clear")
+
+
 @pytest.mark.timeout(20)
 def test_move_linear_reaches_pose_and_settles(robot: URRobot) -> None:
     target = robot.tcp_pose() + np.array([0.04, -0.03, 0.05, 0.0, 0.0, 0.0])

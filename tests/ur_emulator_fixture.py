@@ -1,12 +1,15 @@
 """Start and stop ``mocks.ur_emulator`` processes for tests, and talk to their dashboard.
 
 The emulator must be a separate process: the ur-rtde constructors hold the GIL while they block.
-Each emulator owns one loopback address (127.0.0.2, 127.0.0.3, ...) since UR ports are fixed.
+Each emulator owns one loopback address (127.0.0.2, 127.0.0.3, ...) since UR ports are fixed;
+it picks and binds the address itself (``--host auto``), so concurrent sessions cannot race.
 """
 
 from __future__ import annotations
 
 import json
+import re
+import selectors
 import socket
 import subprocess
 import sys
@@ -41,13 +44,18 @@ class EmulatorProcess:
         return json.loads(self.command("emulator state"))
 
 
-def ports_open(host: str, *, timeout: float = 0.2) -> bool:
-    """True if all three UR ports accept a connection on ``host``."""
-    for port in PORTS:
-        try:
+def serving(host: str, *, timeout: float = 0.5) -> bool:
+    """True if a controller on ``host`` answers: the dashboard sends its banner and the other
+    UR ports accept. False during a drop (connections are reset) and where nothing listens."""
+    try:
+        with socket.create_connection((host, 29999), timeout) as s:
+            s.settimeout(timeout)
+            if not s.recv(64).startswith(b"Connected"):
+                return False
+        for port in PORTS[1:]:
             socket.create_connection((host, port), timeout).close()
-        except OSError:
-            return False
+    except OSError:
+        return False
     return True
 
 
@@ -55,7 +63,7 @@ def wait_ports(host: str, proc: subprocess.Popen | None = None, *,
                timeout: float = 10.0) -> None:
     """Block until ``host`` serves all UR ports; fail early if ``proc`` died."""
     deadline = time.monotonic() + timeout
-    while not ports_open(host):
+    while not serving(host):
         if proc is not None and proc.poll() is not None:
             raise RuntimeError(f"ur_emulator on {host} exited with code {proc.returncode}")
         if time.monotonic() > deadline:
@@ -64,40 +72,42 @@ def wait_ports(host: str, proc: subprocess.Popen | None = None, *,
 
 
 @contextmanager
-def running_emulator(*args: str, first: int = 2, last: int = 60) -> Iterator[EmulatorProcess]:
-    """Run ``python -m mocks.ur_emulator --host 127.0.0.N ARGS`` for the block; always reap it.
+def running_emulator(*args: str, timeout: float = 30.0) -> Iterator[EmulatorProcess]:
+    """Run ``python -m mocks.ur_emulator --host auto ARGS`` for the block; always reap it.
 
-    Takes the first address from 127.0.0.``first`` on whose UR ports nothing answers and where
-    our emulator (checked by its process id) got the ports, so test sessions running side by
-    side never share an emulator.
+    The emulator binds the first free loopback address itself and names it on its first
+    stdout line; it keeps the ports bound until it exits (drops included), so test sessions
+    running side by side (two clones) never share or steal an address.
     """
-    for n in range(first, last + 1):
-        host = f"127.0.0.{n}"
-        if ports_open(host):
-            continue
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "mocks.ur_emulator", "--host", host, *args],
-            cwd=REPO, stdout=subprocess.DEVNULL)
-        try:
-            emulator = EmulatorProcess(host, proc)
-            try:
-                wait_ports(host, proc)
-                ours = emulator.state()["pid"] == proc.pid
-            except (RuntimeError, OSError, ValueError):
-                ours = False
-            if not ours:  # another session took the address in the meantime
-                continue
-            yield emulator
-            return
-        finally:
-            _reap(proc)
-    raise RuntimeError(f"no free loopback address in 127.0.0.{first}..{last}")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mocks.ur_emulator", "--host", "auto", *args],
+        cwd=REPO, stdout=subprocess.PIPE, text=True)
+    try:
+        line = _first_line(proc, timeout)
+        m = re.match(r"ur_emulator listening on (\S+) ", line)
+        if m is None:
+            raise RuntimeError(f"ur_emulator did not start (exit code {proc.poll()}): {line!r}")
+        yield EmulatorProcess(m.group(1), proc)
+    finally:
+        _reap(proc)
+
+
+def _first_line(proc: subprocess.Popen, timeout: float) -> str:
+    """The first stdout line of ``proc``, or '' if it exits or ``timeout`` s pass first."""
+    with selectors.DefaultSelector() as sel:
+        sel.register(proc.stdout, selectors.EVENT_READ)
+        if not sel.select(timeout):
+            return ""
+    return proc.stdout.readline()
 
 
 def free_host(first: int = 200, last: int = 254) -> str:
-    """A loopback address on which nothing serves the UR ports (connections are refused)."""
+    """A loopback address on which nothing serves the UR ports (connections are refused).
+
+    Emulators started with ``--host auto`` never take 127.0.0.200 and up.
+    """
     for n in range(first, last + 1):
-        if not ports_open(f"127.0.0.{n}"):
+        if not serving(f"127.0.0.{n}"):
             return f"127.0.0.{n}"
     raise RuntimeError(f"no unused loopback address in 127.0.0.{first}..{last}")
 
@@ -111,4 +121,6 @@ def _reap(proc: subprocess.Popen) -> None:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait(timeout=5)
+    if proc.stdout is not None:
+        proc.stdout.close()
     assert proc.poll() is not None, "ur_emulator survived teardown"
