@@ -71,15 +71,22 @@ class Camera(Protocol):
     """A camera that delivers frames taken after the call (never a stale buffered one)."""
 
     def open(self) -> None:
-        """Open the device; raises ``CameraError`` if it is missing."""
+        """Open the device, or open it again after a loss; ``CameraError`` if it is missing."""
 
     def close(self) -> None:
         """Release the device. Safe to call twice."""
 
+    @property
+    def opened(self) -> bool:
+        """True from ``open()`` until ``close()`` or the loss of the device (unplugged:
+        code ``camera_disconnected``; stalled: ``camera_stalled``)."""
+
     def grab(self, *, timeout: float = 2.0) -> np.ndarray:
         """A fresh frame, shape (H, W) uint8 grey or (H, W, 3) uint8 BGR.
 
-        Raises ``CameraTimeoutError`` if no frame arrives within ``timeout`` seconds.
+        Raises ``CameraTimeoutError`` if no frame arrives within ``timeout`` seconds, and
+        ``CameraStalledError`` (closing the camera) instead for the ``drivers.stall.STALL_AFTER``-th
+        timeout in a row.
         """
 
     @property

@@ -46,4 +46,14 @@ class CameraError(DeviceError):
 
 
 class CameraTimeoutError(CameraError):
+    """One grab got no frame in time; the camera may still deliver the next one."""
+
     code = "camera_timeout"
+
+
+class CameraStalledError(CameraError):
+    """Several grabs in a row got no frame (``drivers.stall``): the camera stopped delivering
+    and was closed; ``open()`` it again once it is fixed. Not a ``CameraTimeoutError``: retrying
+    the grab does not help."""
+
+    code = "camera_stalled"

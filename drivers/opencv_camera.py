@@ -26,6 +26,12 @@ Timeouts. A ``grab`` on a device that stopped streaming can block inside OpenCV 
 seconds, so every ``cv2.VideoCapture`` call runs on one worker thread (OpenCV releases the GIL)
 and the caller waits at most its timeout. A call stuck on the worker delays the next ones, which
 then time out too, until the device answers again or the camera is closed and reopened.
+
+Losing the device. The camera closes itself when its device is unplugged (``camera_disconnected``:
+the V4L2 device node, or the directory of a recording, is gone) or stalls (``drivers.stall``:
+``camera_stalled`` for the ``stall_after``-th grab timeout in a row). ``opened`` is then False,
+grabs raise ``camera_not_open``, and ``open()`` opens the device again once it is back (a
+recording then restarts from its first frame).
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ import contextlib
 import re
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
 from typing import Any, TypeVar
@@ -45,6 +51,7 @@ import numpy as np
 
 from drivers.base import CameraSession
 from drivers.errors import CameraError, CameraTimeoutError
+from drivers.stall import STALL_AFTER, StallCounter
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
 #: V4L2 buffer queue length assumed when the backend does not report one.
@@ -72,6 +79,8 @@ class _ImageDirectory:
         if self._next >= len(self._files):
             return False
         path = self._files[self._next]
+        if not path.is_file():  # removed with its directory (unplugged) or on its own
+            return False
         self._next += 1
         self._frame = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if self._frame is None:
@@ -98,11 +107,13 @@ class _ImageDirectory:
 class OpenCVCamera(CameraSession):
     """A ``v4l2://`` camera or ``file://`` recording; see the module docstring.
 
-    ``open_timeout`` bounds ``open()``, ``configure()`` and ``close()`` (seconds). Use as a
-    context manager, or call ``open()`` and ``close()``.
+    ``open_timeout`` bounds ``open()``, ``configure()`` and ``close()`` (seconds);
+    ``stall_after`` consecutive grab timeouts close the camera as stalled. Use as a context
+    manager, or call ``open()`` and ``close()``.
     """
 
-    def __init__(self, url: str, *, open_timeout: float = 5.0) -> None:
+    def __init__(self, url: str, *, open_timeout: float = 5.0,
+                 stall_after: int = STALL_AFTER) -> None:
         self.url = url
         self.open_timeout = open_timeout
         self._kind, self._path = _parse_url(url)
@@ -110,14 +121,25 @@ class OpenCVCamera(CameraSession):
         self._worker: ThreadPoolExecutor | None = None
         self._size = (0, 0)
         self._frames_read = 0
+        self._stall = StallCounter(stall_after)
+        self._lost: CameraError | None = None  # why the device was closed behind our back
 
     @property
     def live(self) -> bool:
         """True for a V4L2 device, False for a recording."""
         return self._kind == "v4l2"
 
+    @property
+    def opened(self) -> bool:
+        """True from ``open()`` until ``close()`` or the loss of the device."""
+        return self._cap is not None
+
     def open(self) -> None:
-        """Open the device or recording; ``CameraError`` with a sentence saying what is wrong."""
+        """Open (again) the device or recording; ``CameraError`` saying what is wrong.
+
+        Works after a loss (``camera_disconnected``, ``camera_stalled``) once the device is
+        back; a camera that is open is closed and opened anew.
+        """
         self.close()
         path = Path(self._path)
         if self._kind == "v4l2" and not path.exists():
@@ -137,17 +159,27 @@ class OpenCVCamera(CameraSession):
             raise CameraError(self._open_failure(), code="camera_open_failed")
         self._size = self._call(self._read_size, self.open_timeout, "reading its resolution")
         self._frames_read = 0
+        self._stall.delivered()
+        self._lost = None
 
     def close(self) -> None:
         """Release the device. Safe to call twice; never blocks longer than ``open_timeout``."""
+        release = self._release()
+        if release is not None:
+            with contextlib.suppress(FutureTimeout, cv2.error):
+                release.result(self.open_timeout)
+        self._lost = None
+
+    def _release(self) -> Future | None:
+        """Forget the capture at once; its release, queued on the capture thread, runs when a
+        call stuck there returns. Returns that release (None if nothing was open)."""
         worker, cap = self._worker, self._cap
         self._worker = self._cap = None
         if worker is None:
-            return
-        if cap is not None:
-            with contextlib.suppress(FutureTimeout, cv2.error):
-                worker.submit(cap.release).result(self.open_timeout)
-        worker.shutdown(wait=False)  # a release queued behind a stuck call still runs
+            return None
+        release = worker.submit(cap.release) if cap is not None else None
+        worker.shutdown(wait=False)  # queued calls still run
+        return release
 
     def grab(self, *, timeout: float = 2.0) -> np.ndarray:
         """A frame exposed after this call (live) or the next frame (recording).
@@ -159,7 +191,24 @@ class OpenCVCamera(CameraSession):
         deadline = time.monotonic() + timeout
         no_frame = (f"{self.url} delivered no frame within {timeout:g} s: is the camera still "
                     "connected and streaming?")
-        return self._call(lambda: self._read(deadline, no_frame), timeout, no_frame)
+        try:
+            frame = self._call(lambda: self._read(deadline, no_frame), timeout, no_frame)
+        except CameraTimeoutError as err:
+            error = self._stall.timed_out(err, self.url)
+            if error is not err:
+                self._lose(error)
+            raise error from None
+        except CameraError as err:
+            if err.code == "camera_disconnected":
+                self._lose(err)
+            raise
+        self._stall.delivered()
+        return frame
+
+    def _lose(self, reason: CameraError) -> None:
+        """The device is gone or stalled: close it without waiting (``opened`` is False)."""
+        self._release()
+        self._lost = reason
 
     @property
     def resolution(self) -> tuple[int, int]:
@@ -206,7 +255,7 @@ class OpenCVCamera(CameraSession):
         """
         worker = self._worker
         if worker is None:
-            raise CameraError(f"{self.url} is not open. Open it first.", code="camera_not_open")
+            self._check_open()
         try:
             return worker.submit(fn).result(timeout=max(timeout, 0.0))
         except FutureTimeout:
@@ -254,13 +303,13 @@ class OpenCVCamera(CameraSession):
             if cap.grab():
                 to_grab -= 1
                 continue
+            if not self._source().exists():
+                raise CameraError(f"The camera {self._source()} was disconnected.",
+                                  code="camera_disconnected")
             if not self.live:
                 raise CameraError(
                     f"{self.url}: end of the recording after {self._frames_read} frames; "
                     "there are no more frames to grab.", code="end_of_stream")
-            if not Path(self._path).exists():
-                raise CameraError(f"The camera {self._path} was disconnected.",
-                                  code="camera_disconnected")
             time.sleep(0.005)  # the device is not streaming (yet): retry until the deadline
         ok, frame = cap.retrieve()
         if not ok or frame is None:
@@ -279,9 +328,17 @@ class OpenCVCamera(CameraSession):
         self._cap.set(cv2.CAP_PROP_EXPOSURE, exposure / _V4L2_EXPOSURE_UNIT_S)
         return float(self._cap.get(cv2.CAP_PROP_EXPOSURE)) * _V4L2_EXPOSURE_UNIT_S
 
+    def _source(self) -> Path:
+        """What must exist while the camera is plugged in: the device node, the video file or
+        the directory of the images."""
+        path = Path(self._path)
+        return path.parent if self._kind == "pattern" else path
+
     def _check_open(self) -> None:
         if self._cap is None:
-            raise CameraError(f"{self.url} is not open. Open it first.", code="camera_not_open")
+            after = f" (closed after: {self._lost})" if self._lost is not None else ""
+            raise CameraError(f"{self.url} is not open{after}. Open it first.",
+                              code="camera_not_open")
 
 
 def _parse_url(url: str) -> tuple[str, str]:

@@ -39,12 +39,14 @@ from calib.geometry import (
 from drivers.base import CameraSession, RobotSession, RobotStatus
 from drivers.errors import (
     CameraError,
+    CameraStalledError,
     CameraTimeoutError,
     ProtectiveStopError,
     RobotConnectionError,
     RobotError,
     WorkspaceError,
 )
+from drivers.stall import StallCounter
 from mocks import ur_kinematics as kin
 from mocks.render import RenderParams, render_board
 from mocks.scene import MockScene, camera_pose_for_tcp
@@ -52,8 +54,8 @@ from mocks.ur_emulator import trapezoid_fraction
 
 #: Robot faults: each affects the next move only (``slow`` its settling), see ``inject_fault``.
 ROBOT_FAULTS = ("protective_stop", "disconnect", "unreachable", "slow")
-#: Camera faults: each affects the next ``count`` grabs, see ``MockCamera.inject_fault``.
-CAMERA_FAULTS = ("timeout", "corrupt", "disconnect")
+#: Camera faults, see ``MockCamera.inject_fault``.
+CAMERA_FAULTS = ("timeout", "corrupt", "disconnect", "unplug", "stall")
 
 #: Motion update period (s) of a timed move.
 _TICK = 0.01
@@ -348,7 +350,8 @@ class MockCamera(CameraSession):
     Each grab renders the scene's true board (``mocks.render.render_board``) from the robot's
     *true* pose at the time of the call (``camera_pose_for_tcp``), with fresh image noise from
     a generator seeded by ``seed`` (default: the scene's seed). ``instant=False`` waits one to
-    two frame periods of ``fps``, like a live camera delivering the next full frame.
+    two frame periods of ``fps``, like a live camera delivering the next full frame. Grab
+    timeouts count towards a stall as on a real camera (``drivers.stall``; ``stall.limit``).
     """
 
     def __init__(self, scene: MockScene, robot: MockRobot, *, instant: bool = True,
@@ -364,14 +367,19 @@ class MockCamera(CameraSession):
         self._opened = False
         self._faults: dict[str, int] = {}
         self._lock = threading.Lock()
+        self.stall = StallCounter()
 
     def inject_fault(self, name: str, count: int = 1) -> None:
-        """Make the next ``count`` grabs fail.
+        """Make grabs fail (``count``: how many, for ``timeout`` and ``corrupt``).
 
         ``timeout``: no frame arrives (``CameraTimeoutError`` after the grab's timeout).
         ``corrupt``: the frame is torn, as after a truncated USB transfer: from a random row
-        down it is black. ``disconnect``: the camera is unplugged; grabs raise ``CameraError``
-        until :meth:`open` (``count`` is ignored).
+        down it is black. ``disconnect``: the connection drops; grabs raise ``CameraError``
+        (``camera_not_open``) until :meth:`open`. ``unplug``: the camera is pulled out: the
+        next grab raises ``camera_disconnected`` and closes it, and :meth:`open` fails
+        (``camera_not_found``) until :meth:`replug`. ``stall``: no grab gets a frame until
+        :meth:`clear_faults`; the ``stall.limit``-th timeout in a row raises
+        ``CameraStalledError`` and closes the camera.
         """
         _parse_fault(name, CAMERA_FAULTS)
         if count < 1:
@@ -379,16 +387,32 @@ class MockCamera(CameraSession):
         with self._lock:
             self._faults[name] = count
 
+    def replug(self) -> None:
+        """Plug the camera back in after an ``unplug`` fault (it still needs :meth:`open`)."""
+        with self._lock:
+            self._faults.pop("unplug", None)
+
     def clear_faults(self) -> None:
-        """Remove pending faults."""
+        """Remove pending faults (an unplugged camera is plugged back in)."""
         with self._lock:
             self._faults.clear()
 
-    def open(self) -> None:
-        """Open (or plug back in) the camera."""
+    @property
+    def opened(self) -> bool:
+        """True from :meth:`open` until :meth:`close`, a ``disconnect``, unplug or stall."""
         with self._lock:
+            return self._opened and "disconnect" not in self._faults
+
+    def open(self) -> None:
+        """Open the camera, or open it again after a fault; ``camera_not_found`` if unplugged."""
+        with self._lock:
+            if "unplug" in self._faults:
+                self._opened = False
+                raise CameraError("No mock camera is plugged in: plug it back in, then open "
+                                  "it.", code="camera_not_found")
             self._opened = True
             self._faults.pop("disconnect", None)
+            self.stall.delivered()
 
     def close(self) -> None:
         """Close the camera. Safe to call twice."""
@@ -397,19 +421,15 @@ class MockCamera(CameraSession):
 
     def grab(self, *, timeout: float = 2.0) -> np.ndarray:
         """A frame rendered now, shape (H, W) uint8 grey."""
-        with self._lock:
-            if not self._opened or "disconnect" in self._faults:
-                self._opened = False
-                raise CameraError("The mock camera is not open (unplugged?). Open it first.",
-                                  code="camera_not_open")
-            fault = next((f for f in ("timeout", "corrupt") if f in self._faults), None)
-            if fault:
-                self._faults[fault] -= 1
-                if not self._faults[fault]:
-                    del self._faults[fault]
-        if fault == "timeout":
+        fault = self._take_fault()
+        if fault in ("timeout", "stall"):
             time.sleep(max(timeout, 0.0))
-            raise CameraTimeoutError(f"The mock camera delivered no frame within {timeout:g} s.")
+            error = self.stall.timed_out(CameraTimeoutError(
+                f"The mock camera delivered no frame within {timeout:g} s."), "The mock camera")
+            if isinstance(error, CameraStalledError):
+                self.close()
+            raise error
+        self.stall.delivered()
         if not self.instant:
             period = 1.0 / self.fps  # the rest of the current frame, then one full frame
             time.sleep(min(2.0 * period - time.monotonic() % period, timeout))
@@ -419,6 +439,26 @@ class MockCamera(CameraSession):
             if fault == "corrupt":
                 image[int(self._rng.integers(image.shape[0] // 4, image.shape[0])):] = 0
         return image
+
+    def _take_fault(self) -> str | None:
+        """The fault this grab suffers (``timeout``, ``stall``, ``corrupt``) or None; raises
+        for a closed, disconnected or unplugged camera."""
+        with self._lock:
+            if "unplug" in self._faults and self._opened:
+                self._opened = False
+                raise CameraError("The mock camera was disconnected (unplugged).",
+                                  code="camera_disconnected")
+            if not self._opened or "disconnect" in self._faults:
+                self._opened = False
+                raise CameraError("The mock camera is not open (unplugged?). Open it first.",
+                                  code="camera_not_open")
+            fault = next((f for f in ("stall", "timeout", "corrupt") if f in self._faults),
+                         None)
+            if fault in ("timeout", "corrupt"):
+                self._faults[fault] -= 1
+                if not self._faults[fault]:
+                    del self._faults[fault]
+        return fault
 
     @property
     def resolution(self) -> tuple[int, int]:

@@ -14,12 +14,14 @@ from calib.target import detect_checkerboard
 from drivers.base import Camera, Robot
 from drivers.errors import (
     CameraError,
+    CameraStalledError,
     CameraTimeoutError,
     ProtectiveStopError,
     RobotConnectionError,
     RobotError,
     WorkspaceError,
 )
+from drivers.stall import STALL_AFTER
 from mocks import ur_kinematics as kin
 from mocks.devices import MockCamera, MockRobot, Workspace
 from mocks.scene import Noise, camera_pose_for_tcp, default_scene
@@ -106,10 +108,11 @@ def test_timed_motion_and_settling() -> None:
     t0 = time.monotonic()
     robot.move_linear(target, speed=0.25, acceleration=2.5)  # 0.05 m: 0.3 s trapezoid
     moved = time.monotonic() - t0
-    robot.wait_settled(timeout=1.0)
+    robot.wait_settled(timeout=5.0)
     settled = time.monotonic() - t0
-    assert 0.28 < moved < 0.5
-    assert settled - moved == pytest.approx(0.1, abs=0.05)
+    # Lower bounds only: a busy machine makes both later, never earlier.
+    assert moved > 0.3 - 1e-3
+    assert settled > 0.3 + 0.1 - 1e-3  # the move, then 0.1 s of ringing
     np.testing.assert_allclose(robot.tcp_pose(), target, atol=1e-12)
 
 
@@ -119,13 +122,17 @@ def test_wait_settled_from_another_thread_waits_for_the_move() -> None:
     target = shifted(robot.tcp_pose(), -0.05)
     mover = threading.Thread(target=robot.move_linear, args=(target,),
                              kwargs={"speed": 0.25, "acceleration": 2.5})
+    start_z = robot.true_pose[2, 3]
     t0 = time.monotonic()
     mover.start()
-    time.sleep(0.05)
-    robot.wait_settled(timeout=2.0)
-    assert time.monotonic() - t0 > 0.38  # 0.3 s move + 0.1 s ringing
+    deadline = t0 + 10.0
+    while robot.true_pose[2, 3] == start_z:  # wait until the move has begun
+        assert time.monotonic() < deadline, "the move did not start"
+        time.sleep(0.002)
+    robot.wait_settled(timeout=5.0)
+    assert time.monotonic() - t0 > 0.3 + 0.1 - 1e-3  # 0.3 s move + 0.1 s ringing
     np.testing.assert_allclose(robot.tcp_pose(), target, atol=1e-12)
-    mover.join(1.0)
+    mover.join(5.0)
 
 
 @pytest.mark.timeout(10)
@@ -229,12 +236,10 @@ def test_slow_fault_times_out_settling() -> None:
     robot = connected()
     robot.inject_fault("slow", 1.0)
     robot.move_linear(shifted(robot.tcp_pose(), -0.01))
-    t0 = time.monotonic()
     with pytest.raises(RobotError, match=r"did not come to rest within 0\.05 s") as err:
         robot.wait_settled(timeout=0.05)
     assert err.value.code == "not_settled"
-    assert time.monotonic() - t0 < 0.5
-    robot.wait_settled(timeout=2.0)
+    robot.wait_settled(timeout=10.0)
 
 
 def test_unknown_fault() -> None:
@@ -295,7 +300,7 @@ def test_camera_faults(rig) -> None:
     t0 = time.monotonic()
     with pytest.raises(CameraTimeoutError, match=r"no frame within 0\.1 s"):
         camera.grab(timeout=0.1)
-    assert 0.09 < time.monotonic() - t0 < 0.5
+    assert time.monotonic() - t0 > 0.1 - 1e-3  # it waited for the frame
     camera.inject_fault("corrupt")
     torn = camera.grab()
     assert (torn[-1] == 0).all()
@@ -305,6 +310,53 @@ def test_camera_faults(rig) -> None:
     for _ in range(2):
         with pytest.raises(CameraError, match="not open"):
             camera.grab()
+    camera.open()
+    camera.grab()
+
+
+@pytest.mark.timeout(30)
+def test_camera_unplugged_then_replugged(rig) -> None:
+    _, camera = rig
+    assert camera.opened
+    camera.inject_fault("unplug")
+    with pytest.raises(CameraError, match="disconnected") as err:
+        camera.grab()
+    assert err.value.code == "camera_disconnected" and not camera.opened
+    with pytest.raises(CameraError, match="not open") as err:
+        camera.grab()
+    assert err.value.code == "camera_not_open"
+    with pytest.raises(CameraError, match="plug it back in") as err:
+        camera.open()
+    assert err.value.code == "camera_not_found" and not camera.opened
+    camera.replug()
+    assert not camera.opened  # plugged in, not yet opened
+    camera.open()
+    assert camera.opened
+    assert detect_checkerboard(camera.grab(), SCENE.target.inner_corners).ok
+
+
+@pytest.mark.timeout(30)
+def test_camera_stall_is_one_fault_after_consecutive_timeouts(rig) -> None:
+    _, camera = rig
+    camera.inject_fault("timeout", STALL_AFTER - 1)
+    for _ in range(STALL_AFTER - 1):
+        with pytest.raises(CameraTimeoutError):
+            camera.grab(timeout=0.01)
+    camera.grab()  # a frame ends the streak
+    camera.inject_fault("stall")
+    for _ in range(STALL_AFTER - 1):
+        with pytest.raises(CameraTimeoutError):
+            camera.grab(timeout=0.01)
+        assert camera.opened
+    with pytest.raises(CameraStalledError, match=f"no frame in {STALL_AFTER} grabs") as err:
+        camera.grab(timeout=0.01)
+    assert err.value.code == "camera_stalled" and not camera.opened
+    with pytest.raises(CameraError, match="not open"):
+        camera.grab(timeout=0.01)
+    camera.open()  # still stalled after a reopen: the stream itself is stuck
+    with pytest.raises(CameraTimeoutError):
+        camera.grab(timeout=0.01)
+    camera.clear_faults()
     camera.open()
     camera.grab()
 

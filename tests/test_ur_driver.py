@@ -59,7 +59,7 @@ def assert_pose_close(actual: np.ndarray, expected: np.ndarray, *, rot: float = 
     assert angle < rot and dist < trans, f"off by {angle:.2e} rad, {dist:.2e} m"
 
 
-def wait_until(predicate: Callable[[], bool], timeout: float = 2.0) -> None:
+def wait_until(predicate: Callable[[], bool], timeout: float = 10.0) -> None:
     deadline = time.monotonic() + timeout
     while not predicate():
         assert time.monotonic() < deadline, "condition not reached in time"
@@ -142,15 +142,15 @@ def test_connection_drop_during_move_then_reconnect(robot: URRobot,
                                                     emulator: EmulatorProcess) -> None:
     target = robot.tcp_pose() + np.array([0.0, 0.06, 0.0, 0.0, 0.0, 0.0])
     emulator.command("emulator fault drop_during_move=0.5")
-    t0 = time.monotonic()
+    # Noticed as a lost connection, not as the motion timeout (RobotError robot_timeout).
     with pytest.raises(RobotConnectionError, match="Lost the connection"):
         robot.move_linear(target, **FAST)
-    assert time.monotonic() - t0 < 5.0
     with pytest.raises(RobotConnectionError, match="reconnect"):
         robot.tcp_pose()
     assert not robot.status().connected
-    wait_ports(emulator.host, timeout=5.0)
+    wait_ports(emulator.host)
     robot.connect()  # the control program is still running: ur-rtde stops and re-uploads it
+    assert robot.status().program_running
     robot.move_linear(target, **FAST)
     assert_pose_close(robot.tcp_pose(), target)
 
@@ -166,10 +166,12 @@ def test_connection_drop_while_idle_is_noticed(robot: URRobot, emulator: Emulato
             return True
         return False
 
-    wait_until(lost, timeout=3.0)
-    wait_ports(emulator.host, timeout=5.0)
+    wait_until(lost)
+    wait_ports(emulator.host)
     robot.connect()
-    assert robot.status().ready
+    status = robot.status()
+    assert status.ready and status.program_running
+    assert_pose_close(robot.tcp_pose(), fk_pose(robot.joint_positions()), trans=1e-9)
 
 
 @pytest.mark.timeout(30)
@@ -183,9 +185,10 @@ def test_stop_during_move(robot: URRobot) -> None:
         except RobotError as err:
             errors.append(err)
 
+    start_z = robot.tcp_pose()[2]
     mover = threading.Thread(target=move)
     mover.start()
-    time.sleep(0.3)
+    wait_until(lambda: robot.tcp_pose()[2] > start_z + 1e-3)  # moving (the move takes ~2 s)
     robot.stop()
     mover.join(10)
     assert len(errors) == 1 and errors[0].code == "motion_stopped"
@@ -210,10 +213,10 @@ def test_slow_controller(emulator: EmulatorProcess) -> None:
     emulator.command("emulator clear")
     try:
         emulator.command("emulator fault slow_replies=0.5")
-        t0 = time.monotonic()
+        # Refused up front by the probe (only it says "too slowly"), not after the 40 slow
+        # round trips of the ur-rtde constructors (20 s, past this test's timeout).
         with pytest.raises(RobotConnectionError, match="too slowly"):
             URRobot(emulator.host, connect_timeout=2.0).connect()
-        assert time.monotonic() - t0 < 2.5  # refused up front, not after 40 slow round trips
         emulator.command("emulator fault slow_replies=0.01")
         with URRobot(emulator.host, connect_timeout=3.0, settle_dwell=0.05) as bot:
             assert bot.status().ready
@@ -241,20 +244,16 @@ def test_invalid_targets_rejected_before_moving(robot: URRobot) -> None:
 @pytest.mark.timeout(30)
 def test_program_never_starts_is_a_clear_error() -> None:
     with running_emulator("--fault", "program_never_starts") as emu:
-        t0 = time.monotonic()
         with pytest.raises(RobotError, match="did not start the remote-control program") as info:
             URRobot(emu.host, connect_timeout=3.0).connect()
         assert info.value.code == "program_not_started"
-        assert time.monotonic() - t0 < 10.0
 
 
 @pytest.mark.timeout(10)
 def test_unreachable_host_fails_fast() -> None:
-    host = free_host()  # nothing listens there: connection refused
-    t0 = time.monotonic()
+    host = free_host()  # nothing listens there: connection refused, reported at once
     with pytest.raises(RobotConnectionError, match="Cannot reach the robot controller"):
-        URRobot(host, connect_timeout=2.0).connect()
-    assert time.monotonic() - t0 < 2.5
+        URRobot(host, connect_timeout=60.0).connect()  # (waiting would hit the test timeout)
 
 
 def _cellcal(*argv: str) -> subprocess.CompletedProcess:
