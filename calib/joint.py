@@ -107,6 +107,8 @@ class JointResult:
         Reprojection RMS (norm per corner) of each kept station, pixels.
     rms_px : float
         Over all corners of the kept stations.
+    residuals_px : shape (m, 2)
+        Projected minus detected corner (pixels), the kept stations' corners in turn.
     rejected : tuple of (int, str)
         Input index and reason of each dropped station, in the order they were dropped.
     sigma_px, robot_noise_rot, robot_noise_trans : float
@@ -132,6 +134,7 @@ class JointResult:
     mahalanobis: np.ndarray
     rms_px_per_station: np.ndarray
     rms_px: float
+    residuals_px: np.ndarray
     rejected: tuple[tuple[int, str], ...]
     sigma_px: float
     robot_noise_rot: float
@@ -412,7 +415,8 @@ class _Problem:
             name: float(sd[i]) for i, name in enumerate(CAMERA_PARAMS)}
         sigmas.update(hand_eye_rot_rad=sd[11:14], hand_eye_trans_m=sd[14:17],
                       target_pose_rot_rad=sd[17:20], target_pose_trans_m=sd[20:23])
-        sq = np.sum((r[:2 * len(self.obj)].reshape(-1, 2) * self.sigma_px) ** 2, axis=1)
+        residuals_px = r[:2 * len(self.obj)].reshape(-1, 2) * self.sigma_px
+        sq = np.sum(residuals_px ** 2, axis=1)
         K = np.array([[cam[0], 0.0, cam[2]], [0.0, cam[1], cam[3]], [0.0, 0.0, 1.0]])
         return JointResult(
             K=K, dist=cam[4:9].copy(), nu=float(cam[_NU]), kappa=float(cam[_KAPPA]),
@@ -420,7 +424,8 @@ class _Problem:
             corrections=delta.copy(),
             mahalanobis=_distance(delta, *(self.prior_sigma[[0, 3]] * np.sqrt(3.0))),
             rms_px_per_station=np.sqrt(np.add.reduceat(sq, self.starts) / self.counts),
-            rms_px=float(np.sqrt(sq.mean())), rejected=rejected, sigma_px=self.sigma_px,
+            rms_px=float(np.sqrt(sq.mean())), residuals_px=residuals_px, rejected=rejected,
+            sigma_px=self.sigma_px,
             robot_noise_rot=float(self.prior_sigma[0] * np.sqrt(3.0)),
             robot_noise_trans=float(self.prior_sigma[3] * np.sqrt(3.0)),
             variance_factor=variance_factor,

@@ -65,6 +65,8 @@ class StationReport:
     the uncorrected robot reading through X and Y (validation, includes the robot's noise).
     ``correction_*`` and ``mahalanobis`` are the joint estimate's robot-pose correction;
     ``loo_*`` the eq. (23) leave-one-out prediction error (NaN if not held out).
+    ``corners_px`` holds the detected corners (N, 2) and ``residuals_px`` the fitted model's
+    projection minus them (N, 2), pixels, in the order of ``board_points``.
     """
 
     id: str
@@ -76,6 +78,8 @@ class StationReport:
     mahalanobis: float | None = None
     loo_rot_rad: float | None = None
     loo_trans_m: float | None = None
+    corners_px: np.ndarray | None = None
+    residuals_px: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -224,10 +228,13 @@ def calibrate_stations(observations: Iterable[Observation],
     common = dict(setup=setup, image_size=size, K=K, dist=dist, options=options,
                   sigma_px=sigma_px)
     if not hand_eye_mode:
+        res = _view_residuals(corners, C, board_points((cols, rows), square_size, nu=nu), K,
+                              dist)
         return CalibrationResult(
             method="intrinsics", rms_px=float(np.sqrt(np.mean(rms_img ** 2))), nu=nu,
             kappa=1.0, hand_eye=None, target_pose=None, sigmas=sigmas,
-            stations=tuple(StationReport(ids[k], len(corners[i]), float(rms_img[i]))
+            stations=tuple(StationReport(ids[k], len(corners[i]), float(rms_img[i]),
+                                         corners_px=corners[i], residuals_px=res[i])
                            for i, k in enumerate(usable)),
             rejected=tuple(rejected), validation={}, **common)
 
@@ -278,6 +285,11 @@ def calibrate_stations(observations: Iterable[Observation],
     loo_rot, loo_trans = np.full(len(keep), np.nan), np.full(len(keep), np.nan)
     loo_rot[loo.stations], loo_trans[loo.stations] = loo.rot_rad, loo.trans_m
     fit_rms = joint.rms_px_per_station if joint is not None else rms_img[keep]
+    if joint is not None:
+        fit_res = np.split(joint.residuals_px, np.cumsum([len(m) for m in pts])[:-1])
+    else:
+        fit_res = _view_residuals(pts, C[keep], board_points((cols, rows), square_size, nu=nu),
+                                  K, dist)
     reports = []
     for j, i in enumerate(keep):
         extra = {} if joint is None else dict(
@@ -287,7 +299,8 @@ def calibrate_stations(observations: Iterable[Observation],
         reports.append(StationReport(ids[usable[i]], len(corners[i]), float(fit_rms[j]),
                                      chain_rms_px=float(chain[j]),
                                      loo_rot_rad=float(loo_rot[j]),
-                                     loo_trans_m=float(loo_trans[j]), **extra))
+                                     loo_trans_m=float(loo_trans[j]),
+                                     corners_px=corners[i], residuals_px=fit_res[j], **extra))
     validation = {
         "E_R": motion.E_R, "E_t": motion.E_t, "n_motions": motion.n_motions,
         "loo_rot_rad_mean": float(np.nanmean(loo.rot_rad)),
@@ -368,6 +381,17 @@ def _poses_from_known_intrinsics(corners: list[np.ndarray], grid: np.ndarray, K:
     total = np.concatenate(sq)
     sigma_px = float(np.sqrt(total.sum() / max(total.size * 2 - 6 * len(corners), 1)))
     return np.array(poses), sigma_px, np.sqrt(np.array([s.mean() for s in sq]))
+
+
+def _view_residuals(corners: Sequence[np.ndarray], T_cam_target: np.ndarray, grid: np.ndarray,
+                    K: np.ndarray, dist: np.ndarray) -> list[np.ndarray]:
+    """Projected minus detected corners (N, 2) per view, each at its own board pose.
+
+    ``T_cam_target`` (n, 4, 4) and ``grid`` (N, 3) in the same (nominal-scale) target frame.
+    """
+    rvecs = Rotation.from_matrix(T_cam_target[:, :3, :3]).as_rotvec()
+    return [cv2.projectPoints(grid, r, T[:3, 3], K, dist)[0].reshape(-1, 2) - m
+            for m, r, T in zip(corners, rvecs, T_cam_target, strict=True)]
 
 
 def _resolve_symmetric_origin(P: np.ndarray, C: np.ndarray, corners: list[np.ndarray],

@@ -12,7 +12,7 @@ import numpy as np
 from calib.geometry import ur_pose_from_matrix
 from calib.handeye import HandEyeResult
 from calib.joint import CAMERA_PARAMS
-from calib.pipeline import CalibrationResult
+from calib.pipeline import CalibrationResult, StationReport
 
 
 def software_version() -> str:
@@ -93,7 +93,7 @@ def calibration_result_json(result: CalibrationResult, *,
             "camera": camera_sigmas,
             **pose_sigmas,
         },
-        "stations": [dataclasses.asdict(s) for s in result.stations],
+        "stations": [_station_json(s) for s in result.stations],
         "rejected": [{"id": sid, "reason": reason} for sid, reason in result.rejected],
         "validation": result.validation,
         "method": result.method,
@@ -101,3 +101,13 @@ def calibration_result_json(result: CalibrationResult, *,
         "software": {"name": "cellcal", "version": software_version(), "command": command},
         "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
     })
+
+
+def _station_json(station: StationReport) -> dict[str, Any]:
+    """A station's report; corner positions and residuals to 0.001 px (far below their noise)
+    to keep the file small."""
+    doc = dataclasses.asdict(station)
+    for key in ("corners_px", "residuals_px"):
+        if doc[key] is not None:
+            doc[key] = np.round(doc[key], 3)
+    return doc

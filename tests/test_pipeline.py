@@ -177,3 +177,18 @@ def test_method_2_recovers_nu_from_the_extrinsics():
     assert res.options["nu_method"] == "extrinsics"
     assert abs(res.nu - SCENE.target.nu) < 4 * res.sigmas["nu"] and res.sigmas["nu"] < 2e-4
     assert abs(res.kappa - SCENE.target.kappa) < 4 * res.sigmas["kappa"]
+
+
+@pytest.mark.parametrize("method", ["joint", "park", None])
+def test_stations_carry_their_corners_and_fit_residuals(method):
+    """Per-corner residuals (for the report's plots) agree with the per-station RMS and with
+    the detections; None is the intrinsics-only calibration."""
+    poses = None if method is None else rendered_stations()[1]
+    res = calibrate(detections(), poses, **({} if method is None else {"method": method}))
+    by_id = {f"{k:03d}": d for k, d in enumerate(detections())}
+    for s in res.stations:
+        np.testing.assert_array_equal(s.corners_px, by_id[s.id].corners)
+        assert s.residuals_px.shape == (BOARD[0] * BOARD[1], 2)
+        rms = np.sqrt(np.mean(np.sum(s.residuals_px ** 2, axis=1)))
+        assert rms == pytest.approx(s.rms_px, rel=1e-6)
+        assert 0.0 < rms < 0.2
