@@ -37,7 +37,7 @@ from calib.pipeline import calibrate_stations
 from calib.target import board_points, detect_checkerboard
 from mocks.render import RenderParams, render_board
 from mocks.scene import MockScene, camera_pose_for_tcp, default_scene, sample_station_poses
-from service.cli import main as cellcal
+from service.cli.main import main as cellcal
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt

@@ -11,8 +11,8 @@ while a run captures, p99 latency of ``GET /runs/{id}`` under 50 ms.
     with explicit poses (``mocks.scene.sample_station_poses`` on the default scene, so every
     frame shows the board) is timed from ``POST /runs`` until the run is ``done`` (the run's
     ``updated_at``), while a second thread polls ``GET /runs/{id}`` at a fixed rate.
-(b) Where the time goes: the same capture loop in-process (``service.jobs.Jobs`` on a temporary
-    SQLite database and the same mock devices) with timers around its stages, then under
+(b) Where the time goes: the same capture loop in-process (``service.runtime.Runtime`` on a
+    temporary SQLite database and the same mock devices) with timers around its stages, then under
     cProfile.
 (c) What would meet the target: the loop's device and image work (move, grab, detect, PNG)
     without HTTP and database, serial as in the service, and pipelined with detection and the
@@ -211,34 +211,30 @@ def run_http(poses: list[list[float]], warmup: list[list[float]], hz: float,
 
 @contextlib.contextmanager
 def in_process_jobs(tmp: Path) -> Iterator[Any]:
-    """A ``Jobs`` as the service builds it (mock devices, SQLite in ``tmp``), closed after."""
-    from service.db import Database
-    from service.jobs import Devices, EventBus, Jobs, settings_opener
+    """The service's ``Runtime`` as the app builds it (mock devices, SQLite in ``tmp``),
+    closed after."""
+    from service.runtime import Runtime
     from service.settings import Settings
 
     with mock.patch.dict(os.environ, clean_env(), clear=True):
         settings = Settings(data_dir=tmp, robot="mock://", camera="mock://", scene=None,
                             database_url=None, api_key=secrets.token_urlsafe(24))
-    tmp.mkdir(parents=True, exist_ok=True)
-    db = Database(settings.database)
-    cell = Devices(settings_opener(settings))
-    jobs = Jobs(settings, db, cell, EventBus())
+    rt = Runtime.open(settings)
     try:
-        yield jobs
+        yield rt
     finally:
-        jobs.shutdown()
-        cell.close()
-        db.close()
+        rt.close()
 
 
 def capture_in_process(jobs: Any, poses: list[list[float]],
                        timeout: float) -> tuple[str, float]:
-    """Create a run through ``Jobs`` and wait for it; returns its id and the wall time (s)."""
+    """Create a run through the run manager and wait for it; returns its id and the wall
+    time (s)."""
     from service.models import Run
     from service.schemas import RunCreate
 
     t0 = time.perf_counter()
-    run_id = jobs.create_run(RunCreate(poses=poses)).id
+    run_id = jobs.runs.create(RunCreate(poses=poses)).id
     deadline = time.monotonic() + timeout
     while True:
         with jobs.db.session() as s:
@@ -342,7 +338,8 @@ def stage_breakdown(poses: list[list[float]], warmup: list[list[float]], timeout
                     keep: int) -> Stages:
     """Time the stages of the service's own capture loop, then profile it."""
     import mocks.devices as devices_mod
-    import service.jobs as jobs_mod
+    import service.runs.capture as capture_mod
+    from service.runs.capture import Capture
 
     times: dict[str, list[float]] = defaultdict(list)
     samples: list[np.ndarray] = []  # rendered frames, to time the PNG encoding alone
@@ -367,15 +364,15 @@ def stage_breakdown(poses: list[list[float]], warmup: list[list[float]], timeout
         with in_process_jobs(Path(tmp) / "timed") as jobs:
             capture_in_process(jobs, warmup, timeout)  # warm-up
             times.clear()
-            jobs._store = timed("store", jobs._store)
-            jobs._owns = timed("owns", jobs._owns)
-            with mock.patch.object(jobs_mod, "capture_station",
-                                   timed("capture", jobs_mod.capture_station)), \
+            with mock.patch.object(Capture, "_store", timed("store", Capture._store)), \
+                    mock.patch.object(Capture, "_owns", timed("owns", Capture._owns)), \
+                    mock.patch.object(capture_mod, "capture_station",
+                                      timed("capture", capture_mod.capture_station)), \
                     mock.patch.object(devices_mod, "render_board", timed("render", render)), \
-                    mock.patch.object(jobs_mod, "detect_checkerboard",
-                                      timed("detect", jobs_mod.detect_checkerboard)), \
-                    mock.patch.object(jobs_mod, "_write_png",
-                                      timed("png", jobs_mod._write_png)):
+                    mock.patch.object(capture_mod, "detect_checkerboard",
+                                      timed("detect", capture_mod.detect_checkerboard)), \
+                    mock.patch.object(capture_mod, "write_png",
+                                      timed("png", capture_mod.write_png)):
                 run_id, wall = capture_in_process(jobs, poses, timeout)
             handler = time_get_run(jobs, run_id)
 
@@ -403,18 +400,18 @@ def stage_breakdown(poses: list[list[float]], warmup: list[list[float]], timeout
         prof = cProfile.Profile()
         with in_process_jobs(Path(tmp) / "profiled") as jobs:
             capture_in_process(jobs, warmup, timeout)
-            plain = jobs._capture
+            plain = Capture.run
 
-            def profiled(run_id: str, token: str) -> None:
+            def profiled(capture: Capture) -> None:
                 prof.enable()
                 try:
-                    plain(run_id, token)
+                    plain(capture)
                 finally:
                     prof.disable()
 
-            jobs._capture = profiled
             profiled_n = min(n, max(n // 2, 10))
-            capture_in_process(jobs, poses[:profiled_n], timeout)
+            with mock.patch.object(Capture, "run", profiled):
+                capture_in_process(jobs, poses[:profiled_n], timeout)
     rows = []
     for (path, _line, func), (_cc, nc, tt, ct, _callers) in pstats.Stats(prof).stats.items():
         name = func if path == "~" else f"{Path(path).name}:{func}"
@@ -440,7 +437,7 @@ def what_if(poses: list[list[float]], warmup: list[list[float]]) -> WhatIf:
     a detection/storage worker would.
     """
     from mocks.devices import MockCamera, MockRobot
-    from service.jobs import _write_png
+    from service.runs.capture import write_png
 
     scene = default_scene()
     inner = tuple(scene.target.inner_corners)
@@ -456,7 +453,7 @@ def what_if(poses: list[list[float]], warmup: list[list[float]]) -> WhatIf:
 
     def work(image: np.ndarray, path: Path) -> bool:
         ok = detect_checkerboard(image, inner).ok
-        _write_png(path, image)
+        write_png(path, image)
         return ok
 
     rates = []

@@ -1,4 +1,4 @@
-"""The FastAPI application: routers, the lifespan (database, devices, jobs), error mapping.
+"""The FastAPI application: routers, the lifespan (``service.runtime``), error mapping.
 
 ``create_app(settings)`` builds an app; ``uvicorn --factory service.app:create_app`` serves one
 configured from the environment (``cellcal serve`` does the same with command-line options).
@@ -23,20 +23,16 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from drivers.errors import DeviceError, WorkspaceError
 from service.api import calibrations, devices, health, runs, stations, validations
 from service.api.deps import require_api_key
-from service.db import Database
-from service.jobs import (
+from service.devices import DeviceOpener, Devices
+from service.errors import (
     AuthError,
     ConflictError,
-    DeviceOpener,
-    Devices,
-    EventBus,
-    Jobs,
     NotFoundError,
     ServiceError,
     UnprocessableError,
-    settings_opener,
 )
 from service.results import software_version
+from service.runtime import Runtime
 from service.settings import Settings
 
 log = logging.getLogger("cellcal.service")
@@ -61,22 +57,16 @@ def create_app(settings: Settings | None = None, *,
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        settings.data_dir.mkdir(parents=True, exist_ok=True)
-        db = Database(settings.database)
-        cell = Devices(open_devices or settings_opener(settings))
-        jobs = Jobs(settings, db, cell, EventBus())
-        jobs.recover()
-        app.state.db, app.state.devices, app.state.jobs = db, cell, jobs
-        await run_in_threadpool(_open_early, cell)
+        rt = Runtime.open(settings, open_devices)
+        app.state.runtime, app.state.db, app.state.devices = rt, rt.db, rt.devices
+        await run_in_threadpool(_open_early, rt.devices)
         # Start-up objects (modules, the app, the ORM) never die: keep them out of the cyclic
         # collector's full passes, which otherwise stall every thread for ~0.1 s now and then.
         gc.freeze()
         try:
             yield
         finally:
-            await run_in_threadpool(jobs.shutdown)
-            await run_in_threadpool(cell.close)
-            db.close()
+            await run_in_threadpool(rt.close)
 
     app = FastAPI(
         title="cellcal", version=software_version(), lifespan=lifespan,

@@ -29,6 +29,8 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 #: Run states in which the robot belongs to the run.
 ACTIVE_RUN_STATES = ("capturing", "paused")
+#: Run states after which nothing more happens to a run unless someone resumes it.
+FINAL_RUN_STATES = ("done", "failed", "cancelled", "interrupted")
 RUN_STATES = ("capturing", "paused", "done", "failed", "cancelled", "interrupted")
 STATION_STATES = ("captured", "skipped")
 CALIBRATION_STATES = ("running", "done", "failed")

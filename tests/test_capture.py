@@ -18,7 +18,7 @@ from drivers.errors import RobotError
 from drivers.registry import open_camera, open_robot
 from mocks.devices import MockCamera, MockRobot
 from mocks.scene import default_scene, sample_station_poses
-from service import cli
+from service.cli import main as cli
 from service.stationset import load_station_set, station_record, write_station_set
 from tests.helpers import assert_pose_close
 

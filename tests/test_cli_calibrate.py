@@ -7,7 +7,7 @@ import pytest
 
 from calib.geometry import pose_error, ur_pose_from_matrix
 from mocks.posesim import default_cell, simulate
-from service.cli import main
+from service.cli.main import main
 
 
 def write_station_set(path, P, C, *, setup="eye_in_hand", mutate=None):

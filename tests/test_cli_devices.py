@@ -1,12 +1,8 @@
 """``cellcal robot|camera|devices`` end to end on mock:// devices, through ``service.cli.main``.
-
-Until ``service.cli.build_parser`` registers these commands itself, the fixture adds them with
-``service.cli_devices.register``; it does nothing once they are there.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -14,27 +10,12 @@ import cv2
 import numpy as np
 import pytest
 
-import service.cli as cli
 from calib.geometry import matrix_from_ur_pose, pose_error
 from calib.target import detect_checkerboard
 from mocks.scene import default_scene
-from service.cli_devices import register
+from service.cli import main as cli
 
 SCENE = default_scene()
-
-
-@pytest.fixture(autouse=True)
-def device_commands(monkeypatch: pytest.MonkeyPatch) -> None:
-    build = cli.build_parser
-
-    def build_with_devices() -> argparse.ArgumentParser:
-        parser = build()
-        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-        if "robot" not in sub.choices:
-            register(sub)
-        return parser
-
-    monkeypatch.setattr(cli, "build_parser", build_with_devices)
 
 
 def run(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:

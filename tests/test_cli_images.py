@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from calib.geometry import pose_error
-from service.cli import main
+from service.cli.main import main
 from tests.test_pipeline import BOARD, SCENE, SQUARE, rendered_stations
 
 N = 12

@@ -23,7 +23,7 @@ from drivers.base import Camera, Robot
 from drivers.errors import RobotConnectionError
 from mocks.scene import default_scene, sample_station_poses
 from service.app import create_app
-from service.jobs import DeviceOpener, settings_opener
+from service.devices import DeviceOpener, settings_opener
 from service.settings import Settings
 
 KEY = "test-key-0123456789abcdef"

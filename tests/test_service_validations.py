@@ -20,7 +20,7 @@ from fastapi.testclient import TestClient
 from drivers.base import Camera, Robot
 from mocks.scene import default_scene
 from service.app import create_app
-from service.jobs import settings_opener
+from service.devices import settings_opener
 from service.models import Calibration, Run, Validation
 from tests.test_exports import full_result
 from tests.test_service_api import AUTH, GatedCamera, finished, poses, settings, wait_run

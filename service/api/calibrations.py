@@ -6,12 +6,11 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Response, status
-from sqlalchemy import select
 
-from service.api.deps import JobsDep, SessionDep
-from service.api.runs import load_run
+from service import store
+from service.api.deps import CalibrationsDep, SessionDep
+from service.errors import ConflictError, UnprocessableError
 from service.exports import export
-from service.jobs import ConflictError, NotFoundError, UnprocessableError
 from service.models import Calibration
 from service.schemas import CalibrationCreate, CalibrationPublic, Created, ExportFormat
 
@@ -24,36 +23,26 @@ def calibration_public(cal: Calibration) -> CalibrationPublic:
                              finished_at=cal.finished_at)
 
 
-def load_calibration(session: SessionDep, cal_id: str) -> Calibration:
-    cal = session.get(Calibration, cal_id)
-    if cal is None:
-        raise NotFoundError(f"No calibration {cal_id}.")
-    return cal
-
-
 @router.post("/runs/{run_id}/calibrations", status_code=status.HTTP_202_ACCEPTED, responses={
     409: {"description": "the run is still capturing"},
     422: {"description": "malformed options or too few captured stations"}})
-def create_calibration(run_id: str, jobs: JobsDep,
+def create_calibration(run_id: str, calibrations: CalibrationsDep,
                        body: CalibrationCreate | None = None) -> Created:
     """Start computing intrinsics, κ / ν and the hand-eye; poll ``GET /calibrations/{id}``."""
     body = body or CalibrationCreate()
-    return Created(id=jobs.start_calibration(run_id, body.options).id)
+    return Created(id=calibrations.start(run_id, body.options).id)
 
 
 @router.get("/runs/{run_id}/calibrations")
 def list_calibrations(run_id: str, session: SessionDep) -> list[CalibrationPublic]:
     """The run's calibrations, oldest first."""
-    load_run(session, run_id)
-    cals = session.scalars(select(Calibration).where(Calibration.run_id == run_id)
-                           .order_by(Calibration.created_at))
-    return [calibration_public(c) for c in cals]
+    return [calibration_public(c) for c in store.list_calibrations(session, run_id=run_id)]
 
 
 @router.get("/calibrations/{cal_id}")
 def get_calibration(cal_id: str, session: SessionDep) -> CalibrationPublic:
     """State (``running``, ``done``, ``failed``) and the ``cellcal/result@1`` document."""
-    return calibration_public(load_calibration(session, cal_id))
+    return calibration_public(store.get_calibration(session, cal_id=cal_id))
 
 
 @router.get("/calibrations/{cal_id}/export", response_class=Response, responses={
@@ -70,7 +59,7 @@ def export_calibration(
                                         "joint), ur-pose (hand-eye as p[...])")] = "json",
 ) -> Response:
     """The result as a file for OpenCV, ROS, a URDF or a UR robot program."""
-    cal = load_calibration(session, cal_id)
+    cal = store.get_calibration(session, cal_id=cal_id)
     if cal.state != "done" or cal.result is None:
         raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished calibration "
                             "can be exported.", code="invalid_state")

@@ -11,8 +11,12 @@ from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
-from service.jobs import AuthError, Devices, Jobs
+from service.calibrations import Calibrations
+from service.devices import Devices
+from service.errors import AuthError
+from service.runs import RunManager
 from service.settings import Settings
+from service.validations import Validations
 
 _bearer = HTTPBearer(auto_error=False, description="CELLCAL_API_KEY")
 
@@ -26,8 +30,16 @@ def get_session(request: Request) -> Iterator[Session]:
         yield session
 
 
-def get_jobs(request: Request) -> Jobs:
-    return request.app.state.jobs
+def get_runs(request: Request) -> RunManager:
+    return request.app.state.runtime.runs
+
+
+def get_calibrations(request: Request) -> Calibrations:
+    return request.app.state.runtime.calibrations
+
+
+def get_validations(request: Request) -> Validations:
+    return request.app.state.runtime.validations
 
 
 def get_devices(request: Request) -> Devices:
@@ -36,7 +48,9 @@ def get_devices(request: Request) -> Devices:
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 SessionDep = Annotated[Session, Depends(get_session)]
-JobsDep = Annotated[Jobs, Depends(get_jobs)]
+RunsDep = Annotated[RunManager, Depends(get_runs)]
+CalibrationsDep = Annotated[Calibrations, Depends(get_calibrations)]
+ValidationsDep = Annotated[Validations, Depends(get_validations)]
 DevicesDep = Annotated[Devices, Depends(get_devices)]
 
 

@@ -10,11 +10,11 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query, status
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
-from sqlalchemy import select
 
-from service.api.deps import JobsDep, SessionDep
-from service.jobs import FINAL_RUN_STATES, Jobs, NotFoundError, run_counts
-from service.models import Run, Station
+from service import store
+from service.api.deps import RunsDep, SessionDep
+from service.models import FINAL_RUN_STATES, Run
+from service.runs import RunManager
 from service.schemas import Created, ErrorInfo, RunCreate, RunPublic, StationError
 
 router = APIRouter(prefix="/runs", tags=["runs"])
@@ -26,84 +26,72 @@ KEEPALIVE_S = 15.0
 def run_public(session: SessionDep, run: Run) -> RunPublic:
     """The public view of a run; station counts and errors come from small SQL queries, never
     from loading every station (with its corners), so polling stays fast on long runs."""
-    errors = session.execute(
-        select(Station.index, Station.error_code, Station.error)
-        .where(Station.run_id == run.id, Station.error.is_not(None))
-        .order_by(Station.index)).all()
     return RunPublic(
         id=run.id, state=run.state, robot=run.robot, setup=run.setup, target=run.target,
-        **run_counts(session, run),
+        **store.run_counts(session, run=run),
         error=None if run.error is None else ErrorInfo(code=run.error_code or "error",
                                                        detail=run.error),
         station_errors=[StationError(index=i, code=code, detail=detail)
-                        for i, code, detail in errors],
+                        for i, code, detail in store.station_errors(session, run_id=run.id)],
         created_at=run.created_at, updated_at=run.updated_at)
-
-
-def load_run(session: SessionDep, run_id: str) -> Run:
-    run = session.get(Run, run_id)
-    if run is None:
-        raise NotFoundError(f"No run {run_id}.")
-    return run
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, responses={
     409: {"description": "the robot already has an active run"},
     422: {"description": "malformed body, pose outside the workspace, no planning"}})
-def create_run(body: RunCreate, jobs: JobsDep) -> Created:
+def create_run(body: RunCreate, runs: RunsDep) -> Created:
     """Create a capture run and start capturing in the background."""
-    return Created(id=jobs.create_run(body).id)
+    return Created(id=runs.create(body).id)
 
 
 @router.get("")
 def list_runs(session: SessionDep,
               limit: Annotated[int, Query(ge=1, le=500)] = 50) -> list[RunPublic]:
     """Runs, newest first."""
-    runs = session.scalars(select(Run).order_by(Run.created_at.desc()).limit(limit))
-    return [run_public(session, r) for r in runs]
+    return [run_public(session, r) for r in store.list_runs(session, limit=limit)]
 
 
 @router.get("/{run_id}")
 def get_run(run_id: str, session: SessionDep) -> RunPublic:
     """State, stations captured / skipped / planned, and errors."""
-    return run_public(session, load_run(session, run_id))
+    return run_public(session, store.get_run(session, run_id=run_id))
 
 
 @router.post("/{run_id}/pause")
-def pause_run(run_id: str, jobs: JobsDep, session: SessionDep) -> RunPublic:
+def pause_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
     """Stop after the station in progress (idempotent)."""
-    jobs.pause(run_id)
-    return run_public(session, load_run(session, run_id))
+    runs.pause(run_id)
+    return run_public(session, store.get_run(session, run_id=run_id))
 
 
 @router.post("/{run_id}/resume")
-def resume_run(run_id: str, jobs: JobsDep, session: SessionDep) -> RunPublic:
+def resume_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
     """Continue a paused, interrupted or failed run at its next missing station."""
-    jobs.resume(run_id)
-    return run_public(session, load_run(session, run_id))
+    runs.resume(run_id)
+    return run_public(session, store.get_run(session, run_id=run_id))
 
 
 @router.post("/{run_id}/cancel")
-def cancel_run(run_id: str, jobs: JobsDep, session: SessionDep) -> RunPublic:
+def cancel_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
     """Stop for good (idempotent); stored stations stay available."""
-    jobs.cancel(run_id)
-    return run_public(session, load_run(session, run_id))
+    runs.cancel(run_id)
+    return run_public(session, store.get_run(session, run_id=run_id))
 
 
 @router.get("/{run_id}/events", response_class=StreamingResponse, responses={
     200: {"content": {"text/event-stream": {}},
           "description": "server-sent events: `state` (first, then on every change) and "
                          "`station` (captured or skipped); the stream ends when the run does"}})
-async def run_events(run_id: str, jobs: JobsDep) -> StreamingResponse:
+async def run_events(run_id: str, runs: RunsDep) -> StreamingResponse:
     """Progress of a run as server-sent events."""
-    await run_in_threadpool(jobs.state_event, run_id)  # 404 before the stream starts
-    return StreamingResponse(_event_stream(jobs, run_id), media_type="text/event-stream",
+    await run_in_threadpool(runs.state_event, run_id)  # 404 before the stream starts
+    return StreamingResponse(_event_stream(runs, run_id), media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
 
-async def _event_stream(jobs: Jobs, run_id: str) -> AsyncIterator[str]:
-    with jobs.events.listen(run_id) as queue:
-        event: dict[str, Any] = await run_in_threadpool(jobs.state_event, run_id)
+async def _event_stream(runs: RunManager, run_id: str) -> AsyncIterator[str]:
+    with runs.events.listen(run_id) as queue:
+        event: dict[str, Any] = await run_in_threadpool(runs.state_event, run_id)
         seq = 0
         while True:
             seq += 1

@@ -5,9 +5,9 @@ from __future__ import annotations
 from fastapi import APIRouter
 from fastapi.responses import FileResponse
 
+from service import store
 from service.api.deps import SessionDep, SettingsDep
-from service.api.runs import load_run
-from service.jobs import NotFoundError
+from service.errors import NotFoundError
 from service.models import Station
 from service.schemas import DetectionPublic, ErrorInfo, StationPublic
 
@@ -29,23 +29,16 @@ def station_public(station: Station, *, corners: bool) -> StationPublic:
         attempts=station.attempts, captured_at=station.captured_at)
 
 
-def _load_station(session: SessionDep, run_id: str, index: int) -> Station:
-    for station in load_run(session, run_id).stations:
-        if station.index == index:
-            return station
-    raise NotFoundError(f"Run {run_id} has no station {index}.")
-
-
 @router.get("")
 def list_stations(run_id: str, session: SessionDep) -> list[StationPublic]:
     """Stored stations in index order (corner lists left out)."""
-    return [station_public(s, corners=False) for s in load_run(session, run_id).stations]
+    return [station_public(s, corners=False) for s in store.list_stations(session, run_id=run_id)]
 
 
 @router.get("/{index}")
 def get_station(run_id: str, index: int, session: SessionDep) -> StationPublic:
     """One station with its detected corners."""
-    return station_public(_load_station(session, run_id, index), corners=True)
+    return station_public(store.get_station(session, run_id=run_id, index=index), corners=True)
 
 
 @router.get("/{index}/image", response_class=FileResponse,
@@ -53,7 +46,7 @@ def get_station(run_id: str, index: int, session: SessionDep) -> StationPublic:
 def get_station_image(run_id: str, index: int, session: SessionDep,
                       settings: SettingsDep) -> FileResponse:
     """The captured image as PNG."""
-    station = _load_station(session, run_id, index)
+    station = store.get_station(session, run_id=run_id, index=index)
     path = None if station.image_path is None else settings.data_dir / station.image_path
     if path is None or not path.is_file():
         raise NotFoundError(f"Station {index} of run {run_id} has no image.")

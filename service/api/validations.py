@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, status
-from sqlalchemy import select
 
-from service.api.calibrations import load_calibration
-from service.api.deps import JobsDep, SessionDep
-from service.jobs import NotFoundError
+from service import store
+from service.api.deps import SessionDep, ValidationsDep
 from service.models import Validation
 from service.schemas import Created, ValidationCreate, ValidationPublic
 
@@ -26,7 +24,7 @@ def validation_public(val: Validation) -> ValidationPublic:
                                       "(an active run or another validation)"},
                  422: {"description": "malformed probe, unknown point id, or a calibration "
                                       "the dot-hit run cannot test (eye-to-hand)"}})
-def create_validation(cal_id: str, jobs: JobsDep,
+def create_validation(cal_id: str, validations: ValidationsDep,
                       body: ValidationCreate | None = None) -> Created:
     """Touch board points with a probe; poll ``GET /validations/{id}``.
 
@@ -34,22 +32,16 @@ def create_validation(cal_id: str, jobs: JobsDep,
     the points are reconstructed through the calibration (eq. 24); every commanded pose is
     checked against the workspace limits before the robot moves.
     """
-    return Created(id=jobs.start_validation(cal_id, body or ValidationCreate()).id)
+    return Created(id=validations.start(cal_id, body or ValidationCreate()).id)
 
 
 @router.get("/calibrations/{cal_id}/validations")
 def list_validations(cal_id: str, session: SessionDep) -> list[ValidationPublic]:
     """The calibration's validations, oldest first."""
-    load_calibration(session, cal_id)
-    vals = session.scalars(select(Validation).where(Validation.calibration_id == cal_id)
-                           .order_by(Validation.created_at))
-    return [validation_public(v) for v in vals]
+    return [validation_public(v) for v in store.list_validations(session, cal_id=cal_id)]
 
 
 @router.get("/validations/{val_id}")
 def get_validation(val_id: str, session: SessionDep) -> ValidationPublic:
     """State (``running``, ``done``, ``failed``) and the report."""
-    val = session.get(Validation, val_id)
-    if val is None:
-        raise NotFoundError(f"No validation {val_id}.")
-    return validation_public(val)
+    return validation_public(store.get_validation(session, val_id=val_id))

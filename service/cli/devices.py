@@ -23,6 +23,7 @@ from drivers.base import Camera, Robot
 from drivers.errors import DeviceError
 from drivers.registry import CAMERA_URLS, ROBOT_URLS, open_camera, open_robot
 from mocks.scene import MockScene, load_scene
+from service.cli.exit_codes import EXIT_FAILED
 from service.stationset import describe_validation_error
 
 _URLS_HELP = ("Device addresses: ur://HOST or mock:// for robots; v4l2:///dev/videoN, "
@@ -157,8 +158,6 @@ def _camera_grab(args: argparse.Namespace) -> int:
 
 
 def _devices_check(args: argparse.Namespace) -> int:
-    from service.cli import EXIT_FAILED  # imported here: service.cli imports this module
-
     if args.robot is None and args.camera is None:
         raise ValueError("devices check: give --robot URL and/or --camera URL")
     _quiet_opencv()

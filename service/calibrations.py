@@ -1,0 +1,128 @@
+"""Calibrations: start a solve over a run's captured stations, compute it in a worker process,
+store the outcome when it completes.
+
+Calibrations are CPU-bound: they run in a ``ProcessPoolExecutor`` (spawned workers) so the API
+stays responsive, and the result is stored when the future completes.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import logging
+import multiprocessing
+import threading
+from typing import Any
+
+import numpy as np
+
+from calib.intrinsics import MIN_IMAGES
+from calib.target import Detection
+from service import store
+from service.db import Database
+from service.errors import ConflictError, UnprocessableError
+from service.models import Calibration
+from service.schemas import CalibrationOptions
+from service.settings import Settings
+
+log = logging.getLogger("cellcal.service")
+
+
+class Calibrations:
+    """Queues solves in worker processes and records their results."""
+
+    def __init__(self, settings: Settings, db: Database) -> None:
+        self.settings = settings
+        self.db = db
+        self._pool: cf.ProcessPoolExecutor | None = None
+        self._pool_lock = threading.Lock()
+
+    def start(self, run_id: str, options: CalibrationOptions) -> Calibration:
+        """Queue a solve over the run's captured stations in a worker process."""
+        with self.db.session() as s:
+            run = store.get_run(s, run_id=run_id)
+            if run.state == "capturing":
+                raise ConflictError(f"Run {run_id} is still capturing; pause it or wait until "
+                                    "it is done.", code="invalid_state")
+            captured = store.captured_stations(s, run_id=run_id)
+            if len(captured) < MIN_IMAGES:
+                raise UnprocessableError(
+                    f"Run {run_id} has {len(captured)} captured stations; a calibration needs "
+                    f"at least {MIN_IMAGES}.", code="too_few_stations")
+            payload = {
+                "run_id": run_id, "setup": run.setup, "target": run.target,
+                "ids": [f"{st.index:03d}" for st in captured],
+                "tcp_poses": [st.tcp_pose for st in captured],
+                "corners": [st.detection["corners"] for st in captured],
+                "ambiguous": [st.detection["ambiguous"] for st in captured],
+                "image_size": captured[0].image_size,
+                "options": options.model_dump(),
+            }
+            cal = Calibration(run_id=run_id, state="running", options=options.model_dump())
+            s.add(cal)
+            s.commit()
+        future = self._submit(payload)
+        future.add_done_callback(lambda f: self._done(cal.id, f))
+        return cal
+
+    def shutdown(self) -> None:
+        """Cancel queued solves and let the worker processes go."""
+        with self._pool_lock:
+            if self._pool is not None:
+                self._pool.shutdown(wait=False, cancel_futures=True)
+                self._pool = None
+
+    def _submit(self, payload: dict[str, Any]) -> cf.Future[dict[str, Any]]:
+        with self._pool_lock:
+            if self._pool is None:
+                self._pool = cf.ProcessPoolExecutor(
+                    self.settings.calibration_workers,
+                    mp_context=multiprocessing.get_context("spawn"))
+            return self._pool.submit(solve_calibration, payload)
+
+    def _done(self, cal_id: str, future: cf.Future[dict[str, Any]]) -> None:
+        """Store the outcome of a solve: its result, or why it failed."""
+        values: dict[str, Any]
+        try:
+            values = {"state": "done", "result": future.result()}
+        except cf.CancelledError:
+            values = {"state": "failed", "error": "The service stopped during the "
+                                                  "computation; start it again."}
+        except ValueError as exc:
+            values = {"state": "failed", "error": str(exc)}
+        except cf.process.BrokenProcessPool:
+            with self._pool_lock:
+                self._pool = None
+            values = {"state": "failed", "error": "The calibration worker process died (out "
+                                                  "of memory?); start it again."}
+        except Exception as exc:
+            log.error("calibration %s: %s: %s", cal_id, type(exc).__name__, exc)
+            values = {"state": "failed",
+                      "error": f"Internal error ({type(exc).__name__}: {exc})."}
+        with self.db.session() as s:
+            store.finish_calibration(s, cal_id=cal_id, **values)
+
+
+def solve_calibration(payload: dict[str, Any]) -> dict[str, Any]:
+    """Worker-process entry: stored detections and robot poses -> result JSON document.
+
+    Top level (picklable) and self-contained: it imports the pipeline in the worker.
+    """
+    from calib.pipeline import calibrate_stations
+    from service.results import calibration_result_json
+
+    opts = payload["options"]
+    observations = [Detection(ok=True, corners=np.asarray(c, dtype=float), ambiguous=a)
+                    for c, a in zip(payload["corners"], payload["ambiguous"], strict=True)]
+    noise: dict[str, float] = {}
+    if opts["robot_noise_rot_deg"] is not None:
+        noise["robot_noise_rot"] = float(np.deg2rad(opts["robot_noise_rot_deg"]))
+    if opts["robot_noise_trans_mm"] is not None:
+        noise["robot_noise_trans"] = opts["robot_noise_trans_mm"] * 1e-3
+    result = calibrate_stations(
+        observations, payload["tcp_poses"], inner_corners=payload["target"]["inner_corners"],
+        square_size=payload["target"]["square_size_m"], setup=payload["setup"],
+        station_ids=payload["ids"], image_size=payload["image_size"], method=opts["method"],
+        estimate_nu=opts["estimate_nu"], estimate_kappa=opts["estimate_kappa"],
+        nu_method=opts["nu_method"], **noise)
+    return calibration_result_json(
+        result, command=f"POST /runs/{payload['run_id']}/calibrations")

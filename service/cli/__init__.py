@@ -1,0 +1,2 @@
+"""The ``cellcal`` command line: ``main`` builds the parser from one module per command
+(``calibrate``, ``demo``, ``devices``, ``serve``); the commands import nothing from ``main``."""

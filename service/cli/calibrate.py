@@ -1,0 +1,101 @@
+"""``cellcal calibrate STATION_DIR``: a station set directory -> result JSON document."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+from calib.handeye import METHODS, calibrate_hand_eye
+from service.image_files import DEFAULT_MAX_PIXELS, read_station_image
+from service.stationset import DEFAULT_MAX_STATIONS, StationSet, load_station_set
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``calibrate`` command to the ``cellcal`` parser."""
+    cal = sub.add_parser(
+        "calibrate", help="calibrate a station set directory (stations.json)",
+        description="Calibrate a station set. With images: corners are detected, then "
+                    "intrinsics with the board aspect ratio nu, hand-eye by screw motions (SM), "
+                    "the board scale kappa, and by default ('joint') a maximum-likelihood "
+                    "estimate over all corners and robot poses with standard deviations; "
+                    "images that cannot be used are listed with the reason. Pose-only sets "
+                    "(stations with target_pose): SM, then a weighted least-squares "
+                    "refinement over all stations.")
+    cal.add_argument("station_dir", help="directory holding stations.json")
+    cal.add_argument("--out", help="result JSON path (default: stdout)")
+    cal.add_argument("--method", default="joint", choices=METHODS,
+                     help="solver (default: joint)")
+    cal.add_argument("--estimate-kappa", action="store_true",
+                     help="pose-only sets: also estimate the board scale kappa (joint only; "
+                          "always estimated from images)")
+    cal.add_argument("--nu-method", default="images", choices=("images", "extrinsics"),
+                     help="images: board aspect ratio nu from the corner residuals (Method #1, "
+                          "default); extrinsics: from the hand-eye residuals (Method #2)")
+    cal.add_argument("--max-stations", type=int, default=DEFAULT_MAX_STATIONS, metavar="N",
+                     help=f"refuse sets of more stations (default {DEFAULT_MAX_STATIONS})")
+    cal.add_argument("--max-image-pixels", type=int, default=DEFAULT_MAX_PIXELS, metavar="N",
+                     help="reject images larger than this, width x height, read from the file "
+                          f"header before decoding (default {DEFAULT_MAX_PIXELS})")
+    cal.set_defaults(func=_calibrate)
+
+
+#: Show a detection progress bar from this many images on.
+PROGRESS_MIN_IMAGES = 10
+
+
+def _calibrate(args: argparse.Namespace) -> int:
+    stations = load_station_set(args.station_dir, max_stations=args.max_stations)
+    command = " ".join(["cellcal", *sys.argv[1:]])
+    if stations.pose_only:
+        from service.results import hand_eye_result_json
+
+        P, C = stations.pose_arrays()
+        options = {"estimate_kappa": args.estimate_kappa}
+        result = calibrate_hand_eye(P, C, setup=stations.setup, method=args.method, **options)
+        doc = hand_eye_result_json(result, [s.id for s in stations.stations], options=options,
+                                   command=command)
+    else:
+        doc = _calibrate_images(args, stations, command)
+    text = json.dumps(doc, indent=2)
+    if args.out in (None, "-"):
+        print(text)
+    else:
+        Path(args.out).write_text(text + "\n")
+        print(f"wrote {args.out}", file=sys.stderr)
+    return 0
+
+
+def _calibrate_images(args: argparse.Namespace, stations: StationSet,
+                      command: str) -> dict[str, Any]:
+    """Result document of a station set with images (``calib.pipeline``)."""
+    from tqdm import tqdm
+
+    from calib.pipeline import calibrate_stations
+    from service.results import calibration_result_json
+
+    posed = [s.id for s in stations.stations if s.target_pose is not None]
+    if posed:
+        raise ValueError(f"{args.station_dir}: station {posed[0]} has a target_pose while others "
+                         "have images; a station set is either pose-only or image-based")
+    target = stations.target
+    directory = Path(args.station_dir)
+    images = (read_station_image(directory, s.image, max_pixels=args.max_image_pixels)
+              for s in stations.stations)
+    n = len(stations.stations)
+
+    def progress(items: Iterable[Any]) -> Iterable[Any]:
+        return tqdm(items, total=n, desc="detecting corners", unit="image", file=sys.stderr,
+                    disable=n < PROGRESS_MIN_IMAGES, leave=False)
+
+    intrinsics = None if stations.intrinsics is None else (
+        stations.intrinsics.K, stations.intrinsics.dist)
+    result = calibrate_stations(
+        images, [s.tcp_pose for s in stations.stations], inner_corners=target.inner_corners,
+        square_size=target.square_size_m, setup=stations.setup,
+        station_ids=[s.id for s in stations.stations], intrinsics=intrinsics,
+        method=args.method, nu_method=args.nu_method, progress=progress)
+    return calibration_result_json(result, command=command)

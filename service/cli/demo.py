@@ -1,0 +1,36 @@
+"""``cellcal demo``: the service flow on a simulated cell (``service.demo``)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``demo`` command to the ``cellcal`` parser."""
+    demo = sub.add_parser(
+        "demo", help="run the service on a simulated cell: capture, calibrate, validate",
+        description="Start the REST service with mock devices on a free loopback port, plan "
+                    "and capture 15 stations, calibrate, run the dot-hit validation, export "
+                    "the result, and compare everything with the simulated cell's truth. The "
+                    "service and its data are removed at the end.")
+    demo.add_argument("--scene", type=Path, metavar="SCENE_JSON",
+                      help="mock scene file (default: the built-in eye-in-hand cell)")
+    demo.add_argument("--out", type=Path, metavar="DIR",
+                      help="where to write the result JSON and its exports (default: a new "
+                           "temporary directory, kept)")
+    demo.add_argument("--poses-only", action="store_true",
+                      help="instead: compare every hand-eye method on simulated poses")
+    demo.add_argument("--seed", type=int, default=1, help="--poses-only: simulation seed")
+    demo.add_argument("--stations", type=int, default=15, help=argparse.SUPPRESS)
+    demo.set_defaults(func=_demo)
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from service.demo import run_demo, run_pose_demo
+
+    if args.poses_only:
+        return run_pose_demo(seed=args.seed, stations=args.stations)
+    return run_demo(stations=args.stations, scene=args.scene, out=args.out)
+
+

@@ -1,0 +1,48 @@
+"""``cellcal`` command line: the parser and the error policy; each command is a module.
+
+Every error prints one line on stderr and exits non-zero; no traceback reaches a user
+(set ``CELLCAL_DEBUG=1`` to see one).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Callable, Sequence
+
+from drivers.errors import DeviceError
+from service.cli import calibrate, demo, devices, serve
+from service.cli.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cellcal",
+        description="Camera and hand-eye calibration for robot cells. Units: metres and "
+                    "radians in all files; see docs/conventions.md.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for command in (calibrate, demo, devices, serve):
+        command.register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    func: Callable[[argparse.Namespace], int] = args.func
+    try:
+        return func(args)
+    except (ValueError, DeviceError, OSError) as exc:
+        if os.environ.get("CELLCAL_DEBUG"):
+            raise
+        print(f"cellcal: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE if isinstance(exc, ValueError) else EXIT_FAILED
+    except KeyboardInterrupt:
+        print("cellcal: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except Exception as exc:  # last line of defence: never show a traceback
+        if os.environ.get("CELLCAL_DEBUG"):
+            raise
+        print(f"cellcal: internal error ({type(exc).__name__}: {exc}); "
+              "rerun with CELLCAL_DEBUG=1 and report it", file=sys.stderr)
+        return EXIT_FAILED

@@ -1,0 +1,67 @@
+"""The cell's robot and camera as the service holds them: opened on first use, reopened after
+a connection loss, closed at shutdown."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+
+from drivers.base import Camera, Robot
+from drivers.errors import DeviceError
+from drivers.registry import open_camera, open_robot
+from service.settings import Settings
+
+log = logging.getLogger("cellcal.service")
+
+DeviceOpener = Callable[[], tuple[Robot, Camera]]
+
+
+def settings_opener(settings: Settings) -> DeviceOpener:
+    """Open the configured robot and camera (``mock://`` ones share the scene)."""
+
+    def open_devices() -> tuple[Robot, Camera]:
+        scene = settings.mock_scene() if settings.uses_mock else None
+        robot = open_robot(settings.robot, scene=scene)
+        try:
+            camera = open_camera(settings.camera, robot=robot, scene=scene)
+        except BaseException:
+            robot.close()
+            raise
+        return robot, camera
+
+    return open_devices
+
+
+class Devices:
+    """The cell's robot and camera, opened on first use and reopened after a connection loss."""
+
+    def __init__(self, opener: DeviceOpener) -> None:
+        self._opener = opener
+        self._lock = threading.Lock()
+        self._devices: tuple[Robot, Camera] | None = None
+
+    def get(self) -> tuple[Robot, Camera]:
+        """The open devices; raises ``DeviceError`` (or ``ValueError``) if they cannot open."""
+        with self._lock:
+            if self._devices is None:
+                self._devices = self._opener()
+            return self._devices
+
+    def current(self) -> tuple[Robot, Camera] | None:
+        """The devices if they are open, without trying to open them."""
+        with self._lock:
+            return self._devices
+
+    def reset(self) -> None:
+        """Close the devices so that the next ``get`` connects again."""
+        with self._lock:
+            devices, self._devices = self._devices, None
+        if devices is not None:
+            for device in devices:
+                try:
+                    device.close()
+                except DeviceError as exc:
+                    log.warning("closing %s: %s", type(device).__name__, exc)
+
+    close = reset

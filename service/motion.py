@@ -1,0 +1,124 @@
+"""Who moves the robot, and where it may go.
+
+The robot does one motion job at a time: a capture run (``service.runs``) or a dot-hit
+validation (``service.validations``). A validation is refused while a run is active (capturing
+or paused) and a run while a validation is running; ``claim`` makes each check and the row
+that claims the robot one step within the service, and the database's one-active-run index
+makes it hold across processes. Every commanded pose is checked against the workspace box.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+
+from drivers.errors import WorkspaceError
+from service import store
+from service.db import Database
+from service.devices import Devices
+from service.errors import ConflictError
+from service.settings import Settings
+
+
+class Motion:
+    """The robot's motion jobs: their threads, the locks that serialise them, the box."""
+
+    def __init__(self, settings: Settings, db: Database, devices: Devices) -> None:
+        self.settings = settings
+        self.db = db
+        self.devices = devices
+        #: Held by the one thread that drives the robot.
+        self.robot_lock = threading.Lock()
+        #: Set at shutdown: motion threads take no new step.
+        self.stopping = threading.Event()
+        self._claim_lock = threading.Lock()
+        self._threads: dict[str, threading.Thread] = {}  # run owner / validation id -> thread
+        self._threads_lock = threading.Lock()
+
+    # ---- claiming the robot ----------------------------------------------------------------
+
+    @contextlib.contextmanager
+    def claim(self, *, check: bool = True) -> Iterator[None]:
+        """Keep others from claiming the robot until the block, which stores the claiming
+        row, ends; first check that the robot is free (409 if not) unless the block makes
+        its own checks (``check=False``)."""
+        with self._claim_lock:
+            if check:
+                self.check_free()
+            yield
+
+    def check_free(self) -> None:
+        """409 while a run is active on the robot or a validation moves it."""
+        with self.db.session() as s:
+            if store.running_validation(s) is not None or store.active_run(
+                    s, robot=self.settings.robot) is not None:
+                raise self.busy()
+
+    def busy(self) -> ConflictError:
+        """The 409 that says what keeps the robot busy."""
+        with self.db.session() as s:
+            validation = store.running_validation(s)
+            active = store.active_run(s, robot=self.settings.robot)
+        if validation is not None and active is None:
+            return ConflictError(f"The robot is running validation {validation}; let it finish "
+                                 "first.", code="robot_busy")
+        return ConflictError(f"The robot already has an active run ({active}); cancel it or "
+                             "let it finish first.", code="robot_busy")
+
+    # ---- motion threads --------------------------------------------------------------------
+
+    def start(self, key: str, job: Callable[..., None], *args: Any, name: str) -> None:
+        """Run ``job(*args)`` in a daemon thread known by ``key`` until it returns."""
+
+        def body() -> None:
+            try:
+                job(*args)
+            finally:
+                with self._threads_lock:
+                    self._threads.pop(key, None)
+
+        thread = threading.Thread(target=body, name=name, daemon=True)
+        with self._threads_lock:
+            self._threads[key] = thread
+        thread.start()
+
+    def stop_if_moving(self, key: str) -> None:
+        """Stop the robot if the thread ``key`` is driving it."""
+        with self._threads_lock:
+            moving = key in self._threads
+        devices = self.devices.current()
+        if moving and devices is not None:
+            devices[0].stop()
+
+    def shutdown(self, timeout: float = 10.0) -> None:
+        """Stop the robot and wait for the motion threads to end."""
+        self.stopping.set()
+        with self._threads_lock:
+            threads = list(self._threads.values())
+        devices = self.devices.current()
+        if threads and devices is not None:
+            devices[0].stop()
+        for thread in threads:
+            thread.join(timeout)
+
+    # ---- the workspace box -----------------------------------------------------------------
+
+    def outside_workspace(self, pose: Any) -> str | None:
+        """Why UR pose ``pose`` (6,) lies outside the workspace box, or None if inside."""
+        lo = np.asarray(self.settings.workspace_min)
+        hi = np.asarray(self.settings.workspace_max)
+        p = np.asarray(pose[:3], dtype=float)
+        if np.all(p >= lo) and np.all(p <= hi):
+            return None
+        mm = ", ".join(f"{v * 1e3:.0f}" for v in p)
+        box = " x ".join(f"[{a * 1e3:.0f}, {b * 1e3:.0f}]" for a, b in zip(lo, hi, strict=True))
+        return f"position ({mm}) mm is outside the workspace limits {box} mm (base frame)"
+
+    def check_workspace(self, pose: np.ndarray) -> None:
+        """Raise ``WorkspaceError`` for a commanded UR pose (6,) outside the workspace box."""
+        if (outside := self.outside_workspace(pose)) is not None:
+            raise WorkspaceError(f"Target {outside}; the robot was not moved.")

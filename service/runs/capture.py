@@ -1,0 +1,311 @@
+"""The capture thread of a run: visit the planned poses in order while the thread owns the run.
+
+Capture (blocking device calls) never runs on the event loop: each run gets a thread that
+visits its planned poses in order (move, settle, grab, read the pose) and hands each frame to
+a worker thread that detects the corners, writes the PNG and commits the station while the
+next one is captured. At most two stations are in flight and they are committed in index
+order, so a crash loses at most those two. Restart safety rests on the database:
+
+- a run row names its capture thread by an ``owner`` token; a thread writes stations and
+  changes the run state only while it still owns a ``capturing`` run (conditional updates),
+  so a paused, cancelled or resumed run sheds a stale thread at its next step;
+- at startup, runs left ``capturing`` by a dead service become ``interrupted``; ``resume``
+  gives the run a new owner, which continues from the first index without a station row;
+- ``(run, index)`` is unique, so no station is ever stored twice.
+
+Every exception that ends a capture thread passes through ``Capture.run``, which turns it into
+the run's final state: the one place for the capture loop's error handling.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from sqlalchemy.exc import IntegrityError
+
+from calib.target import Detection, detect_checkerboard
+from drivers.capture import capture_station
+from drivers.errors import (
+    CameraError,
+    CameraTimeoutError,
+    DeviceError,
+    EmergencyStopError,
+    ProtectiveStopError,
+    RobotConnectionError,
+)
+from service import store
+from service.events import EventBus, state_event
+from service.models import Run, Station
+from service.motion import Motion
+
+log = logging.getLogger("cellcal.service")
+
+#: Camera error codes that mean the camera is gone (stop the run, do not skip stations).
+_CAMERA_GONE = ("camera_not_open", "camera_not_found", "camera_open_failed",
+                "camera_disconnected")
+#: A failed station is tried this many times in all before it is skipped.
+ATTEMPTS = 2
+
+#: What the worker made of a station.
+_STORED, _RETRY, _LOST = "stored", "retry", "lost"
+
+
+@dataclass
+class _Visit:
+    """What happened at one station, ready to be stored."""
+
+    state: str
+    tcp_pose: list[float] | None
+    image: np.ndarray | None
+    detection: dict[str, Any] | None
+    error: str | None
+    error_code: str | None
+    attempts: int
+
+
+@dataclass
+class _Shot:
+    """A frame taken at a station for the worker, or the device error of its last try."""
+
+    index: int
+    pose: list[float]
+    attempt: int
+    tcp_pose: list[float] | None
+    image: np.ndarray | None
+    error: str | None = None
+    error_code: str | None = None
+
+
+def _detection_json(det: Detection) -> dict[str, Any]:
+    return {"ok": det.ok, "reason": det.reason, "sharpness": det.sharpness,
+            "coverage": det.coverage, "mean_contrast": det.mean_contrast,
+            "ambiguous": det.ambiguous,
+            "corners": None if det.corners is None else det.corners.tolist()}
+
+
+def _stops_run(exc: DeviceError) -> bool:
+    """True for faults that need a person (robot gone or stopped, camera gone)."""
+    if isinstance(exc, RobotConnectionError | ProtectiveStopError | EmergencyStopError):
+        return True
+    return (isinstance(exc, CameraError) and not isinstance(exc, CameraTimeoutError)
+            and exc.code in _CAMERA_GONE)
+
+
+def write_png(path: Path, image: np.ndarray) -> None:
+    """Write a PNG atomically (temporary file, then rename)."""
+    ok, data = cv2.imencode(".png", image)
+    if not ok:
+        raise OSError(f"could not encode the image for {path}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".png.tmp")
+    tmp.write_bytes(data.tobytes())
+    os.replace(tmp, path)
+
+
+class Capture:
+    """One capture thread's work on one run, identified by its owner ``token``."""
+
+    def __init__(self, motion: Motion, events: EventBus, *, run_id: str, token: str) -> None:
+        self.motion = motion
+        self.events = events
+        self.run_id = run_id
+        self.token = token
+        self.settings = motion.settings
+        self.db = motion.db
+        self.data_dir = Path(motion.settings.data_dir)
+
+    # ---- the thread body: every way a capture ends -----------------------------------------
+
+    def run(self) -> None:
+        """Visit the run's missing stations in order while this thread owns the run, and end
+        the run in the state that says how it went."""
+        try:
+            with self.motion.robot_lock:
+                self._capture_owned()
+        except DeviceError as exc:
+            if isinstance(exc, RobotConnectionError):
+                self.motion.devices.reset()
+            self.finish("failed", str(exc), exc.code)
+        except ValueError as exc:  # e.g. a malformed device URL
+            self.finish("failed", str(exc), "invalid_configuration")
+        except Exception as exc:
+            log.exception("capture run %s", self.run_id)
+            self.finish("failed", f"Internal error ({type(exc).__name__}: {exc}).",
+                        "internal_error")
+
+    def finish(self, state: str, error: str | None = None, code: str | None = None) -> None:
+        """End the run in ``state`` if this thread still owns it, and tell the listeners."""
+        with self.db.session() as s:
+            changed = store.finish_run(s, run_id=self.run_id, token=self.token, state=state,
+                                       error=error, code=code)
+        if changed:
+            with self.db.session() as s:
+                self.events.publish(self.run_id, state_event(s, run_id=self.run_id))
+
+    # ---- the loop --------------------------------------------------------------------------
+
+    def _capture_owned(self) -> None:
+        """Visit the missing stations in index order, two stations in flight.
+
+        This thread moves, settles, grabs and reads the pose; one worker thread detects the
+        corners, writes the PNG and commits the station (``_develop``), so station ``k`` is
+        developed while station ``k + 1`` is being captured. A frame goes to the worker only
+        once the worker's previous station is settled (stored, or sent back for its retry and
+        then stored), so stations are committed in index order and at most two are in flight:
+        the one in the worker and the one being captured.
+
+        In-flight stations are committed exactly when this thread still owns the run at
+        commit time (the check in ``_store``). Pause, cancel or a takeover by another owner
+        therefore discard them (their PNG files are removed); resume captures them again.
+        On shutdown or a device fault that stops the run, no new frame is taken, the worker
+        finishes the station it holds (stored, since the run is still ours, but not retried)
+        and then the run becomes ``interrupted`` or ``failed``; a frame captured but not yet
+        handed over is dropped.
+        """
+        self.robot, self.camera = self.motion.devices.get()
+        with self.db.session() as s:
+            run = s.get(Run, self.run_id)
+            if run is None or run.owner != self.token or run.state != "capturing":
+                return
+            stored = store.stored_indices(s, run_id=self.run_id)
+            poses, self.inner = run.poses, tuple(run.target["inner_corners"])
+        todo = [k for k in range(len(poses)) if k not in stored]
+        with cf.ThreadPoolExecutor(1, thread_name_prefix=f"develop-{self.run_id[:8]}") as pool:
+            self._worker = pool
+            complete = self._visit(todo, poses)
+        if self.motion.stopping.is_set():
+            self.finish("interrupted", store.INTERRUPTED, "interrupted")
+        elif complete:
+            self.finish("done")
+
+    def _visit(self, todo: list[int], poses: list[list[float]]) -> bool:
+        """Capture the stations ``todo`` in order; True if all of them were stored."""
+        in_worker: tuple[_Shot, cf.Future[str]] | None = None
+        try:
+            for index in todo:
+                if self.motion.stopping.is_set() or not self._owns():
+                    break
+                shot = self._shoot(index, poses[index], 1)
+                if shot is None or self.motion.stopping.is_set():  # None: no longer ours
+                    break
+                if in_worker is not None:
+                    done, in_worker = self._settle(*in_worker), None
+                    if not done:
+                        break
+                in_worker = (shot, self._develop_async(shot))
+            else:
+                return in_worker is None or self._settle(*in_worker)
+            if in_worker is not None:  # stopped early: let the worker finish, no retry
+                in_worker[1].result()
+            return False
+        except BaseException as exc:  # the worker still finishes its station
+            if in_worker is not None and (lost := in_worker[1].exception()) not in (None, exc):
+                log.error("run %s, station %d: %s: %s", self.run_id, in_worker[0].index,
+                          type(lost).__name__, lost)
+            raise
+
+    def _develop_async(self, shot: _Shot) -> cf.Future[str]:
+        return self._worker.submit(self._develop, shot)
+
+    def _settle(self, shot: _Shot, future: cf.Future[str]) -> bool:
+        """Wait for the worker's station, re-capturing it for its retry; True if it was
+        stored, False if the run is no longer ours (or the service stops)."""
+        while (outcome := future.result()) == _RETRY:
+            if not self._wanted():
+                return False
+            again = self._shoot(shot.index, shot.pose, shot.attempt + 1)
+            if again is None:
+                return False
+            shot, future = again, self._develop_async(again)
+        return outcome == _STORED
+
+    def _shoot(self, index: int, pose: list[float], first_attempt: int) -> _Shot | None:
+        """Move, settle, grab and read the pose, retrying a device error once; None if the
+        run was taken meanwhile. Raises the device errors that stop the run."""
+        shot: _Shot | None = None
+        for attempt in range(first_attempt, ATTEMPTS + 1):
+            try:
+                taken = capture_station(self.robot, self.camera, np.asarray(pose),
+                                        settle_timeout=self.settings.settle_timeout_s,
+                                        grab_timeout=self.settings.grab_timeout_s,
+                                        speed=self.settings.move_speed)
+            except DeviceError as exc:
+                if not self._wanted():
+                    return None
+                if _stops_run(exc):
+                    raise
+                shot = _Shot(index, pose, attempt, None, None, str(exc), exc.code)
+                continue
+            return _Shot(index, pose, attempt, [float(v) for v in taken.tcp_pose],
+                         taken.image)
+        return shot
+
+    # ---- the worker's part -----------------------------------------------------------------
+
+    def _develop(self, shot: _Shot) -> str:
+        """The worker's part of a station: detect, write the PNG and commit (``_STORED``),
+        or ``_RETRY`` for a first detection failure, or ``_LOST`` if the run is not ours."""
+        if shot.image is None:
+            visit = _Visit("skipped", None, None, None, shot.error, shot.error_code,
+                           shot.attempt)
+        else:
+            det = detect_checkerboard(shot.image, self.inner)
+            if det.ok:
+                visit = _Visit("captured", shot.tcp_pose, shot.image, _detection_json(det),
+                               None, None, shot.attempt)
+            elif shot.attempt < ATTEMPTS:
+                return _RETRY
+            else:
+                visit = _Visit("skipped", shot.tcp_pose, shot.image, _detection_json(det),
+                               f"Checkerboard not found: {det.reason}.", "not_detected",
+                               shot.attempt)
+        return _STORED if self._store(shot, visit) else _LOST
+
+    def _wanted(self) -> bool:
+        """True while the service runs and this thread owns the run (worth another try)."""
+        return not self.motion.stopping.is_set() and self._owns()
+
+    def _owns(self) -> bool:
+        with self.db.session() as s:
+            return store.owns_run(s, run_id=self.run_id, token=self.token)
+
+    def _store(self, shot: _Shot, visit: _Visit) -> bool:
+        """Commit one station (image file first) unless the run is no longer ours; True if
+        it was stored."""
+        rel = None
+        if visit.image is not None:
+            rel = Path("runs") / self.run_id / f"{shot.index:03d}-{self.token[:8]}.png"
+            write_png(self.data_dir / rel, visit.image)
+        size = None if visit.image is None else [visit.image.shape[1], visit.image.shape[0]]
+        with self.db.session() as s:
+            if not self._owns():
+                stored = False
+            else:
+                s.add(Station(run_id=self.run_id, index=shot.index, state=visit.state,
+                              target_pose=shot.pose, tcp_pose=visit.tcp_pose,
+                              image_path=None if rel is None else rel.as_posix(),
+                              image_size=size, detection=visit.detection, error=visit.error,
+                              error_code=visit.error_code, attempts=visit.attempts))
+                try:
+                    s.commit()
+                    stored = True
+                except IntegrityError:  # another owner stored this index
+                    s.rollback()
+                    stored = False
+        if not stored:
+            if rel is not None:
+                (self.data_dir / rel).unlink(missing_ok=True)
+            return False
+        event: dict[str, Any] = {"type": "station", "run_id": self.run_id,
+                                 "index": shot.index, "state": visit.state}
+        if visit.error:
+            event["error"] = {"code": visit.error_code, "detail": visit.error}
+        self.events.publish(self.run_id, event)
+        return True

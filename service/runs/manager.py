@@ -1,0 +1,119 @@
+"""Capture runs: create (plan, claim the robot, start the capture thread), pause, cancel,
+resume, and the run's ``state`` event."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy.exc import IntegrityError
+
+from service import store
+from service.errors import ConflictError
+from service.events import EventBus, state_event
+from service.models import Run, new_id
+from service.motion import Motion
+from service.runs.capture import Capture
+from service.runs.planning import check_poses, plan_poses
+from service.schemas import RunCreate
+
+
+class RunManager:
+    """Starts and steers capture runs; the stored run row is the source of truth."""
+
+    def __init__(self, motion: Motion, events: EventBus) -> None:
+        self.motion = motion
+        self.events = events
+        self.settings = motion.settings
+        self.db = motion.db
+
+    def create(self, body: RunCreate) -> Run:
+        """Validate the plan, store the run and start capturing; 409 if the robot is busy."""
+        target = (body.target.model_dump() if body.target is not None
+                  else self.settings.target())
+        setup = self.settings.calibration_setup()
+        if body.poses is not None:
+            poses = check_poses(self.motion, body.poses)
+        else:
+            assert body.stations is not None
+            self.motion.check_free()
+            poses = check_poses(self.motion, plan_poses(self.motion, n=body.stations,
+                                                        target=target, setup=setup))
+        token = new_id()
+        run = Run(robot=self.settings.robot, state="capturing", owner=token, setup=setup,
+                  target=target, poses=poses)
+        with self.motion.claim(), self.db.session() as s:
+            s.add(run)
+            try:
+                s.commit()
+            except IntegrityError:
+                s.rollback()
+                raise self.motion.busy() from None
+        self._start_capture(run.id, token)
+        return run
+
+    def pause(self, run_id: str) -> None:
+        """Stop after the station in progress; idempotent on a paused run."""
+        self._transition(run_id, ("capturing",), "paused", same_ok="paused")
+
+    def cancel(self, run_id: str) -> None:
+        """Give up a run for good; the robot is stopped if this run is moving it."""
+        token = self._transition(run_id, ("capturing", "paused", "interrupted", "failed"),
+                                 "cancelled", same_ok="cancelled")
+        if token is not None:
+            self.motion.stop_if_moving(token)
+
+    def resume(self, run_id: str) -> None:
+        """Continue a paused, interrupted or failed run at its first missing station."""
+        token = new_id()
+        with self.motion.claim(check=False), self.db.session() as s:
+            run = store.get_run(s, run_id=run_id)
+            if run.state == "capturing":
+                return
+            if run.state not in ("paused", "interrupted", "failed"):
+                raise ConflictError(f"Run {run_id} is {run.state}; only a paused, interrupted "
+                                    "or failed run can be resumed.", code="invalid_state")
+            if store.running_validation(s) is not None:
+                raise self.motion.busy()
+            try:
+                changed = store.move_run(s, run_id=run_id, from_state=run.state,
+                                         state="capturing", owner=token, error=None,
+                                         error_code=None)
+            except IntegrityError:
+                s.rollback()
+                raise self.motion.busy() from None
+        if not changed:
+            raise ConflictError(f"Run {run_id} changed state meanwhile; read it and retry.",
+                                code="invalid_state")
+        self._publish_state(run_id)
+        self._start_capture(run_id, token)
+
+    def state_event(self, run_id: str) -> dict[str, Any]:
+        """The run's state and counts as a ``state`` event (404 for an unknown run)."""
+        with self.db.session() as s:
+            return state_event(s, run_id=run_id)
+
+    def _transition(self, run_id: str, sources: tuple[str, ...], target: str, *,
+                    same_ok: str) -> str | None:
+        """Move a run from one of ``sources`` to ``target``; the old owner token."""
+        with self.db.session() as s:
+            run = store.get_run(s, run_id=run_id)
+            if run.state == same_ok:
+                return None
+            if run.state not in sources:
+                raise ConflictError(f"Run {run_id} is {run.state}; it cannot become {target}.",
+                                    code="invalid_state")
+            owner = run.owner
+            changed = store.move_run(s, run_id=run_id, from_state=run.state, state=target,
+                                     owner=None)
+        if not changed:
+            raise ConflictError(f"Run {run_id} changed state meanwhile; read it and retry.",
+                                code="invalid_state")
+        self._publish_state(run_id)
+        return owner
+
+    def _publish_state(self, run_id: str) -> None:
+        self.events.publish(run_id, self.state_event(run_id))
+
+    def _start_capture(self, run_id: str, token: str) -> None:
+        capture = Capture(self.motion, self.events, run_id=run_id, token=token)
+        self.motion.start(token, capture.run, name=f"capture-{run_id[:8]}")

@@ -1,0 +1,80 @@
+"""Where a run goes: stations planned around the board seen from the robot's current pose,
+or poses given by the user, checked against the robot's limits and the workspace box."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from calib.geometry import check_ur_poses, matrix_from_ur_pose, ur_pose_from_matrix
+from calib.planning import camera_view, plan_stations, rough_target_from_image
+from calib.target import detect_checkerboard
+from service.errors import UnprocessableError
+from service.motion import Motion
+
+
+def plan_poses(motion: Motion, *, n: int, target: dict[str, Any],
+               setup: str) -> list[list[float]]:
+    """Plan ``n`` stations around the board as seen from the robot's current pose.
+
+    The board pose comes from one image at the current pose; the hand-eye and the camera
+    from the mock scene or, on a real cell, from the configured rough guesses. The
+    distance band is 0.8 to 1.3 times the current camera-to-board distance.
+    """
+    settings = motion.settings
+    if settings.uses_mock:
+        scene = settings.mock_scene()
+        X, K, dist = scene.hand_eye_matrix, scene.camera.k_matrix, scene.camera.dist_coeffs
+    elif settings.hand_eye_guess is None or settings.focal_px_guess is None:
+        raise UnprocessableError(
+            "Automatic planning on a real cell needs rough guesses: set "
+            "CELLCAL_HAND_EYE_GUESS ([x, y, z, rx, ry, rz]) and CELLCAL_FOCAL_PX_GUESS, or "
+            "give the stations as 'poses'.", code="planning_unavailable")
+    else:
+        X = matrix_from_ur_pose(np.asarray(settings.hand_eye_guess))
+        K, dist = None, None
+    robot, camera = motion.devices.get()
+    with motion.robot_lock:
+        P0 = matrix_from_ur_pose(robot.tcp_pose())
+        image = camera.grab(timeout=settings.grab_timeout_s)
+    h, w = image.shape[:2]
+    if K is None:
+        f = float(settings.focal_px_guess or 0.0)
+        K = np.array([[f, 0.0, w / 2.0], [0.0, f, h / 2.0], [0.0, 0.0, 1.0]])
+    corners = tuple(target["inner_corners"])
+    det = detect_checkerboard(image, corners)
+    if not det.ok:
+        raise UnprocessableError(
+            f"Cannot plan: the board is not in view at the robot's current pose "
+            f"({det.reason}). Move the robot so the camera sees the whole board.",
+            code="planning_failed")
+    try:
+        Y = rough_target_from_image(det.corners, K, corners, target["square_size_m"], P0,
+                                    X, setup=setup, dist=dist)
+        d0 = float(np.linalg.norm(camera_view(P0, X, Y, setup)[:3, 3]))
+        plan = plan_stations(
+            n, start_tcp_pose=P0, target_pose_guess=Y, hand_eye_guess=X, K=K,
+            image_size=(w, h), inner_corners=corners, square_size=target["square_size_m"],
+            distance_band=(0.8 * d0, 1.3 * d0), setup=setup, dist=dist,
+            workspace=(settings.workspace_min, settings.workspace_max))
+    except ValueError as exc:
+        raise UnprocessableError(f"Cannot plan {n} stations: {exc}.",
+                                 code="planning_failed") from None
+    return ur_pose_from_matrix(plan.tcp_poses).tolist()
+
+
+def check_poses(motion: Motion, poses: list[list[float]]) -> list[list[float]]:
+    """Refuse poses that are malformed, implausible or outside the workspace box (422)."""
+    limit = motion.settings.max_stations
+    if len(poses) > limit:
+        raise UnprocessableError(f"{len(poses)} poses; at most {limit} per run.")
+    try:
+        check_ur_poses(np.asarray(poses, dtype=float), "poses")
+    except ValueError as exc:
+        raise UnprocessableError(str(exc), code="invalid_pose") from None
+    for k, pose in enumerate(poses):
+        if (outside := motion.outside_workspace(pose)) is not None:
+            raise UnprocessableError(f"poses[{k}]: {outside}; the run was not started.",
+                                     code="outside_workspace")
+    return [[float(v) for v in pose] for pose in poses]

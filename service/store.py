@@ -1,0 +1,194 @@
+"""Every query the service makes, in one place: lookups (404 written once), listings, counts
+and the conditional updates the capture threads rely on.
+
+Functions take the session first and everything else by keyword, so a run id is never passed
+where a calibration id belongs. Writes commit; reads leave the session as it is. Routers and
+managers call these instead of writing SQL.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy import func, select, update
+from sqlalchemy.orm import Session
+
+from service.errors import NotFoundError
+from service.models import (
+    ACTIVE_RUN_STATES,
+    Calibration,
+    Run,
+    Station,
+    Validation,
+    utcnow,
+)
+
+#: Why a run stopped when the service did (at shutdown, or found so at the next start).
+INTERRUPTED = ("The service stopped while this run was capturing; resume it to continue from "
+               "the next station.")
+
+
+# ---- lookups (404 for unknown ids) ---------------------------------------------------------
+
+
+def get_run(s: Session, *, run_id: str) -> Run:
+    run = s.get(Run, run_id)
+    if run is None:
+        raise NotFoundError(f"No run {run_id}.")
+    return run
+
+
+def get_calibration(s: Session, *, cal_id: str) -> Calibration:
+    cal = s.get(Calibration, cal_id)
+    if cal is None:
+        raise NotFoundError(f"No calibration {cal_id}.")
+    return cal
+
+
+def get_validation(s: Session, *, val_id: str) -> Validation:
+    val = s.get(Validation, val_id)
+    if val is None:
+        raise NotFoundError(f"No validation {val_id}.")
+    return val
+
+
+def get_station(s: Session, *, run_id: str, index: int) -> Station:
+    get_run(s, run_id=run_id)
+    station = s.scalars(select(Station).where(Station.run_id == run_id,
+                                              Station.index == index)).first()
+    if station is None:
+        raise NotFoundError(f"Run {run_id} has no station {index}.")
+    return station
+
+
+# ---- listings ------------------------------------------------------------------------------
+
+
+def list_runs(s: Session, *, limit: int) -> list[Run]:
+    """Runs, newest first."""
+    return list(s.scalars(select(Run).order_by(Run.created_at.desc()).limit(limit)))
+
+
+def list_stations(s: Session, *, run_id: str) -> list[Station]:
+    """The run's stored stations in index order (404 for an unknown run)."""
+    return list(get_run(s, run_id=run_id).stations)
+
+
+def captured_stations(s: Session, *, run_id: str) -> list[Station]:
+    """The run's stations with a usable detection, in index order."""
+    return [st for st in list_stations(s, run_id=run_id) if st.state == "captured"]
+
+
+def stored_indices(s: Session, *, run_id: str) -> set[int]:
+    """Indices of the run's stored stations (captured or skipped)."""
+    return set(s.scalars(select(Station.index).where(Station.run_id == run_id)))
+
+
+def list_calibrations(s: Session, *, run_id: str) -> list[Calibration]:
+    """The run's calibrations, oldest first (404 for an unknown run)."""
+    get_run(s, run_id=run_id)
+    return list(s.scalars(select(Calibration).where(Calibration.run_id == run_id)
+                          .order_by(Calibration.created_at)))
+
+
+def list_validations(s: Session, *, cal_id: str) -> list[Validation]:
+    """The calibration's validations, oldest first (404 for an unknown calibration)."""
+    get_calibration(s, cal_id=cal_id)
+    return list(s.scalars(select(Validation).where(Validation.calibration_id == cal_id)
+                          .order_by(Validation.created_at)))
+
+
+# ---- counts --------------------------------------------------------------------------------
+
+
+def run_counts(s: Session, *, run: Run) -> dict[str, int]:
+    """Stations planned, captured and skipped, counted in SQL (never loading the stations with
+    their corners, so polling stays fast on long runs)."""
+    by_state = dict(s.execute(
+        select(Station.state, func.count()).where(Station.run_id == run.id)
+        .group_by(Station.state)).all())
+    captured = by_state.get("captured", 0)
+    return {"stations_planned": len(run.poses), "stations_captured": captured,
+            "stations_skipped": sum(by_state.values()) - captured}
+
+
+def station_errors(s: Session, *, run_id: str) -> list[tuple[int, str | None, str]]:
+    """``(index, code, detail)`` of the run's stations that have an error, in index order."""
+    return [(i, code, detail) for i, code, detail in s.execute(
+        select(Station.index, Station.error_code, Station.error)
+        .where(Station.run_id == run_id, Station.error.is_not(None))
+        .order_by(Station.index)).all()]
+
+
+# ---- who has the robot ---------------------------------------------------------------------
+
+
+def running_validation(s: Session) -> str | None:
+    """The id of a validation moving the robot, if any."""
+    return s.scalars(select(Validation.id).where(Validation.state == "running")).first()
+
+
+def active_run(s: Session, *, robot: str) -> str | None:
+    """The id of the robot's capturing or paused run, if any."""
+    return s.scalars(select(Run.id).where(Run.robot == robot,
+                                          Run.state.in_(ACTIVE_RUN_STATES))).first()
+
+
+def owns_run(s: Session, *, run_id: str, token: str) -> bool:
+    """True while the capture thread ``token`` owns the run and it is capturing."""
+    return s.scalar(select(func.count()).select_from(Run).where(
+        Run.id == run_id, Run.owner == token, Run.state == "capturing")) == 1
+
+
+# ---- conditional updates -------------------------------------------------------------------
+
+
+def move_run(s: Session, *, run_id: str, from_state: str, **values: Any) -> bool:
+    """Set ``values`` on the run if it is still in ``from_state``; True if it changed."""
+    changed = s.execute(update(Run).where(Run.id == run_id, Run.state == from_state)
+                        .values(**values)).rowcount
+    s.commit()
+    return bool(changed)
+
+
+def finish_run(s: Session, *, run_id: str, token: str, state: str, error: str | None,
+               code: str | None) -> bool:
+    """End the run in ``state`` if thread ``token`` still owns it; True if it did."""
+    changed = s.execute(
+        update(Run).where(Run.id == run_id, Run.owner == token, Run.state == "capturing")
+        .values(state=state, owner=None, error=error, error_code=code)).rowcount
+    s.commit()
+    return bool(changed)
+
+
+def finish_calibration(s: Session, *, cal_id: str, **values: Any) -> None:
+    """Store a calibration's outcome (``state``, ``result`` or ``error``)."""
+    s.execute(update(Calibration).where(Calibration.id == cal_id)
+              .values(finished_at=utcnow(), **values))
+    s.commit()
+
+
+def finish_validation(s: Session, *, val_id: str, **values: Any) -> None:
+    """Store a validation's outcome (``state``, ``result`` or ``error``)."""
+    s.execute(update(Validation).where(Validation.id == val_id)
+              .values(finished_at=utcnow(), **values))
+    s.commit()
+
+
+def recover(s: Session) -> tuple[int, int, int]:
+    """After a restart: runs left capturing become interrupted, calibrations and validations
+    in flight failed; how many of each."""
+    runs = s.execute(
+        update(Run).where(Run.state == "capturing")
+        .values(state="interrupted", owner=None, error_code="interrupted",
+                error=INTERRUPTED)).rowcount
+    cals = s.execute(
+        update(Calibration).where(Calibration.state == "running")
+        .values(state="failed", finished_at=utcnow(),
+                error="The service stopped during the computation; start it again.")).rowcount
+    vals = s.execute(
+        update(Validation).where(Validation.state == "running")
+        .values(state="failed", finished_at=utcnow(),
+                error="The service stopped during the validation; start it again.")).rowcount
+    s.commit()
+    return runs, cals, vals

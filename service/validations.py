@@ -1,0 +1,201 @@
+"""Validations of a calibration: the dot-hit run (SM eq. 24) checked, started and recorded.
+
+A dot-hit request is checked against the calibration's result document (``dot_hit_plan``),
+the robot is claimed (``service.motion``), and a thread observes the board from where the
+robot stands, touches the requested points (``service.validation_run``) and stores the report.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from calib.geometry import (
+    check_ur_poses,
+    make_transform,
+    matrix_from_ur_pose,
+    rotation_angle,
+    ur_pose_from_matrix,
+)
+from calib.target import Detection, board_points, detect_checkerboard
+from drivers.base import Robot
+from drivers.errors import DeviceError, RobotConnectionError
+from service import store
+from service.errors import ConflictError, ServiceError, UnprocessableError
+from service.models import Validation
+from service.motion import Motion
+from service.schemas import ValidationCreate
+from service.validation_run import GroundTruth, probe_points, run_dot_hit
+
+log = logging.getLogger("cellcal.service")
+
+
+class Validations:
+    """Starts dot-hit runs on the robot and records their reports."""
+
+    def __init__(self, motion: Motion) -> None:
+        self.motion = motion
+        self.settings = motion.settings
+        self.db = motion.db
+
+    def start(self, cal_id: str, body: ValidationCreate) -> Validation:
+        """Check the request, claim the robot and start the dot-hit run in a thread."""
+        with self.db.session() as s:
+            cal = store.get_calibration(s, cal_id=cal_id)
+            if cal.state != "done":
+                raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished "
+                                    "calibration can be validated.", code="invalid_state")
+            run = store.get_run(s, run_id=cal.run_id)
+            robot_url, target, result = run.robot, run.target, cal.result
+        if robot_url != self.settings.robot:
+            raise UnprocessableError(f"Calibration {cal_id} was captured with robot "
+                                     f"{robot_url}; this service drives {self.settings.robot}.",
+                                     code="other_robot")
+        plan = dot_hit_plan(result or {}, target, body)
+        with self.motion.claim(), self.db.session() as s:
+            val = Validation(calibration_id=cal_id, kind="dot_hit", state="running")
+            s.add(val)
+            s.commit()
+        self.motion.start(val.id, self._validate, val.id, plan,
+                          name=f"validate-{val.id[:8]}")
+        return val
+
+    def _validate(self, val_id: str, plan: DotHitPlan) -> None:
+        """The validation thread: observe the board, touch the points, store the report."""
+        values: dict[str, Any] = {"state": "failed"}
+        try:
+            with self.motion.robot_lock:
+                values.update(state="done", result=self._dot_hit(plan))
+        except (DeviceError, ServiceError, ValueError) as exc:
+            if isinstance(exc, RobotConnectionError):
+                self.motion.devices.reset()
+            values["error"] = ("The service stopped during the validation; start it again."
+                               if self.motion.stopping.is_set() else str(exc))
+        except Exception as exc:
+            log.exception("validation %s", val_id)
+            values["error"] = f"Internal error ({type(exc).__name__}: {exc})."
+        with self.db.session() as s:
+            store.finish_validation(s, val_id=val_id, **values)
+
+    def _dot_hit(self, plan: DotHitPlan) -> dict[str, Any]:
+        """Observe the board from where the robot stands (eq. 24 needs a current view), then
+        touch each point; the report document."""
+        robot, camera = self.motion.devices.get()
+        tcp_pose = robot.tcp_pose()
+        image = camera.grab(timeout=self.settings.grab_timeout_s)
+        det = detect_checkerboard(image, plan.inner_corners)
+        if not det.ok:
+            raise UnprocessableError(
+                f"The board is not in view at the robot's current pose ({det.reason}); move "
+                "the robot so the camera sees the whole board, then validate again.",
+                code="board_not_visible")
+        P = matrix_from_ur_pose(tcp_pose)
+        C, rms_px = plan.observe(det, P)
+        truth = self._ground_truth(robot, plan)
+        report = run_dot_hit(robot, plan.points, setup=plan.setup, hand_eye=plan.hand_eye,
+                             tcp_T_probe=plan.probe, observation=(P, C),
+                             workspace_check=self.motion.check_workspace, ground_truth=truth)
+        return {"kind": "dot_hit", "probe": ur_pose_from_matrix(plan.probe).tolist(),
+                "observation": {"tcp_pose": [float(v) for v in tcp_pose],
+                                "cam_T_target": ur_pose_from_matrix(C).tolist(),
+                                "rms_px": rms_px},
+                "ground_truth": None if truth is None else "mock scene",
+                **report.to_json()}
+
+    def _ground_truth(self, robot: Robot, plan: DotHitPlan) -> GroundTruth | None:
+        """The mock cell's truth: its board through the true target pose, the robot's true pose.
+
+        The points are given on the calibration's (κ, ν-scaled) grid; the scale to the true
+        grid is folded into ``board_pose`` so each point maps to its true corner.
+        """
+        if not self.settings.uses_mock or not hasattr(robot, "true_pose"):
+            return None
+        scene = self.settings.mock_scene()
+        t = scene.target
+        s = t.square_size_m * t.kappa / (plan.square_size * plan.kappa)
+        scale = np.diag([s * t.nu / plan.nu, s, 1.0, 1.0])
+        return GroundTruth(board_pose=scene.target_pose_matrix @ scale,
+                           tcp_pose=lambda: robot.true_pose)  # type: ignore[attr-defined]
+
+
+@dataclass(frozen=True)
+class DotHitPlan:
+    """A checked dot-hit request with the calibration it tests (arrays in metres)."""
+
+    setup: str
+    K: np.ndarray  # shape (3, 3)
+    dist: np.ndarray  # shape (n,)
+    hand_eye: np.ndarray  # shape (4, 4)
+    target_pose: np.ndarray  # shape (4, 4)
+    inner_corners: tuple[int, int]
+    square_size: float
+    kappa: float
+    nu: float
+    probe: np.ndarray  # shape (4, 4), tcp_T_probe
+    points: dict[str, np.ndarray]  # id -> shape (3,), (κ, ν-scaled) target frame
+
+    def observe(self, det: Detection, T_base_tcp: np.ndarray) -> tuple[np.ndarray, float]:
+        """cam_T_target (4, 4) at true scale by PnP on the κ, ν-scaled board, and its RMS (px).
+
+        A symmetric board's origin is taken at the end that agrees with the calibration's
+        target pose.
+        """
+        grid = board_points(self.inner_corners, self.square_size, kappa=self.kappa, nu=self.nu)
+        assert det.corners is not None
+        best: tuple[float, np.ndarray, np.ndarray] | None = None
+        for corners in ([det.corners, det.corners[::-1]] if det.ambiguous else [det.corners]):
+            ok, rvec, tvec = cv2.solvePnP(grid, corners, self.K, self.dist)
+            if not ok:
+                continue
+            C = make_transform(cv2.Rodrigues(rvec)[0], tvec.ravel())
+            board = T_base_tcp @ self.hand_eye @ C
+            miss = float(rotation_angle(board[:3, :3].T @ self.target_pose[:3, :3]))
+            if best is None or miss < best[0]:
+                uv = cv2.projectPoints(grid, rvec, tvec, self.K, self.dist)[0].reshape(-1, 2)
+                best = (miss, C, uv - corners)
+        if best is None:
+            raise UnprocessableError("PnP failed on the board seen at the robot's current "
+                                     "pose.", code="board_not_visible")
+        return best[1], float(np.sqrt(np.mean(np.sum(best[2] ** 2, axis=1))))
+
+
+def dot_hit_plan(result: dict[str, Any], target: dict[str, Any],
+                 body: ValidationCreate) -> DotHitPlan:
+    """Check a dot-hit request against a result document and the run's board (422 if not)."""
+    if result.get("setup") != "eye_in_hand":
+        raise UnprocessableError(
+            "The dot-hit validation probes the calibration board, which an eye-to-hand cell "
+            "carries on the tool; it is available for eye-in-hand calibrations only.",
+            code="unsupported_setup")
+    camera, hand_eye = result.get("camera"), result.get("hand_eye")
+    if not camera or not hand_eye or not result.get("target_pose"):
+        raise UnprocessableError("The dot-hit validation needs a camera model and a hand-eye "
+                                 "in the result.", code="incomplete_result")
+    try:
+        probe = check_ur_poses(np.asarray(body.probe, dtype=float), "probe")[0]
+    except ValueError as exc:
+        raise UnprocessableError(str(exc), code="invalid_probe") from None
+    if np.linalg.norm(probe[:3, 3]) > 1.0:
+        raise UnprocessableError(f"probe: the tip is {np.linalg.norm(probe[:3, 3]):.3g} m from "
+                                 "the TCP, more than 1 m: give metres.", code="invalid_probe")
+    kappa, nu = float(result["target"]["kappa"]), float(result["target"]["nu"])
+    corners = (int(target["inner_corners"][0]), int(target["inner_corners"][1]))
+    square = float(target["square_size_m"])
+    points = probe_points(corners, square, kappa=kappa, nu=nu)
+    if body.points is not None:
+        unknown = [p for p in body.points if p not in points]
+        if unknown:
+            raise UnprocessableError(f"points: unknown id {unknown[0]!r}; choose from "
+                                     f"{', '.join(points)}.", code="unknown_point")
+        points = {p: points[p] for p in dict.fromkeys(body.points)}
+    return DotHitPlan(
+        setup="eye_in_hand", K=np.asarray(camera["K"], dtype=float),
+        dist=np.asarray(camera["dist"], dtype=float),
+        hand_eye=np.asarray(hand_eye["matrix"], dtype=float),
+        target_pose=np.asarray(result["target_pose"]["matrix"], dtype=float),
+        inner_corners=corners, square_size=square, kappa=kappa, nu=nu, probe=probe,
+        points=points)
