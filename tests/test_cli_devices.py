@@ -66,7 +66,7 @@ def test_robot_move_errors(capsys, argv: list[str], message: str, exit_code: int
 def test_robot_move_in_degrees_is_refused_before_the_robot_is_touched(
         capsys, monkeypatch: pytest.MonkeyPatch) -> None:
     opened = []
-    monkeypatch.setattr("service.cli_devices.open_robot", lambda *a, **k: opened.append(a))
+    monkeypatch.setattr("service.cli.devices.open_robot", lambda *a, **k: opened.append(a))
     code, out, err = run(capsys, "robot", "move", "--robot", "mock://",
                          "--pose=0.6,-0.05,0.55,177.6,11.5,0")
     assert (code, out, opened) == (2, "", [])
