@@ -32,6 +32,9 @@ MIN_STATIONS = 3
 MIN_MOTION_ROTATION_DEG = 2.0
 #: All rotation axes within this angle of each other cannot fix the solution.
 MIN_AXIS_SPREAD_DEG = 2.0
+#: Largest number of motion pairs formed: all pairs of up to 200 stations, a spread subset
+#: beyond (memory and time stay bounded for any station count).
+MAX_MOTION_PAIRS = 19_900
 DEFAULT_ROBOT_NOISE_ROT_RAD = np.deg2rad(0.05)
 DEFAULT_ROBOT_NOISE_TRANS_M = 0.25e-3
 
@@ -77,16 +80,40 @@ def robot_chain(T_base_tcp: np.ndarray, setup: str) -> np.ndarray:
     return T_base_tcp if setup == "eye_in_hand" else invert(T_base_tcp)
 
 
+def spread_pairs(n: int, max_pairs: int = MAX_MOTION_PAIRS) -> tuple[np.ndarray, np.ndarray]:
+    """Station index pairs ``(i, j)``, ``i < j``: all of them, or a spread set of ``max_pairs``.
+
+    Beyond ``max_pairs`` every station (evenly spaced ones if there are more stations than
+    pairs) is paired ``max_pairs // n`` times with a partner drawn uniformly from the others,
+    with a fixed seed so a result is reproducible. Every station enters, partners are near and
+    far alike (capture order often follows a path, so neighbours differ little), and memory and
+    time stay bounded for any ``n``.
+
+    Returns
+    -------
+    i, j : shape (m,), int, ``m <= max_pairs``.
+    """
+    if n * (n - 1) // 2 <= max_pairs:
+        return np.triu_indices(n, 1)
+    first = np.tile(np.arange(n), max(1, max_pairs // n))
+    if len(first) > max_pairs:
+        first = np.linspace(0, n - 1, max_pairs).astype(int)
+    other = (first + np.random.default_rng(0).integers(1, n, len(first))) % n
+    pair = np.unique(np.minimum(first, other) * n + np.maximum(first, other))
+    return pair // n, pair % n
+
+
 def station_motions(P: np.ndarray, C: np.ndarray, *,
-                    min_rotation_deg: float = MIN_MOTION_ROTATION_DEG) -> Motions:
-    """All station pairs whose rotation defines a screw axis.
+                    min_rotation_deg: float = MIN_MOTION_ROTATION_DEG,
+                    max_pairs: int = MAX_MOTION_PAIRS) -> Motions:
+    """Station pairs (``spread_pairs``: all up to 200 stations) whose rotation defines a screw axis.
 
     A pair is used when both its robot and camera rotation angles lie in ``(m, 180 deg - m)``
     with ``m = max(min_rotation_deg, 5 x the angle noise)``; the angle noise is estimated from
     the disagreement of the two angles, which are equal for exact data. Near 0 the screw axis
     is undefined; near 180 deg noise can flip the axis of one of the two rotations.
     """
-    i, j = np.triu_indices(P.shape[0], 1)
+    i, j = spread_pairs(P.shape[0], max_pairs)
     A = invert(P[i]) @ P[j]
     B = C[i] @ invert(C[j])
     ang_a, ang_b = rotation_angle(A[:, :3, :3]), rotation_angle(B[:, :3, :3])

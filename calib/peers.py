@@ -20,6 +20,9 @@ HAND_EYE_METHODS = {
     "andreff": cv2.CALIB_HAND_EYE_ANDREFF,
     "daniilidis": cv2.CALIB_HAND_EYE_DANIILIDIS,
 }
+#: OpenCV's hand-eye methods form every station pair (memory ~ n^2): larger sets are solved on
+#: this many evenly spread stations (200 stations = 19,900 pairs).
+MAX_PEER_STATIONS = 200
 ROBOT_WORLD_METHODS = {
     "shah": cv2.CALIB_ROBOT_WORLD_HAND_EYE_SHAH,
     "li": cv2.CALIB_ROBOT_WORLD_HAND_EYE_LI,
@@ -34,7 +37,12 @@ def solve_opencv(P: np.ndarray, C: np.ndarray, method: str) -> tuple[np.ndarray,
     P : shape (n, 4, 4), robot chain poses (base_T_tcp for eye-in-hand).
     C : shape (n, 4, 4), camera observations cam_T_target.
     method : a key of ``HAND_EYE_METHODS`` or ``ROBOT_WORLD_METHODS``.
+
+    At most ``MAX_PEER_STATIONS`` stations, evenly spread over the set, are passed on.
     """
+    if len(P) > MAX_PEER_STATIONS:
+        keep = np.unique(np.linspace(0, len(P) - 1, MAX_PEER_STATIONS).astype(int))
+        P, C = P[keep], C[keep]
     if method in HAND_EYE_METHODS:
         R, t = cv2.calibrateHandEye(
             list(P[:, :3, :3]), list(P[:, :3, 3:]), list(C[:, :3, :3]), list(C[:, :3, 3:]),
