@@ -31,6 +31,7 @@ from service.errors import (
     ServiceError,
     UnprocessableError,
 )
+from service.guard import PayloadTooLargeError, RequestGuard
 from service.results import software_version
 from service.runtime import Runtime
 from service.settings import Settings
@@ -42,6 +43,7 @@ ERROR_STATUS: dict[type[Exception], int] = {
     AuthError: 401,
     NotFoundError: 404,
     ConflictError: 409,
+    PayloadTooLargeError: 413,
     UnprocessableError: 422,
     WorkspaceError: 422,
     DeviceError: 503,
@@ -82,6 +84,8 @@ def create_app(settings: Settings | None = None, *,
         app.add_exception_handler(exc_type, _domain_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.add_middleware(RequestGuard, api_key=settings.api_key,
+                       max_body_bytes=settings.max_body_bytes, refuse=error_response)
     return app
 
 
@@ -99,10 +103,14 @@ def _error(status: int, detail: str, code: str, **extra: Any) -> JSONResponse:
                         headers=headers)
 
 
-async def _domain_error(request: Request, exc: Exception) -> JSONResponse:
+def error_response(exc: Exception) -> JSONResponse:
+    """The JSON error response of a domain error (``ERROR_STATUS``)."""
     status = next(ERROR_STATUS[c] for c in type(exc).__mro__ if c in ERROR_STATUS)
-    code = getattr(exc, "code", "error")
-    return _error(status, str(exc), code)
+    return _error(status, str(exc), getattr(exc, "code", "error"))
+
+
+async def _domain_error(request: Request, exc: Exception) -> JSONResponse:
+    return error_response(exc)
 
 
 async def _validation_error(request: Request, exc: Exception) -> JSONResponse:

@@ -67,6 +67,9 @@ class Settings(BaseSettings):
     focal_px_guess: Annotated[float, Field(gt=0.0)] | None = Field(
         None, description="rough focal length in pixels for automatic planning on a real cell")
     max_stations: Annotated[int, Field(ge=3, le=10000)] = 500
+    max_body_bytes: Annotated[int, Field(ge=1024)] = Field(
+        4 * 2**20, description="largest request body, bytes (413 beyond); checked before the "
+                               "body is read")
     settle_timeout_s: Annotated[float, Field(gt=0.0)] = 5.0
     grab_timeout_s: Annotated[float, Field(gt=0.0)] = 2.0
     move_speed: Annotated[float, Field(gt=0.0, le=1.0)] = 0.25

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import secrets
 from collections.abc import Iterator
 from typing import Annotated
 
@@ -13,7 +12,7 @@ from sqlalchemy.orm import Session
 
 from service.calibrations import Calibrations
 from service.devices import Devices
-from service.errors import AuthError
+from service.guard import check_api_key
 from service.runs import RunManager
 from service.settings import Settings
 from service.validations import Validations
@@ -57,12 +56,9 @@ DevicesDep = Annotated[Devices, Depends(get_devices)]
 def require_api_key(settings: SettingsDep,
                     credentials: Annotated[HTTPAuthorizationCredentials | None,
                                            Depends(_bearer)]) -> None:
-    """Accept only ``Authorization: Bearer <CELLCAL_API_KEY>`` (401 otherwise)."""
-    if settings.api_key is None:
-        raise AuthError("This service has no API key configured; set CELLCAL_API_KEY and "
-                        "restart it.", code="no_api_key")
-    if credentials is None:
-        raise AuthError("Missing credentials: send 'Authorization: Bearer <CELLCAL_API_KEY>'.")
-    expected = settings.api_key.get_secret_value().encode()
-    if not secrets.compare_digest(credentials.credentials.encode(), expected):
-        raise AuthError("Invalid API key.", code="invalid_api_key")
+    """Accept only ``Authorization: Bearer <CELLCAL_API_KEY>`` (401 otherwise).
+
+    ``service.guard.RequestGuard`` already checked it before the body was read; this
+    dependency declares the scheme in the OpenAPI document and guards apps built without it.
+    """
+    check_api_key(settings.api_key, None if credentials is None else credentials.credentials)
