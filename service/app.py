@@ -21,7 +21,15 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from drivers.errors import DeviceError, WorkspaceError
-from service.api import calibrations, devices, health, runs, stations, validations
+from service.api import (
+    calibrations,
+    devices,
+    health,
+    registry,
+    runs,
+    stations,
+    validations,
+)
 from service.api.deps import require_api_key
 from service.devices import DeviceOpener, Devices
 from service.errors import (
@@ -78,7 +86,8 @@ def create_app(settings: Settings | None = None, *,
                     "radians; poses are UR vectors [x, y, z, rx, ry, rz] (base_T_tcp).")
     app.state.settings = settings
     app.include_router(health.router)
-    for module in (runs, stations, calibrations, validations, devices):
+    # registry before calibrations: /calibrations/active is not a calibration id
+    for module in (runs, stations, registry, calibrations, validations, devices):
         app.include_router(module.router, dependencies=[Depends(require_api_key)])
     for exc_type in (ServiceError, DeviceError):
         app.add_exception_handler(exc_type, _domain_error)

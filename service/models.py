@@ -1,4 +1,5 @@
-"""Stored state (SQLAlchemy 2 ORM): capture runs, their stations, calibrations, validations.
+"""Stored state (SQLAlchemy 2 ORM): capture runs, their stations, calibrations, which
+calibration is active, validations.
 
 Images live as PNG files under the data directory; rows hold their paths relative to it.
 Two constraints carry the service's guarantees, so they hold across threads, processes and
@@ -130,6 +131,21 @@ class Calibration(Base):
     error: Mapped[str | None] = mapped_column(Text)
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
     finished_at: Mapped[dt.datetime | None]
+
+
+class Activation(Base):
+    """A calibration made the robot cell's current one at ``activated_at``; it stays current
+    until the robot's next activation, so the rows are the history of what was active when."""
+
+    __tablename__ = "activations"
+    __table_args__ = (Index("ix_activations_robot_id", "robot", "id"),)
+
+    #: Increasing, so activations at the same instant keep the order they were made in.
+    id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
+    robot: Mapped[str] = mapped_column(String(255))
+    calibration_id: Mapped[str] = mapped_column(
+        ForeignKey("calibrations.id", ondelete="CASCADE"), index=True)
+    activated_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
 
 
 class Validation(Base):

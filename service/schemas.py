@@ -189,3 +189,56 @@ class DevicesPublic(BaseModel):
 class Health(BaseModel):
     status: Literal["ok"] = "ok"
     version: str
+
+
+class CalibrationQuery(BaseModel):
+    """Filters and the page of ``GET /calibrations``."""
+
+    run_id: str | None = Field(None, description="only this run's")
+    state: Literal["running", "done", "failed"] | None = None
+    setup: Literal["eye_in_hand", "eye_to_hand"] | None = None
+    limit: int = Field(50, ge=1, le=200)
+    offset: int = Field(0, ge=0)
+
+
+class CalibrationSummary(BaseModel):
+    """A calibration in a listing: what tells calibrations apart, without the result."""
+
+    id: str
+    run_id: str
+    setup: str
+    robot: str
+    state: Literal["running", "done", "failed"]
+    method: str | None = Field(description="the solver asked for")
+    rms_px: float | None = Field(description="RMS reprojection error; None without camera model")
+    active: bool = Field(description="the robot cell's current calibration")
+    error: str | None
+    created_at: dt.datetime
+    finished_at: dt.datetime | None
+
+
+class CalibrationPage(BaseModel):
+    """One page of a listing, newest first; ``next_offset`` is None on the last page."""
+
+    items: list[CalibrationSummary]
+    total: int = Field(description="how many match the filters in all")
+    limit: int
+    offset: int
+    next_offset: int | None
+
+
+class ActivationPublic(BaseModel):
+    """One period in which a calibration was the robot cell's current one."""
+
+    calibration_id: str
+    active_from: dt.datetime
+    active_until: dt.datetime | None = Field(description="None while it is still active")
+
+
+class ActiveCalibration(BaseModel):
+    """The calibration a cell controller should use now, and what was active when."""
+
+    robot: str
+    activated_at: dt.datetime
+    calibration: CalibrationPublic
+    history: list[ActivationPublic] = Field(description="newest first, the current one first")

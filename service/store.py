@@ -8,14 +8,16 @@ managers call these instead of writing SQL.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 from sqlalchemy import func, select, update
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, defer
 
 from service.errors import NotFoundError
 from service.models import (
     ACTIVE_RUN_STATES,
+    Activation,
     Calibration,
     Run,
     Station,
@@ -96,6 +98,61 @@ def list_validations(s: Session, *, cal_id: str) -> list[Validation]:
     get_calibration(s, cal_id=cal_id)
     return list(s.scalars(select(Validation).where(Validation.calibration_id == cal_id)
                           .order_by(Validation.created_at)))
+
+
+@dataclass(frozen=True)
+class CalibrationFilter:
+    """Which calibrations ``GET /calibrations`` lists (None: any)."""
+
+    run_id: str | None = None
+    state: str | None = None
+    setup: str | None = None
+
+
+#: A listed calibration: the row without its result document, its run's setup and robot, and
+#: the calibration's RMS reprojection error (px; None for pose-only results).
+CalibrationRow = tuple[Calibration, str, str, float | None]
+
+
+def page_calibrations(s: Session, *, where: CalibrationFilter, limit: int,
+                      offset: int) -> tuple[list[CalibrationRow], int]:
+    """One page of calibrations, newest first, and how many match in all. The result
+    documents stay in the database (only their RMS error is read), so pages stay small."""
+    query = select(Calibration, Run.setup, Run.robot,
+                   Calibration.result[("camera", "rms_px")].as_float()) \
+        .join(Run, Run.id == Calibration.run_id).options(defer(Calibration.result))
+    for column, value in ((Calibration.run_id, where.run_id), (Calibration.state, where.state),
+                          (Run.setup, where.setup)):
+        if value is not None:
+            query = query.where(column == value)
+    total = s.scalar(select(func.count()).select_from(query.subquery())) or 0
+    rows = s.execute(query.order_by(Calibration.created_at.desc(), Calibration.id)
+                     .limit(limit).offset(offset)).all()
+    return [(cal, setup, robot, rms) for cal, setup, robot, rms in rows], total
+
+
+# ---- which calibration is active -----------------------------------------------------------
+
+
+def activate(s: Session, *, cal_id: str, robot: str) -> Activation:
+    """Make the calibration the robot cell's current one (a new history row)."""
+    row = Activation(robot=robot, calibration_id=cal_id)
+    s.add(row)
+    s.commit()
+    return row
+
+
+def activations(s: Session, *, robot: str, limit: int | None = None) -> list[Activation]:
+    """The robot cell's activations, newest first (the first one is the current one)."""
+    query = select(Activation).where(Activation.robot == robot).order_by(Activation.id.desc())
+    return list(s.scalars(query if limit is None else query.limit(limit)))
+
+
+def active_calibration_ids(s: Session, *, robots: list[str]) -> set[str]:
+    """Ids of the calibrations currently active on any of ``robots``."""
+    latest = select(func.max(Activation.id)).where(Activation.robot.in_(robots)) \
+        .group_by(Activation.robot)
+    return set(s.scalars(select(Activation.calibration_id).where(Activation.id.in_(latest))))
 
 
 # ---- counts --------------------------------------------------------------------------------

@@ -1,0 +1,64 @@
+"""The calibration registry: list calibrations, make one the cell's current one, read the
+current one with the history of what was active when."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Query
+
+from service import registry, store
+from service.api.calibrations import calibration_public
+from service.api.deps import SessionDep, SettingsDep
+from service.schemas import (
+    ActiveCalibration,
+    CalibrationPage,
+    CalibrationQuery,
+    CalibrationSummary,
+)
+
+router = APIRouter(prefix="/calibrations", tags=["calibrations"])
+
+
+@router.get("")
+def list_calibrations(session: SessionDep,
+                      query: Annotated[CalibrationQuery, Query()]) -> CalibrationPage:
+    """Calibrations, newest first, a page at a time (summaries: read one for its result)."""
+    rows, total = store.page_calibrations(
+        session, where=store.CalibrationFilter(run_id=query.run_id, state=query.state,
+                                               setup=query.setup),
+        limit=query.limit, offset=query.offset)
+    active = store.active_calibration_ids(session, robots=sorted({r[2] for r in rows}))
+    items = [CalibrationSummary(
+        id=cal.id, run_id=cal.run_id, setup=setup, robot=robot, state=cal.state,
+        method=cal.options.get("method"), rms_px=rms, active=cal.id in active, error=cal.error,
+        created_at=cal.created_at, finished_at=cal.finished_at)
+        for cal, setup, robot, rms in rows]
+    end = query.offset + len(items)
+    return CalibrationPage(items=items, total=total, limit=query.limit, offset=query.offset,
+                           next_offset=end if end < total else None)
+
+
+@router.get("/active", responses={404: {"description": "no calibration was activated"}})
+def get_active(session: SessionDep, settings: SettingsDep,
+               robot: Annotated[str | None, Query(
+                   description="robot URL; default: this service's robot")] = None,
+               history: Annotated[int, Query(ge=1, le=500)] = 50) -> ActiveCalibration:
+    """The calibration a cell controller should use now, and what was active when."""
+    return _active(session, robot=robot or settings.robot, history=history)
+
+
+@router.post("/{cal_id}/activate", responses={
+    404: {"description": "no such calibration"},
+    409: {"description": "the calibration is running or failed"}})
+def activate(cal_id: str, session: SessionDep,
+             history: Annotated[int, Query(ge=1, le=500)] = 50) -> ActiveCalibration:
+    """Make a finished calibration the current one of its run's robot (idempotent)."""
+    return _active(session, robot=registry.activate(session, cal_id=cal_id), history=history)
+
+
+def _active(session: SessionDep, *, robot: str, history: int) -> ActiveCalibration:
+    now, periods = registry.current(session, robot=robot, history=history)
+    cal = store.get_calibration(session, cal_id=now.calibration_id)
+    return ActiveCalibration(robot=robot, activated_at=now.activated_at,
+                             calibration=calibration_public(cal), history=periods)

@@ -1,0 +1,181 @@
+"""The calibration registry: ``GET /calibrations`` (filters, newest first, pages),
+``POST /calibrations/{id}/activate`` and ``GET /calibrations/active`` with its history.
+
+Runs and calibrations are written straight into the database (solves are tested elsewhere),
+with creation times set, so the order is known.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.app import create_app
+from service.models import Calibration, Run
+from tests.test_exports import full_result, pose_only_result
+from tests.test_service_api import AUTH, settings
+
+pytestmark = pytest.mark.timeout(20)
+
+T0 = dt.datetime(2026, 1, 5, 8, 0, tzinfo=dt.UTC)
+
+
+@pytest.fixture
+def client(tmp_path: Path) -> Iterator[TestClient]:
+    with TestClient(create_app(settings(tmp_path))) as c:
+        c.headers.update(AUTH)
+        yield c
+
+
+def add_run(client: TestClient, *, setup: str = "eye_in_hand", robot: str = "mock://") -> str:
+    run = Run(robot=robot, state="done", setup=setup,
+              target={"inner_corners": [11, 8], "square_size_m": 0.03}, poses=[])
+    with client.app.state.db.session() as s:
+        s.add(run)
+        s.commit()
+    return run.id
+
+
+def add_calibration(client: TestClient, run_id: str, *, minute: int, state: str = "done",
+                    **columns: Any) -> str:
+    """A calibration of ``run_id`` created ``minute`` minutes after T0 (a joint solve with
+    ``full_result`` unless ``columns`` say otherwise); its id."""
+    values = {"options": {"method": "joint"}, "error": "boom" if state == "failed" else None,
+              "result": full_result() if state == "done" else None, **columns}
+    cal = Calibration(run_id=run_id, state=state, created_at=T0 + dt.timedelta(minutes=minute),
+                      **values)
+    with client.app.state.db.session() as s:
+        s.add(cal)
+        s.commit()
+    return cal.id
+
+
+def ids(page: dict[str, Any]) -> list[str]:
+    return [item["id"] for item in page["items"]]
+
+
+def test_listing_is_newest_first_with_summaries(client: TestClient) -> None:
+    run_id = add_run(client)
+    old = add_calibration(client, run_id, minute=1, result=pose_only_result(),
+                          options={"method": "sm"})
+    new = add_calibration(client, run_id, minute=2)
+    running = add_calibration(client, run_id, minute=3, state="running")
+    page = client.get("/calibrations").json()
+    assert ids(page) == [running, new, old]
+    assert (page["total"], page["offset"], page["next_offset"]) == (3, 0, None)
+    by_id = {item["id"]: item for item in page["items"]}
+    assert by_id[new]["rms_px"] == pytest.approx(0.05)
+    assert by_id[old]["rms_px"] is None  # pose-only: no camera model
+    assert (by_id[old]["method"], by_id[new]["method"]) == ("sm", "joint")
+    assert by_id[new]["setup"] == "eye_in_hand" and by_id[new]["robot"] == "mock://"
+    assert "result" not in by_id[new]
+    assert not any(item["active"] for item in page["items"])
+
+
+def test_filters_by_run_state_and_setup(client: TestClient) -> None:
+    hand, fixed = add_run(client), add_run(client, setup="eye_to_hand")
+    a = add_calibration(client, hand, minute=1)
+    b = add_calibration(client, hand, minute=2, state="failed")
+    c = add_calibration(client, fixed, minute=3, result=full_result(setup="eye_to_hand"))
+    assert ids(client.get("/calibrations", params={"run_id": hand}).json()) == [b, a]
+    assert ids(client.get("/calibrations", params={"state": "done"}).json()) == [c, a]
+    assert ids(client.get("/calibrations", params={"setup": "eye_to_hand"}).json()) == [c]
+    both = client.get("/calibrations", params={"run_id": hand, "state": "failed"}).json()
+    assert ids(both) == [b] and both["total"] == 1
+    assert client.get("/calibrations", params={"run_id": "nope"}).json()["total"] == 0
+
+
+def test_pages_cover_every_calibration_once(client: TestClient) -> None:
+    run_id = add_run(client)
+    made = [add_calibration(client, run_id, minute=m) for m in range(7)]
+    seen, offset = [], 0
+    while offset is not None:
+        page = client.get("/calibrations", params={"limit": 3, "offset": offset}).json()
+        assert page["total"] == 7 and len(page["items"]) <= 3
+        seen += ids(page)
+        offset = page["next_offset"]
+    assert seen == made[::-1]
+
+
+@pytest.mark.parametrize("params", [{"state": "finished"}, {"setup": "eye_on_hand"},
+                                    {"limit": 0}, {"limit": 201}, {"offset": -1}])
+def test_bad_listing_parameters_are_422(client: TestClient, params: dict[str, Any]) -> None:
+    r = client.get("/calibrations", params=params)
+    assert r.status_code == 422
+    assert r.json()["code"] == "invalid_request"
+
+
+def test_no_active_calibration_is_404(client: TestClient) -> None:
+    r = client.get("/calibrations/active")
+    assert r.status_code == 404
+    assert r.json()["code"] == "no_active_calibration"
+
+
+def test_activation_history_says_what_was_active_when(client: TestClient) -> None:
+    run_id = add_run(client)
+    first = add_calibration(client, run_id, minute=1)
+    second = add_calibration(client, run_id, minute=2)
+    r = client.post(f"/calibrations/{first}/activate")
+    assert r.status_code == 200, r.text
+    assert r.json()["calibration"]["id"] == first
+    client.post(f"/calibrations/{second}/activate")
+    again = client.post(f"/calibrations/{second}/activate").json()  # idempotent
+    active = client.get("/calibrations/active").json()
+    assert active == again
+    assert active["robot"] == "mock://"
+    assert active["calibration"]["id"] == second
+    assert active["calibration"]["state"] == "done"
+    assert active["calibration"]["result"] == full_result()
+    history = active["history"]
+    assert [h["calibration_id"] for h in history] == [second, first]
+    assert history[0]["active_until"] is None
+    assert history[0]["active_from"] == active["activated_at"]
+    assert history[1]["active_until"] == history[0]["active_from"]
+    assert history[1]["active_from"] <= history[1]["active_until"]
+    listed = {item["id"]: item["active"] for item in client.get("/calibrations").json()["items"]}
+    assert listed == {first: False, second: True}
+    # going back to the first one adds a period; the history is never rewritten
+    client.post(f"/calibrations/{first}/activate")
+    history = client.get("/calibrations/active", params={"history": 2}).json()["history"]
+    assert [h["calibration_id"] for h in history] == [first, second]
+
+
+@pytest.mark.parametrize("state", ["running", "failed"])
+def test_only_a_finished_calibration_can_be_activated(client: TestClient, state: str) -> None:
+    cal_id = add_calibration(client, add_run(client), minute=1, state=state)
+    r = client.post(f"/calibrations/{cal_id}/activate")
+    assert r.status_code == 409
+    assert r.json()["code"] == "invalid_state"
+    assert client.get("/calibrations/active").status_code == 404
+
+
+def test_activating_an_unknown_calibration_is_404(client: TestClient) -> None:
+    r = client.post("/calibrations/nope/activate")
+    assert r.status_code == 404
+    assert r.json()["code"] == "not_found"
+
+
+def test_each_robot_has_its_own_active_calibration(client: TestClient) -> None:
+    here = add_calibration(client, add_run(client), minute=1)
+    there = add_calibration(client, add_run(client, robot="ur://10.0.0.7"), minute=2)
+    client.post(f"/calibrations/{here}/activate")
+    client.post(f"/calibrations/{there}/activate")
+    assert client.get("/calibrations/active").json()["calibration"]["id"] == here
+    other = client.get("/calibrations/active", params={"robot": "ur://10.0.0.7"}).json()
+    assert other["calibration"]["id"] == there
+    assert [h["calibration_id"] for h in other["history"]] == [there]
+    listed = {item["id"]: item["active"] for item in client.get("/calibrations").json()["items"]}
+    assert listed == {here: True, there: True}
+
+
+@pytest.mark.parametrize("method, path", [("GET", "/calibrations"),
+                                          ("GET", "/calibrations/active"),
+                                          ("POST", "/calibrations/x/activate")])
+def test_registry_needs_the_key(client: TestClient, method: str, path: str) -> None:
+    r = client.request(method, path, headers={"Authorization": ""})
+    assert r.status_code == 401
