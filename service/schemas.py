@@ -191,6 +191,19 @@ class Health(BaseModel):
     version: str
 
 
+class ExportQuery(BaseModel):
+    """The format of ``GET /calibrations/{id}/export`` and the names written into it."""
+
+    format: ExportFormat = Field(  # type: ignore[valid-type]
+        "json", description="json (the result document), opencv-yaml (cv::FileStorage), "
+                            "ros-camera-info, urdf (camera joint), ur-pose (hand-eye as "
+                            "p[...]), ros2-static-tf (ROS 2 launch file)")
+    camera_name: str = Field("camera", description="ROS camera_name, joint and node prefix")
+    parent_frame: str | None = Field(None, description="frame the camera is fixed to; default "
+                                                       "tool0 (eye-in-hand) or base")
+    child_frame: str | None = Field(None, description="default <camera_name>_optical_frame")
+
+
 class CalibrationQuery(BaseModel):
     """Filters and the page of ``GET /calibrations``."""
 

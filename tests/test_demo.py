@@ -71,7 +71,7 @@ def test_demo_runs_the_service_flow(tmp_path: Path,
     assert result["format"] == "cellcal/result@1"
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
         "calibration.json", "camera_calibration.yaml", "camera_info.yaml",
-        "camera_joint.urdf", "hand_eye_ur_pose.txt"]
+        "camera_joint.urdf", "camera_static_tf.launch.py", "hand_eye_ur_pose.txt"]
     assert f"Result: {tmp_path / 'out' / 'calibration.json'}" in out
 
 

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from calib.geometry import make_transform, matrix_from_ur_pose, ur_pose_from_matrix
 from calib.handeye import HandEyeResult
 from mocks.scene import default_scene
-from service.exports import FORMATS, export
+from service.exports import FORMATS, ExportNames, export
 from service.results import hand_eye_result_json
 
 SCENE = default_scene()
@@ -66,7 +66,8 @@ def test_opencv_yaml_round_trips_through_filestorage():
 
 
 def test_ros_camera_info_has_the_ros_layout():
-    content, media, name = export(full_result(), "ros-camera-info", camera_name="cell_cam")
+    content, media, name = export(full_result(), "ros-camera-info",
+                                  ExportNames(camera_name="cell_cam"))
     assert (media, name) == ("application/yaml", "camera_info.yaml")
     lines = content.splitlines()
     assert lines[:3] == ["image_width: 1280", "image_height: 1024", "camera_name: cell_cam"]

@@ -15,7 +15,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from service.exports import FORMATS, export
+from service.exports import FORMATS, ExportNames, export
 from service.models import Calibration, Run
 from tests.test_exports import full_result, pose_only_result
 from tests.test_service_api import AUTH, settings
@@ -24,7 +24,7 @@ pytestmark = pytest.mark.timeout(20)
 
 MEDIA = {"json": "application/json", "opencv-yaml": "application/yaml",
          "ros-camera-info": "application/yaml", "urdf": "application/xml",
-         "ur-pose": "text/plain"}
+         "ur-pose": "text/plain", "ros2-static-tf": "text/x-python"}
 
 
 @pytest.fixture
@@ -112,3 +112,25 @@ def test_export_needs_the_key(client: TestClient) -> None:
     cal_id = add_calibration(client, result=full_result())
     r = client.get(f"/calibrations/{cal_id}/export", headers={"Authorization": ""})
     assert r.status_code == 401
+
+
+def test_frame_names_reach_the_export(client: TestClient) -> None:
+    cal_id = add_calibration(client, result=full_result())
+    params = {"format": "ros2-static-tf", "camera_name": "cam2", "parent_frame": "flange",
+              "child_frame": "cam2_optical"}
+    r = client.get(f"/calibrations/{cal_id}/export", params=params)
+    assert r.status_code == 200, r.text
+    assert r.text == export(full_result(), "ros2-static-tf",
+                            ExportNames("cam2", parent_frame="flange",
+                                        child_frame="cam2_optical"))[0]
+    assert r.headers["content-disposition"].endswith('filename="cam2_static_tf.launch.py"')
+
+
+def test_frame_name_that_cannot_be_written_is_422(client: TestClient) -> None:
+    cal_id = add_calibration(client, result=full_result())
+    r = client.get(f"/calibrations/{cal_id}/export",
+                   params={"format": "urdf", "parent_frame": 'a"b'})
+    assert r.status_code == 422
+    assert r.json() == {"detail": "parent frame 'a\"b': use letters, digits, _ and /, each "
+                                  "part not starting with a digit",
+                        "code": "export_unavailable"}

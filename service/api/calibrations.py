@@ -10,9 +10,9 @@ from fastapi import APIRouter, Query, Response, status
 from service import store
 from service.api.deps import CalibrationsDep, SessionDep
 from service.errors import ConflictError, UnprocessableError
-from service.exports import export
+from service.exports import ExportNames, export
 from service.models import Calibration
-from service.schemas import CalibrationCreate, CalibrationPublic, Created, ExportFormat
+from service.schemas import CalibrationCreate, CalibrationPublic, Created, ExportQuery
 
 router = APIRouter(tags=["calibrations"])
 
@@ -47,24 +47,23 @@ def get_calibration(cal_id: str, session: SessionDep) -> CalibrationPublic:
 
 @router.get("/calibrations/{cal_id}/export", response_class=Response, responses={
     200: {"content": {"application/json": {}, "application/yaml": {}, "application/xml": {},
-                      "text/plain": {}},
+                      "text/plain": {}, "text/x-python": {}},
           "description": "the file, named in Content-Disposition"},
     409: {"description": "the calibration is running or failed"},
-    422: {"description": "unknown format, or a camera format of a result without camera"}})
-def export_calibration(
-        cal_id: str, session: SessionDep,
-        fmt: Annotated[ExportFormat, Query(  # type: ignore[valid-type]
-            alias="format", description="json (the result document), opencv-yaml "
-                                        "(cv::FileStorage), ros-camera-info, urdf (camera "
-                                        "joint), ur-pose (hand-eye as p[...])")] = "json",
-) -> Response:
-    """The result as a file for OpenCV, ROS, a URDF or a UR robot program."""
+    422: {"description": "unknown format, bad frame names, or a format the result lacks the "
+                         "data for (camera model or hand-eye)"}})
+def export_calibration(cal_id: str, session: SessionDep,
+                       query: Annotated[ExportQuery, Query()]) -> Response:
+    """The result as a file for OpenCV, ROS (camera_info, ROS 2 static transform launch file),
+    a URDF or a UR robot program."""
     cal = store.get_calibration(session, cal_id=cal_id)
     if cal.state != "done" or cal.result is None:
         raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished calibration "
                             "can be exported.", code="invalid_state")
     try:
-        content, media_type, filename = export(cal.result, fmt)
+        names = ExportNames(camera_name=query.camera_name, parent_frame=query.parent_frame,
+                            child_frame=query.child_frame)
+        content, media_type, filename = export(cal.result, query.format, names)
     except ValueError as exc:
         raise UnprocessableError(str(exc), code="export_unavailable") from None
     return Response(content, media_type=media_type,

@@ -12,8 +12,9 @@ import sys
 from collections.abc import Callable, Sequence
 
 from drivers.errors import DeviceError
-from service.cli import calibrate, demo, devices, serve
+from service.cli import calibrate, demo, devices, export, serve
 from service.cli.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
+from service.results import software_version
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -21,8 +22,10 @@ def build_parser() -> argparse.ArgumentParser:
         prog="cellcal",
         description="Camera and hand-eye calibration for robot cells. Units: metres and "
                     "radians in all files; see docs/conventions.md.")
+    parser.add_argument("--version", action="version",
+                        version=f"cellcal {software_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for command in (calibrate, demo, devices, serve):
+    for command in (calibrate, demo, devices, export, serve):
         command.register(sub)
     return parser
 

@@ -1,0 +1,68 @@
+"""``cellcal export RESULT.json --format FMT``: a result document as the file a user's stack
+reads (``service.exports``), the same files as ``GET /calibrations/{id}/export``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from service.exports import FORMATS, ExportNames, export
+
+#: Larger files are not result documents (a result with 10,000 stations is about 30 MB).
+MAX_RESULT_BYTES = 256 * 1024 * 1024
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``export`` command to the ``cellcal`` parser."""
+    cmd = sub.add_parser(
+        "export", help="export a result file for OpenCV, ROS, a URDF or a UR program",
+        description="Write a cellcal/result@1 document (from 'cellcal calibrate' or GET "
+                    "/calibrations/{id}) in another format. Camera formats (opencv-yaml, "
+                    "ros-camera-info) need a camera model; transform formats (urdf, ur-pose, "
+                    "ros2-static-tf) need a hand-eye: a result without one says which formats "
+                    "it has.")
+    cmd.add_argument("result", help="result JSON file")
+    cmd.add_argument("--format", required=True, choices=FORMATS, dest="fmt",
+                     help="json, opencv-yaml (cv::FileStorage), ros-camera-info, urdf (camera "
+                          "joint), ur-pose (hand-eye as p[...]), ros2-static-tf (ROS 2 launch "
+                          "file with a static transform publisher)")
+    cmd.add_argument("--out", help="output file (default: stdout)")
+    cmd.add_argument("--camera-name", default="camera",
+                     help="ROS camera_name, prefix of the URDF joint and the ROS 2 node "
+                          "(default camera)")
+    cmd.add_argument("--parent-frame",
+                     help="frame the camera is fixed to (default tool0 eye-in-hand, base "
+                          "eye-to-hand)")
+    cmd.add_argument("--child-frame",
+                     help="the camera's frame (default <camera-name>_optical_frame)")
+    cmd.set_defaults(func=_export)
+
+
+def read_result(path: str) -> dict[str, object]:
+    """A ``cellcal/result@1`` document from a file; ValueError naming what is wrong."""
+    file = Path(path)
+    if file.stat().st_size > MAX_RESULT_BYTES:
+        raise ValueError(f"{path}: larger than {MAX_RESULT_BYTES // 2**20} MB; not a result "
+                         "file")
+    try:
+        doc = json.loads(file.read_bytes())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not JSON ({exc})") from None
+    if not isinstance(doc, dict) or doc.get("format") != "cellcal/result@1":
+        raise ValueError(f"{path}: not a cellcal result (expected \"format\": "
+                         "\"cellcal/result@1\")")
+    return doc
+
+
+def _export(args: argparse.Namespace) -> int:
+    names = ExportNames(args.camera_name, parent_frame=args.parent_frame,
+                        child_frame=args.child_frame)
+    content, _, _ = export(read_result(args.result), args.fmt, names)
+    if args.out in (None, "-"):
+        sys.stdout.write(content)
+    else:
+        Path(args.out).write_text(content)
+        print(f"wrote {args.out}", file=sys.stderr)
+    return 0

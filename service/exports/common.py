@@ -1,0 +1,65 @@
+"""What every export writer shares: the names written into exports, the validated transforms
+of a result and number text."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from calib.geometry import check_transforms
+
+#: What ``hand_eye`` / ``target_pose`` mean in each setup (``docs/conventions.md``).
+FRAMES = {"eye_in_hand": ("tcp_T_cam", "base_T_target"),
+          "eye_to_hand": ("base_T_cam", "tcp_T_target")}
+
+
+def matrix(result_json: dict[str, Any], key: str) -> np.ndarray:
+    """The validated 4x4 ``result_json[key]['matrix']``, shape (4, 4)."""
+    try:
+        T = result_json[key]["matrix"]
+    except (KeyError, TypeError):
+        raise ValueError(f"result has no {key}.matrix") from None
+    return check_transforms(T, key)[0]
+
+
+def num(v: float) -> str:
+    """Shortest text that reads back as the same float."""
+    return repr(float(v))
+
+
+#: A ROS name segment; frame ids may join segments with '/'.
+_NAME = r"[A-Za-z_][A-Za-z0-9_]*"
+
+
+@dataclass(frozen=True)
+class ExportNames:
+    """Names written into the exports.
+
+    camera_name : ROS ``camera_name``, prefix of the URDF joint and the launch file's node.
+    parent_frame : the frame the camera is fixed to; default ``tool0`` (eye-in-hand) or
+        ``base`` (eye-to-hand), UR's ROS names.
+    child_frame : the camera's frame; default ``<camera_name>_optical_frame``.
+    """
+
+    camera_name: str = "camera"
+    parent_frame: str | None = None
+    child_frame: str | None = None
+
+    def __post_init__(self) -> None:
+        if not re.fullmatch(_NAME, self.camera_name):
+            raise ValueError(f"camera name {self.camera_name!r}: use letters, digits and _, "
+                             "not starting with a digit")
+        for what, frame in (("parent frame", self.parent_frame),
+                            ("child frame", self.child_frame)):
+            if frame is not None and not re.fullmatch(f"{_NAME}(/{_NAME})*", frame):
+                raise ValueError(f"{what} {frame!r}: use letters, digits, _ and /, each part "
+                                 "not starting with a digit")
+
+    def frames(self, setup: str) -> tuple[str, str]:
+        """(parent, child) frame names for a result of ``setup``."""
+        default_parent = "tool0" if setup == "eye_in_hand" else "base"
+        return (self.parent_frame or default_parent,
+                self.child_frame or f"{self.camera_name}_optical_frame")
