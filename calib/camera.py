@@ -21,14 +21,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calib import so3
+
 #: Names of the columns of :attr:`ProjectionJacobian.intrinsics`.
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy")
 #: Names of the columns of :attr:`ProjectionJacobian.dist`.
 DIST_NAMES = ("k1", "k2", "p1", "p2", "k3")
-
-# Below this rotation angle (rad) the SO(3) Jacobian uses its Taylor series.
-_SMALL_ANGLE = 1e-4
-
 
 @dataclass(frozen=True)
 class ProjectionJacobian:
@@ -51,15 +49,6 @@ class ProjectionJacobian:
     rvec: np.ndarray
     tvec: np.ndarray
     points: np.ndarray
-
-
-def rotation_from_rotvec(rvec: np.ndarray) -> np.ndarray:
-    """Rotation matrices from rotation vectors (Rodrigues), shape (..., 3) -> (..., 3, 3)."""
-    rvec = np.asarray(rvec, dtype=float)
-    theta = np.linalg.norm(rvec, axis=-1)[..., None, None]
-    W = _skew(rvec)
-    a, b, _ = _so3_coefficients(theta)
-    return np.eye(3) + a * W + b * (W @ W)
 
 
 def project(points: np.ndarray, K: np.ndarray, dist: np.ndarray,
@@ -106,7 +95,7 @@ def project(points: np.ndarray, K: np.ndarray, dist: np.ndarray,
             if len(rvec) != 1:
                 raise ValueError("project: pose_index is required with several poses")
             pose_index = np.zeros(n, dtype=int)
-        R = rotation_from_rotvec(rvec)[pose_index]  # (N, 3, 3)
+        R = so3.exp(rvec)[pose_index]  # (N, 3, 3)
         RP = _matmul_vec(R, P)
         Pc = RP + tvec[pose_index]
 
@@ -149,7 +138,7 @@ def project(points: np.ndarray, K: np.ndarray, dist: np.ndarray,
         empty = np.zeros((n, 2, 3))
         return uv, ProjectionJacobian(d_intr, d_dist, empty, empty, d_cam)
     # d(R p)/d rvec = -[R p]x J_l(rvec), J_l the left Jacobian of SO(3); g [v]x = g x v.
-    d_rvec = _matmul_rows(np.cross(RP[:, None, :], d_cam), left_jacobian(rvec)[pose_index])
+    d_rvec = _matmul_rows(np.cross(RP[:, None, :], d_cam), so3.left_jacobian(rvec)[pose_index])
     return uv, ProjectionJacobian(d_intr, d_dist, d_rvec, d_cam, _matmul_rows(d_cam, R))
 
 
@@ -162,30 +151,3 @@ def _matmul_rows(G: np.ndarray, M: np.ndarray) -> np.ndarray:
     """Stacked ``G @ M``, shapes (N, 2, 3), (N, 3, 3) -> (N, 2, 3)."""
     return (G[:, :, 0, None] * M[:, None, 0] + G[:, :, 1, None] * M[:, None, 1]
             + G[:, :, 2, None] * M[:, None, 2])
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices, shape (..., 3) -> (..., 3, 3)."""
-    z = np.zeros(v.shape[:-1])
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
-                     np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
-
-
-def _so3_coefficients(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """sin(t)/t, (1 - cos t)/t², (t - sin t)/t³ with Taylor series near zero."""
-    small = theta < _SMALL_ANGLE
-    t = np.where(small, 1.0, theta)
-    t2 = theta * theta
-    a = np.where(small, 1.0 - t2 / 6.0, np.sin(t) / t)
-    b = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(t)) / (t * t))
-    c = np.where(small, 1.0 / 6.0 - t2 / 120.0, (t - np.sin(t)) / (t * t * t))
-    return a, b, c
-
-
-def left_jacobian(rvec: np.ndarray) -> np.ndarray:
-    """Left Jacobian of SO(3) ``I + (1-cos t)/t² W + (t-sin t)/t³ W²``, (N, 3) -> (N, 3, 3)."""
-    theta = np.linalg.norm(rvec, axis=-1)[..., None, None]
-    W = _skew(rvec)
-    _, b, c = _so3_coefficients(theta)
-    return np.eye(3) + b * W + c * (W @ W)

@@ -2,14 +2,15 @@
 
 Conventions are in ``docs/conventions.md``: ``T_a_b`` maps frame-b coordinates to frame a,
 UR poses are ``[x, y, z, rx, ry, rz]`` with a rotation vector, metres and radians.
-Rotations go through ``scipy.spatial.transform.Rotation``. Functions accept a single transform
+Rotations go through :mod:`calib.so3`. Functions accept a single transform
 or a stack: shapes ``(..., 6)`` and ``(..., 4, 4)``.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+from calib import so3
 
 #: Largest translation we accept as metres; anything beyond is almost surely millimetres.
 MAX_TRANSLATION_M = 20.0
@@ -23,7 +24,7 @@ def matrix_from_ur_pose(pose: np.ndarray) -> np.ndarray:
     pose = np.asarray(pose, dtype=float)
     flat = pose.reshape(-1, 6)
     T = np.zeros((flat.shape[0], 4, 4))
-    T[:, :3, :3] = Rotation.from_rotvec(flat[:, 3:]).as_matrix()
+    T[:, :3, :3] = so3.exp(flat[:, 3:])
     T[:, :3, 3] = flat[:, :3]
     T[:, 3, 3] = 1.0
     return T.reshape(*pose.shape[:-1], 4, 4)
@@ -35,7 +36,7 @@ def ur_pose_from_matrix(T: np.ndarray) -> np.ndarray:
     flat = T.reshape(-1, 4, 4)
     out = np.empty((flat.shape[0], 6))
     out[:, :3] = flat[:, :3, 3]
-    out[:, 3:] = Rotation.from_matrix(flat[:, :3, :3]).as_rotvec()
+    out[:, 3:] = so3.log(flat[:, :3, :3])
     return out.reshape(*T.shape[:-2], 6)
 
 
@@ -59,10 +60,7 @@ def invert(T: np.ndarray) -> np.ndarray:
 
 def rotation_angle(R: np.ndarray) -> np.ndarray:
     """Rotation angle(s) in radians of rotation matrices, shape (..., 3, 3) -> (...)."""
-    R = np.asarray(R, dtype=float)
-    flat = R.reshape(-1, 3, 3)
-    ang = np.linalg.norm(Rotation.from_matrix(flat).as_rotvec(), axis=-1)
-    return ang.reshape(R.shape[:-2])
+    return np.linalg.norm(so3.log(R), axis=-1)
 
 
 def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -89,7 +87,7 @@ def perturb(T: np.ndarray, rot_sigma: float, trans_sigma: float,
     n = int(np.prod(T.shape[:-2]))
     axes = _unit_vectors(rng, n)
     dirs = _unit_vectors(rng, n)
-    dR = Rotation.from_rotvec(axes * rng.normal(0.0, rot_sigma, (n, 1))).as_matrix()
+    dR = so3.exp(axes * rng.normal(0.0, rot_sigma, (n, 1)))
     dt = dirs * rng.normal(0.0, trans_sigma, (n, 1))
     noise = make_transform(dR, dt).reshape(*T.shape[:-2], 4, 4)
     return T @ noise

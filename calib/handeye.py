@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from calib import so3
 from calib.geometry import check_transforms, invert, make_transform, rotation_angle
 from calib.peers import HAND_EYE_METHODS, ROBOT_WORLD_METHODS, solve_opencv
 from calib.refine import pose_residuals, refine
@@ -132,7 +133,7 @@ def check_motion_diversity(motions: Motions, *,
         raise ValueError(
             f"fewer than 2 station pairs rotate by more than {MIN_MOTION_ROTATION_DEG:g} deg: "
             "add stations with the tool tilted (10-35 deg) about different axes")
-    axes = Rotation.from_matrix(motions.A[:, :3, :3]).as_rotvec()
+    axes = so3.log(motions.A[:, :3, :3])
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
     # the axis lines' largest angle from their principal direction
     principal = np.linalg.svd(axes, full_matrices=False)[2][0]

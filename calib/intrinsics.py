@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import csr_matrix
-from scipy.spatial.transform import Rotation
 
-from calib.camera import project, rotation_from_rotvec
+from calib import so3
+from calib.camera import project
 from calib.geometry import make_transform
 from calib.target import board_points
 
@@ -170,7 +170,7 @@ def initial_intrinsics(object_points_2d: Sequence[np.ndarray], image_points: Seq
     D[:, 2] = np.linalg.det(U @ Vt)
     R = (U * D[:, None, :]) @ Vt
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    return InitialIntrinsics(K, nu, Rotation.from_matrix(R).as_rotvec(), a3 / lam[:, None])
+    return InitialIntrinsics(K, nu, so3.log(R), a3 / lam[:, None])
 
 
 def calibrate_intrinsics(image_points: Sequence[np.ndarray], inner_corners: Sequence[int],
@@ -314,7 +314,7 @@ class _Problem:
         return IntrinsicsResult(
             K=K, dist=cam[4:9].copy(), nu=float(cam[_NU]), rms_px=float(np.sqrt(sq.mean())),
             rms_px_per_image=per_image, residuals=residuals,
-            T_cam_target=make_transform(rotation_from_rotvec(poses[:, :3]), poses[:, 3:]),
+            T_cam_target=make_transform(so3.exp(poses[:, :3]), poses[:, 3:]),
             image_size=image_size, covariance=cov,
             sigmas={k: float(np.sqrt(cov[i, i])) for i, k in enumerate(PARAM_NAMES)},
             pose_covariance=pose_cov, sigma_px=float(np.sqrt(sigma2)), fixed=self.fixed,

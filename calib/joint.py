@@ -44,8 +44,9 @@ from scipy.optimize import OptimizeResult, least_squares, minimize_scalar
 from scipy.sparse import csr_matrix
 from scipy.stats import chi2
 
-from calib.camera import left_jacobian, project, rotation_from_rotvec
-from calib.geometry import check_transforms, invert, make_transform
+from calib import so3
+from calib.camera import project
+from calib.geometry import check_transforms, invert
 from calib.handeye import (
     DEFAULT_ROBOT_NOISE_ROT_RAD,
     DEFAULT_ROBOT_NOISE_TRANS_M,
@@ -312,11 +313,7 @@ class _Problem:
     def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Camera parameters (11,), X, Y (4, 4) and corrections δ (n, 6) of ``x``."""
         g, xy, delta = self._globals(x)
-        X = make_transform(rotation_from_rotvec(xy[0:3]) @ self.X0[:3, :3], self.X0[:3, 3]
-                           + xy[3:6])
-        Y = make_transform(rotation_from_rotvec(xy[6:9]) @ self.Y0[:3, :3], self.Y0[:3, 3]
-                           + xy[9:12])
-        return g[:_N_CAM], X, Y, delta
+        return g[:_N_CAM], so3.left_update(self.X0, xy[:6]), so3.left_update(self.Y0, xy[6:]), delta
 
     def _evaluate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Normalised residuals (2m + 6n,) and corner blocks (m, 2, n_free + 6)."""
@@ -330,11 +327,11 @@ class _Problem:
                              np.zeros(len(self.obj))])
         # The chain as links applied to the board point in turn: name -> (R, t, inverse?, J_l);
         # J_l (the left Jacobian of the link's rotation parameters) is None for the readings.
-        E_R, E_J = rotation_from_rotvec(delta[:, :3])[s], left_jacobian(delta[:, :3])[s]
-        links = {"Y": (Y[:3, :3], Y[:3, 3], False, left_jacobian(xy[6:9])),
+        E_R, E_J = so3.exp(delta[:, :3])[s], so3.left_jacobian(delta[:, :3])[s]
+        links = {"Y": (Y[:3, :3], Y[:3, 3], False, so3.left_jacobian(xy[6:9])),
                  "M": (self.M[s, :3, :3], self.M[s, :3, 3], False, None),
                  "E": (E_R, delta[s, 3:], self.eye_in_hand, E_J),
-                 "X": (X[:3, :3], X[:3, 3], True, left_jacobian(xy[0:3]))}
+                 "X": (X[:3, :3], X[:3, 3], True, so3.left_jacobian(xy[0:3]))}
         order = ("Y", "M", "E", "X") if self.eye_in_hand else ("Y", "E", "M", "X")
         inputs = {}
         v = p

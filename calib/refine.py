@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
-from calib.geometry import invert, make_transform
+from calib import so3
+from calib.geometry import invert
 
 
 @dataclass(frozen=True)
@@ -43,11 +43,7 @@ class Refinement:
 
 
 def _compose(params: np.ndarray, X0: np.ndarray, Y0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    X = make_transform(Rotation.from_rotvec(params[0:3]).as_matrix() @ X0[:3, :3],
-                       X0[:3, 3] + params[3:6])
-    Y = make_transform(Rotation.from_rotvec(params[6:9]).as_matrix() @ Y0[:3, :3],
-                       Y0[:3, 3] + params[9:12])
-    return X, Y
+    return so3.left_update(X0, params[0:6]), so3.left_update(Y0, params[6:12])
 
 
 def pose_residuals(P: np.ndarray, C: np.ndarray, X: np.ndarray, Y: np.ndarray,
@@ -63,7 +59,7 @@ def pose_residuals(P: np.ndarray, C: np.ndarray, X: np.ndarray, Y: np.ndarray,
     Ck[:, :3, 3] *= kappa
     predicted = Y @ invert(Ck) @ invert(X)
     E = P @ invert(predicted) if inverted else invert(P) @ predicted
-    return np.hstack([Rotation.from_matrix(E[:, :3, :3]).as_rotvec(), E[:, :3, 3]])
+    return np.hstack([so3.log(E[:, :3, :3]), E[:, :3, 3]])
 
 
 def refine(P: np.ndarray, C: np.ndarray, X0: np.ndarray, Y0: np.ndarray, *,

@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from calib import so3
 from calib.geometry import make_transform, rotation_angle
 
 
@@ -46,7 +47,7 @@ def screw_parameters(T: np.ndarray, theta: np.ndarray | None = None
     c : shape (n, 3), the axis point closest to the origin (``c . u = 0``), eq. (6).
     d : shape (n,), translation along the axis.
     """
-    rotvec = Rotation.from_matrix(T[:, :3, :3]).as_rotvec()
+    rotvec = so3.log(T[:, :3, :3])
     angle = np.linalg.norm(rotvec, axis=1)
     u = rotvec / angle[:, None]
     t = T[:, :3, 3]
@@ -56,21 +57,12 @@ def screw_parameters(T: np.ndarray, theta: np.ndarray | None = None
     return u, angle, c, d
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices, shape (n, 3) -> (n, 3, 3)."""
-    S = np.zeros((*v.shape[:-1], 3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
-    return S
-
-
 def _left(p: np.ndarray) -> np.ndarray:
     """Matrices of left multiplication by pure quaternions (0, p): ``L(p) q = p q``, (n, 4, 4)."""
     L = np.zeros((p.shape[0], 4, 4))
     L[:, 0, 1:] = -p
     L[:, 1:, 0] = p
-    L[:, 1:, 1:] = _skew(p)
+    L[:, 1:, 1:] = so3.skew(p)
     return L
 
 
