@@ -29,7 +29,8 @@ import matplotlib
 import numpy as np
 from tqdm import tqdm
 
-from calib.geometry import invert, make_transform, perturb, pose_error, ur_pose_from_matrix
+from calib.chain import camera_from_robot
+from calib.geometry import make_transform, perturb, pose_error, ur_pose_from_matrix
 from calib.handeye import calibrate_hand_eye
 from calib.joint import cramer_rao_bound
 from calib.peers import HAND_EYE_METHODS
@@ -101,8 +102,7 @@ def trends(seeds: int) -> dict[str, np.ndarray]:
                 [u.astype(np.float32) for u in uv], size, None, None)
             he = calibrate_hand_eye(P, _cv_poses(rv, tv), method="park").hand_eye
             out["he_t_mm"][seed, a] = 1e3 * pose_error(he, scene.hand_eye_matrix)[1]
-            Y = scene.target_pose_matrix
-            chain = invert(he) @ invert(P) @ Y
+            chain = camera_from_robot(P, he, scene.target_pose_matrix, scene.setup)
             proj = [cv2.projectPoints(grid_true, cv2.Rodrigues(C[:3, :3])[0], C[:3, 3], K1,
                                       d1)[0].reshape(-1, 2) for C in chain]
             out["chain_px"][seed, a] = np.sqrt(np.mean(np.concatenate(

@@ -19,9 +19,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from calib import so3
+from calib.geometry import make_transform
 
 #: Names of the columns of :attr:`ProjectionJacobian.intrinsics`.
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy")
@@ -140,6 +142,45 @@ def project(points: np.ndarray, K: np.ndarray, dist: np.ndarray,
     # d(R p)/d rvec = -[R p]x J_l(rvec), J_l the left Jacobian of SO(3); g [v]x = g x v.
     d_rvec = _matmul_rows(np.cross(RP[:, None, :], d_cam), so3.left_jacobian(rvec)[pose_index])
     return uv, ProjectionJacobian(d_intr, d_dist, d_rvec, d_cam, _matmul_rows(d_cam, R))
+
+
+def solve_pnp(points_target: np.ndarray, image_points: np.ndarray, K: np.ndarray,
+              dist: np.ndarray | None = None, *, guess: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Camera pose from known target points by ``cv2.solvePnP`` (iterative, Levenberg-Marquardt).
+
+    Parameters
+    ----------
+    points_target : shape (N, 3), target frame, metres.
+    image_points : shape (N, 2), the same points detected in the image, pixels.
+    K : shape (3, 3); dist : shape (5,) or None (no distortion).
+    guess : shape (4, 4), optional T_cam_target to start from (else OpenCV's own start).
+
+    Returns
+    -------
+    T_cam_target : shape (4, 4)
+    residuals : shape (N, 2), projected minus detected pixels.
+
+    Raises
+    ------
+    ValueError
+        When OpenCV finds no pose (too few or degenerate points, wrong K).
+    """
+    obj = np.asarray(points_target, dtype=float).reshape(-1, 3)
+    img = np.asarray(image_points, dtype=float).reshape(-1, 2)
+    K = np.asarray(K, dtype=float)
+    dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=float)
+    if guess is None:
+        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_ITERATIVE)
+    else:
+        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, so3.log(guess[:3, :3]).copy(),
+                                      np.array(guess[:3, 3], dtype=float),
+                                      useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok:
+        raise ValueError(f"solvePnP found no camera pose from {len(obj)} points: are K, dist "
+                         "and the board right?")
+    T_cam_target = make_transform(so3.exp(rvec.ravel()), tvec.ravel())
+    return T_cam_target, project(obj, K, dist, rvec.ravel(), tvec.ravel()) - img
 
 
 def _matmul_vec(M: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -20,22 +20,21 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calib import so3
-from calib.geometry import check_transforms, invert, make_transform, rotation_angle
+from calib.chain import (
+    Motions,
+    check_motion_diversity,
+    hand_eye_from_station,
+    robot_chain,
+    target_from_station,
+    tool_side_motions,
+)
+from calib.geometry import check_transforms, make_transform
 from calib.peers import HAND_EYE_METHODS, ROBOT_WORLD_METHODS, solve_opencv
 from calib.refine import pose_residuals, refine
 from calib.screw import solve_sm
 
-SETUPS = ("eye_in_hand", "eye_to_hand")
 METHODS = ("sm", *HAND_EYE_METHODS, *ROBOT_WORLD_METHODS, "joint")
 MIN_STATIONS = 3
-#: Motions rotating less than this have no well-defined screw axis and are skipped.
-MIN_MOTION_ROTATION_DEG = 2.0
-#: All rotation axes within this angle of each other cannot fix the solution.
-MIN_AXIS_SPREAD_DEG = 2.0
-#: Largest number of motion pairs formed: all pairs of up to 200 stations, a spread subset
-#: beyond (memory and time stay bounded for any station count).
-MAX_MOTION_PAIRS = 19_900
 DEFAULT_ROBOT_NOISE_ROT_RAD = np.deg2rad(0.05)
 DEFAULT_ROBOT_NOISE_TRANS_M = 0.25e-3
 
@@ -64,86 +63,6 @@ class HandEyeResult:
     noise: dict[str, float] = field(default_factory=dict)
 
 
-@dataclass(frozen=True)
-class Motions:
-    """Motion pairs between stations ``i < j``: ``A X = X B`` (see docs/conventions.md)."""
-
-    A: np.ndarray  # shape (m, 4, 4), robot chain motions inv(P_i) P_j
-    B: np.ndarray  # shape (m, 4, 4), camera motions C_i inv(C_j)
-    pairs: np.ndarray  # shape (m, 2), station indices
-    skipped: int
-
-
-def robot_chain(T_base_tcp: np.ndarray, setup: str) -> np.ndarray:
-    """The poses that play ``P`` in ``P_i X C_i = Y``: base_T_tcp, or its inverse eye-to-hand."""
-    if setup not in SETUPS:
-        raise ValueError(f"unknown setup '{setup}': choose eye_in_hand or eye_to_hand")
-    return T_base_tcp if setup == "eye_in_hand" else invert(T_base_tcp)
-
-
-def spread_pairs(n: int, max_pairs: int = MAX_MOTION_PAIRS) -> tuple[np.ndarray, np.ndarray]:
-    """Station index pairs ``(i, j)``, ``i < j``: all of them, or a spread set of ``max_pairs``.
-
-    Beyond ``max_pairs`` every station (evenly spaced ones if there are more stations than
-    pairs) is paired ``max_pairs // n`` times with a partner drawn uniformly from the others,
-    with a fixed seed so a result is reproducible. Every station enters, partners are near and
-    far alike (capture order often follows a path, so neighbours differ little), and memory and
-    time stay bounded for any ``n``.
-
-    Returns
-    -------
-    i, j : shape (m,), int, ``m <= max_pairs``.
-    """
-    if n * (n - 1) // 2 <= max_pairs:
-        return np.triu_indices(n, 1)
-    first = np.tile(np.arange(n), max(1, max_pairs // n))
-    if len(first) > max_pairs:
-        first = np.linspace(0, n - 1, max_pairs).astype(int)
-    other = (first + np.random.default_rng(0).integers(1, n, len(first))) % n
-    pair = np.unique(np.minimum(first, other) * n + np.maximum(first, other))
-    return pair // n, pair % n
-
-
-def station_motions(P: np.ndarray, C: np.ndarray, *,
-                    min_rotation_deg: float = MIN_MOTION_ROTATION_DEG,
-                    max_pairs: int = MAX_MOTION_PAIRS) -> Motions:
-    """Station pairs (``spread_pairs``: all up to 200 stations) whose rotation defines a screw axis.
-
-    A pair is used when both its robot and camera rotation angles lie in ``(m, 180 deg - m)``
-    with ``m = max(min_rotation_deg, 5 x the angle noise)``; the angle noise is estimated from
-    the disagreement of the two angles, which are equal for exact data. Near 0 the screw axis
-    is undefined; near 180 deg noise can flip the axis of one of the two rotations.
-    """
-    i, j = spread_pairs(P.shape[0], max_pairs)
-    A = invert(P[i]) @ P[j]
-    B = C[i] @ invert(C[j])
-    ang_a, ang_b = rotation_angle(A[:, :3, :3]), rotation_angle(B[:, :3, :3])
-    noise = 1.4826 * float(np.median(np.abs(ang_a - ang_b))) / np.sqrt(2.0)
-    margin = max(np.deg2rad(min_rotation_deg), 5.0 * noise)
-    lo, hi = margin, np.pi - margin
-    ok = (ang_a > lo) & (ang_a < hi) & (ang_b > lo) & (ang_b < hi)
-    return Motions(A=A[ok], B=B[ok], pairs=np.stack([i[ok], j[ok]], axis=1),
-                   skipped=int((~ok).sum()))
-
-
-def check_motion_diversity(motions: Motions, *,
-                           min_spread_deg: float = MIN_AXIS_SPREAD_DEG) -> None:
-    """Raise ``ValueError`` if the motions cannot determine X (Chen: two non-parallel axes)."""
-    if len(motions.A) < 2:
-        raise ValueError(
-            f"fewer than 2 station pairs rotate by more than {MIN_MOTION_ROTATION_DEG:g} deg: "
-            "add stations with the tool tilted (10-35 deg) about different axes")
-    axes = so3.log(motions.A[:, :3, :3])
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    # the axis lines' largest angle from their principal direction
-    principal = np.linalg.svd(axes, full_matrices=False)[2][0]
-    spread = np.degrees(np.arccos(np.clip(np.abs(axes @ principal), 0.0, 1.0)).max())
-    if spread < min_spread_deg:
-        raise ValueError(
-            f"rotation axes of all motions are parallel within {min_spread_deg:g} deg: "
-            "add stations tilted about another axis")
-
-
 def validate_stations(T_base_tcp: np.ndarray, T_cam_target: np.ndarray) -> tuple[np.ndarray,
                                                                                   np.ndarray]:
     """Check the station poses at the boundary; return them as float (n, 4, 4) arrays."""
@@ -163,26 +82,15 @@ def average_transform(Ts: np.ndarray) -> np.ndarray:
     return make_transform(R, Ts[:, :3, 3].mean(axis=0))
 
 
-def tool_side_motions(T_base_tcp: np.ndarray, C: np.ndarray, setup: str) -> Motions:
-    """Motion pairs whose robot side is a tcp-frame motion ``inv(P_i) P_j`` (P = base_T_tcp).
-
-    Eye-in-hand their unknown is the hand-eye; eye-to-hand (camera pose replaced by its inverse)
-    it is the target pose tcp_T_target: ``inv(P_i) P_j Y = Y inv(C_i) C_j``. Either way the
-    robot's reading noise enters in the tcp frame, close to the unknown, instead of being
-    carried through the long lever of the base frame.
-    """
-    return station_motions(T_base_tcp, C if setup == "eye_in_hand" else invert(C))
-
-
 def solve_screw(T_base_tcp: np.ndarray, C: np.ndarray, setup: str,
                 motions: Motions) -> tuple[np.ndarray, np.ndarray]:
     """X and Y by SM on the tool-side motions; the other unknown from the averaged loop."""
     length = float(np.median(np.linalg.norm(motions.A[:, :3, 3], axis=1))) or 1.0
     Z = solve_sm(motions.A, motions.B, length_scale=length)
-    if setup == "eye_in_hand":  # Z = tcp_T_cam; base_T_target = P X C
-        return Z, average_transform(T_base_tcp @ Z @ C)
-    # Z = tcp_T_target; base_T_cam = P Y inv(C)
-    return average_transform(T_base_tcp @ Z @ invert(C)), Z
+    if setup == "eye_in_hand":  # Z = T_tcp_cam
+        return Z, average_transform(target_from_station(T_base_tcp, Z, C, setup))
+    # Z = T_tcp_target
+    return average_transform(hand_eye_from_station(T_base_tcp, Z, C, setup)), Z
 
 
 def calibrate_hand_eye(T_base_tcp: np.ndarray, T_cam_target: np.ndarray, *,

@@ -46,14 +46,13 @@ from scipy.stats import chi2
 
 from calib import so3
 from calib.camera import project
+from calib.chain import check_setup, robot_chain
 from calib.geometry import check_transforms, invert
 from calib.handeye import (
     DEFAULT_ROBOT_NOISE_ROT_RAD,
     DEFAULT_ROBOT_NOISE_TRANS_M,
     MIN_STATIONS,
-    SETUPS,
     calibrate_hand_eye,
-    robot_chain,
 )
 from calib.intrinsics import calibrate_intrinsics
 from calib.refine import pose_residuals
@@ -181,8 +180,7 @@ def solve_joint(image_points: Sequence[np.ndarray], T_base_tcp: np.ndarray, *,
     max_nfev : int
         Evaluation budget per solve.
     """
-    if setup not in SETUPS:
-        raise ValueError(f"unknown setup '{setup}': choose eye_in_hand or eye_to_hand")
+    check_setup(setup)
     unknown = [f for f in fix if f not in FIXABLE]
     if unknown:
         raise ValueError(f"fix: unknown parameters {unknown}; choose from {FIXABLE}")

@@ -25,18 +25,16 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
-import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from calib.camera import solve_pnp
+from calib.chain import camera_from_robot, check_setup, robot_chain
 from calib.geometry import check_ur_poses, invert, make_transform, rotation_angle
 from calib.handeye import (
     DEFAULT_ROBOT_NOISE_ROT_RAD,
     DEFAULT_ROBOT_NOISE_TRANS_M,
     METHODS,
-    SETUPS,
     calibrate_hand_eye,
-    robot_chain,
 )
 from calib.intrinsics import MIN_IMAGES, calibrate_intrinsics
 from calib.joint import OUTLIER_SIGMA, nu_from_extrinsics, solve_joint
@@ -44,7 +42,6 @@ from calib.target import Detection, board_points, detect_checkerboard
 from calib.validation import (
     leave_one_out,
     motion_residuals,
-    predicted_camera_poses,
     reprojection_rms,
 )
 
@@ -165,8 +162,7 @@ def calibrate_stations(observations: Iterable[Observation],
     """
     cols, rows = (int(v) for v in inner_corners)
     grid = board_points((cols, rows), square_size)
-    if setup not in SETUPS:
-        raise ValueError(f"unknown setup '{setup}': choose eye_in_hand or eye_to_hand")
+    check_setup(setup)
     if method not in METHODS:
         raise ValueError(f"unknown method '{method}': choose one of {', '.join(METHODS)}")
     if nu_method not in NU_METHODS:
@@ -278,7 +274,7 @@ def calibrate_stations(observations: Iterable[Observation],
     true_grid = board_points((cols, rows), square_size, kappa=kappa, nu=nu)
     pts = [corners[i] for i in keep]
     chain = reprojection_rms(pts, [true_grid] * len(keep), K, dist,
-                             predicted_camera_poses(P, X, Y, setup=setup))
+                             camera_from_robot(P, X, Y, setup))
     held = np.unique(np.linspace(0, len(keep) - 1, min(len(keep), MAX_HELD_OUT)).astype(int))
     loo = leave_one_out(P, Ck, setup=setup, held_out=held)
     motion = motion_residuals(P, Ck, X, setup=setup)
@@ -371,13 +367,13 @@ def _poses_from_known_intrinsics(corners: list[np.ndarray], grid: np.ndarray, K:
     """Per-image cam_T_target (nominal board) by PnP, σ_px and per-image RMS (n,)."""
     poses, sq = [], []
     for m in corners:
-        ok, rvec, tvec = cv2.solvePnP(grid, m, K, dist, flags=cv2.SOLVEPNP_ITERATIVE)
-        if not ok:
-            raise ValueError("PnP failed with the given intrinsics: are K and dist right?")
-        uv = cv2.projectPoints(grid, rvec, tvec, K, dist)[0].reshape(-1, 2)
-        sq.append(np.sum((uv - m) ** 2, axis=1))
-        poses.append(make_transform(Rotation.from_rotvec(rvec.ravel()).as_matrix(),
-                                    tvec.ravel()))
+        try:
+            C, residuals = solve_pnp(grid, m, K, dist)
+        except ValueError:
+            raise ValueError("PnP failed with the given intrinsics: are K and dist right?"
+                             ) from None
+        sq.append(np.sum(residuals ** 2, axis=1))
+        poses.append(C)
     total = np.concatenate(sq)
     sigma_px = float(np.sqrt(total.sum() / max(total.size * 2 - 6 * len(corners), 1)))
     return np.array(poses), sigma_px, np.sqrt(np.array([s.mean() for s in sq]))

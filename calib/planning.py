@@ -31,13 +31,17 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
-from calib.geometry import check_transforms, invert, make_transform, rotation_angle
-from calib.handeye import (
-    MIN_STATIONS,
-    SETUPS,
+from calib.camera import solve_pnp
+from calib.chain import (
+    camera_from_robot,
     check_motion_diversity,
+    check_setup,
+    robot_from_camera,
+    target_from_station,
     tool_side_motions,
 )
+from calib.geometry import check_transforms, invert, make_transform, rotation_angle
+from calib.handeye import MIN_STATIONS
 from calib.target import board_points
 
 #: Metres of travel one radian of tool rotation is worth when ordering stations.
@@ -112,8 +116,7 @@ def plan_stations(n: int, *, start_tcp_pose: np.ndarray, target_pose_guess: np.n
     if n < MIN_STATIONS:
         raise ValueError(f"a plan needs at least {MIN_STATIONS} stations to determine the "
                          f"hand-eye, got {n}: ask for more stations (10-20 is typical)")
-    if setup not in SETUPS:
-        raise ValueError(f"unknown setup '{setup}': choose eye_in_hand or eye_to_hand")
+    check_setup(setup)
     if not 0.0 < max_tilt_deg <= MAX_TILT_LIMIT_DEG:
         raise ValueError(f"max_tilt_deg must be in (0, {MAX_TILT_LIMIT_DEG:g}], got "
                          f"{max_tilt_deg}: tilted views are what make the hand-eye solvable")
@@ -141,7 +144,7 @@ def plan_stations(n: int, *, start_tcp_pose: np.ndarray, target_pose_guess: np.n
     centre = grid[[0, -1]].mean(axis=0)
     half_extent = grid[-1] - centre
     outline = _board_outline(cols, rows, square_size)
-    roll0 = _start_roll(camera_view(P0, X, Y, setup))
+    roll0 = _start_roll(camera_from_robot(P0, X, Y, setup))
 
     views: list[np.ndarray] = []
     tcps: list[np.ndarray] = []
@@ -156,7 +159,7 @@ def plan_stations(n: int, *, start_tcp_pose: np.ndarray, target_pose_guess: np.n
             if not _board_in_view(C, outline, K, dist, image_size, margin_frac):
                 continue
             in_view += 1
-            P = tcp_pose_for_view(C, X, Y, setup)
+            P = robot_from_camera(C, X, Y, setup)
             if not ((P[:3, 3] >= lo).all() and (P[:3, 3] <= hi).all()):
                 continue
             views.append(C)
@@ -201,8 +204,7 @@ def rough_target_from_image(corners: np.ndarray, K: np.ndarray, inner_corners: t
     -------
     target_pose : shape (4, 4), base_T_target (eye-in-hand) or tcp_T_target (eye-to-hand).
     """
-    if setup not in SETUPS:
-        raise ValueError(f"unknown setup '{setup}': choose eye_in_hand or eye_to_hand")
+    check_setup(setup)
     obj = board_points(inner_corners, square_size)
     img = np.asarray(corners, dtype=float).reshape(-1, 2)
     if img.shape[0] != obj.shape[0]:
@@ -210,32 +212,12 @@ def rough_target_from_image(corners: np.ndarray, K: np.ndarray, inner_corners: t
                          f"{inner_corners[1]} board ({obj.shape[0]} expected)")
     P = check_transforms(start_tcp_pose, "start_tcp_pose")[0]
     X = check_transforms(hand_eye_guess, "hand_eye_guess")[0]
-    dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=float)
-    ok, rvec, tvec = cv2.solvePnP(obj, img, np.asarray(K, dtype=float), dist,
-                                  flags=cv2.SOLVEPNP_IPPE)
-    if not ok:
-        raise ValueError("solvePnP failed on the detected corners: check K and inner_corners")
-    C = make_transform(cv2.Rodrigues(rvec)[0], tvec.ravel())
-    return P @ X @ C if setup == "eye_in_hand" else invert(P) @ X @ C
-
-
-def camera_view(T_base_tcp: np.ndarray, hand_eye: np.ndarray, target_pose: np.ndarray,
-                setup: str) -> np.ndarray:
-    """cam_T_target seen from robot pose(s) base_T_tcp, shapes (..., 4, 4) -> (..., 4, 4).
-
-    Eye-in-hand ``inv(X) inv(P) Y``, eye-to-hand ``inv(X) P Y`` (``docs/conventions.md``).
-    """
-    if setup == "eye_in_hand":
-        return invert(hand_eye) @ invert(T_base_tcp) @ target_pose
-    return invert(hand_eye) @ T_base_tcp @ target_pose
-
-
-def tcp_pose_for_view(T_cam_target: np.ndarray, hand_eye: np.ndarray, target_pose: np.ndarray,
-                      setup: str) -> np.ndarray:
-    """base_T_tcp giving view(s) cam_T_target, (..., 4, 4); inverse of :func:`camera_view`."""
-    if setup == "eye_in_hand":
-        return target_pose @ invert(T_cam_target) @ invert(hand_eye)
-    return hand_eye @ T_cam_target @ invert(target_pose)
+    try:
+        C, _ = solve_pnp(obj, img, K, None if dist is None else np.asarray(dist, dtype=float))
+    except ValueError:
+        raise ValueError("solvePnP failed on the detected corners: check K and inner_corners"
+                         ) from None
+    return target_from_station(P, X, C, setup)
 
 
 def look_at_view(look_at: np.ndarray, tilt: float, azimuth: float, roll: float,

@@ -6,7 +6,6 @@ nominal-scale poses of the intrinsic stage with their translations multiplied by
 
 * :func:`motion_residuals` — E_R and E_t (eq. 21-22) over the motion pairs ``A X = X B``;
 * :func:`reprojection_rms` — per-station reprojection RMS of given camera poses;
-* :func:`predicted_camera_poses` — camera poses predicted from the robot readings alone;
 * :func:`leave_one_out` — pose prediction on held-out stations (eq. 23);
 * :func:`dot_hit` — probe points reconstructed in the base frame (eq. 24) and their errors.
 """
@@ -19,8 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.camera import project
-from calib.geometry import invert, pose_error
-from calib.handeye import calibrate_hand_eye, robot_chain, station_motions
+from calib.chain import camera_from_robot, robot_chain, station_motions
+from calib.geometry import pose_error
+from calib.handeye import calibrate_hand_eye
 
 
 @dataclass(frozen=True)
@@ -97,22 +97,15 @@ def reprojection_rms(image_points: Sequence[np.ndarray], points_target: Sequence
     return out
 
 
-def predicted_camera_poses(T_base_tcp: np.ndarray, hand_eye: np.ndarray,
-                           target_pose: np.ndarray, *, setup: str = "eye_in_hand") -> np.ndarray:
-    """cam_T_target predicted from robot readings, ``inv(X) inv(P_i) Y`` (eq. 23), (n, 4, 4).
-
-    ``P_i`` is the robot chain pose (base_T_tcp, or its inverse eye-to-hand). Eq. (23) predicts
-    from the first station's camera pose, ``Â_i = X B_i⁻¹ X⁻¹ A_1``; we use the estimated target
-    pose instead, which averages over all stations rather than trusting one.
-    """
-    P = robot_chain(np.asarray(T_base_tcp, dtype=float), setup)
-    return invert(hand_eye) @ invert(P) @ target_pose
-
-
 def leave_one_out(T_base_tcp: np.ndarray, T_cam_target: np.ndarray, *,
                   setup: str = "eye_in_hand",
                   held_out: Sequence[int] | None = None) -> LeaveOneOut:
     """Pose-prediction error of each held-out station, calibrating without it (eq. 23).
+
+    The held-out camera pose is predicted from its robot reading alone,
+    ``inv(X) inv(P_i) Y`` (:func:`calib.chain.camera_from_robot`). Eq. (23) predicts from the
+    first station's camera pose, ``Â_i = X B_i⁻¹ X⁻¹ A_1``; the estimated target pose is used
+    instead, which averages over all stations rather than trusting one.
 
     Parameters
     ----------
@@ -130,8 +123,7 @@ def leave_one_out(T_base_tcp: np.ndarray, T_cam_target: np.ndarray, *,
                                      method="sm")
         except ValueError:
             continue
-        pred = predicted_camera_poses(T_base_tcp[i:i + 1], fit.hand_eye, fit.target_pose,
-                                      setup=setup)[0]
+        pred = camera_from_robot(T_base_tcp[i], fit.hand_eye, fit.target_pose, setup)
         rot[k], trans[k] = pose_error(pred, T_cam_target[i])
     return LeaveOneOut(stations=stations, rot_rad=rot, trans_m=trans)
 

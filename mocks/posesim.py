@@ -9,10 +9,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from calib.camera import solve_pnp
+from calib.chain import robot_from_camera
 from calib.geometry import invert, make_transform, perturb
 
 #: A 1280x1024 camera with a 1400 px focal length (about 49 deg horizontal field of view).
@@ -93,10 +94,7 @@ def project(cell: Cell, C: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def robot_poses(cell: Cell, C: np.ndarray) -> np.ndarray:
     """True base_T_tcp (n, 4, 4) that put the camera at cam_T_target ``C`` (n, 4, 4)."""
-    X, Y = cell.hand_eye, cell.target_pose
-    if cell.setup == "eye_in_hand":
-        return Y @ invert(C) @ invert(X)  # P X C = Y
-    return invert(Y @ invert(C) @ invert(X))  # inv(P) X C = Y
+    return robot_from_camera(C, cell.hand_eye, cell.target_pose, cell.setup)
 
 
 def pnp_observations(cell: Cell, C: np.ndarray, pixel_noise: float,
@@ -112,13 +110,7 @@ def pnp_observations(cell: Cell, C: np.ndarray, pixel_noise: float,
     for k, Ck in enumerate(C):
         uv = project(cell, Ck, cell.board_points) + rng.normal(0.0, pixel_noise,
                                                                 (len(model), 2))
-        rvec0 = Rotation.from_matrix(Ck[:3, :3]).as_rotvec()
-        ok, rvec, tvec = cv2.solvePnP(model, uv, cell.K, None, rvec0.copy(),
-                                      Ck[:3, 3].copy(), useExtrinsicGuess=True,
-                                      flags=cv2.SOLVEPNP_ITERATIVE)
-        if not ok:
-            raise RuntimeError("solvePnP failed on simulated corners")
-        out[k] = make_transform(Rotation.from_rotvec(rvec.ravel()).as_matrix(), tvec.ravel())
+        out[k] = solve_pnp(model, uv, cell.K, guess=Ck)[0]
     return out
 
 

@@ -21,6 +21,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from scipy.spatial.transform import Rotation
 
+from calib.chain import camera_from_robot, robot_from_camera
 from calib.geometry import (
     check_transforms,
     invert,
@@ -177,10 +178,8 @@ def camera_pose_for_tcp(scene: MockScene, T_base_tcp: np.ndarray) -> np.ndarray:
     Eye-in-hand: ``inv(T_tcp_cam) @ inv(T_base_tcp) @ T_base_target``;
     eye-to-hand: ``inv(T_base_cam) @ T_base_tcp @ T_tcp_target`` (``docs/conventions.md``).
     """
-    T_base_tcp = np.asarray(T_base_tcp, dtype=float)
-    if scene.setup == "eye_in_hand":
-        return invert(scene.hand_eye_matrix) @ invert(T_base_tcp) @ scene.target_pose_matrix
-    return invert(scene.hand_eye_matrix) @ T_base_tcp @ scene.target_pose_matrix
+    return camera_from_robot(T_base_tcp, scene.hand_eye_matrix, scene.target_pose_matrix,
+                             scene.setup)
 
 
 def tcp_pose_for_camera(scene: MockScene, T_cam_target: np.ndarray) -> np.ndarray:
@@ -188,10 +187,8 @@ def tcp_pose_for_camera(scene: MockScene, T_cam_target: np.ndarray) -> np.ndarra
 
     Inverse of :func:`camera_pose_for_tcp`.
     """
-    T_cam_target = np.asarray(T_cam_target, dtype=float)
-    if scene.setup == "eye_in_hand":
-        return scene.target_pose_matrix @ invert(T_cam_target) @ invert(scene.hand_eye_matrix)
-    return scene.hand_eye_matrix @ T_cam_target @ invert(scene.target_pose_matrix)
+    return robot_from_camera(np.asarray(T_cam_target, dtype=float), scene.hand_eye_matrix,
+                             scene.target_pose_matrix, scene.setup)
 
 
 def sample_station_poses(scene: MockScene, n: int, rng: np.random.Generator, *,

@@ -9,6 +9,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calib.geometry import make_transform, pose_error
+from mocks.posesim import Cell, default_cell, robot_poses, sample_camera_poses
 
 
 def random_transforms(rng: np.random.Generator, n: int, *, scale: float = 1.0) -> np.ndarray:
@@ -22,6 +23,13 @@ def assert_pose_close(T_est: np.ndarray, T_true: np.ndarray, *, rot: float, tran
     dr, dt = pose_error(T_est, T_true)
     assert np.all(dr < rot), f"rotation error {np.max(dr):.3e} rad >= {rot:.1e}"
     assert np.all(dt < trans), f"translation error {np.max(dt):.3e} m >= {trans:.1e}"
+
+
+def exact_stations(setup: str, n: int, seed: int) -> tuple[Cell, np.ndarray, np.ndarray]:
+    """A simulated cell and ``n`` noise-free stations: (cell, T_base_tcp, T_cam_target)."""
+    cell = default_cell(setup)
+    C = sample_camera_poses(cell, n, np.random.default_rng(seed))
+    return cell, robot_poses(cell, C), C
 
 
 #: ``../shared`` beside the repository (CI and developers have it there), e.g. the real images.

@@ -3,16 +3,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from calib.chain import camera_from_robot, robot_from_camera
 from calib.geometry import invert, make_transform, perturb, rotation_angle
 from calib.handeye import calibrate_hand_eye
 from calib.planning import (
-    camera_view,
     look_at_view,
     order_for_travel,
     path_length,
     plan_stations,
     rough_target_from_image,
-    tcp_pose_for_view,
 )
 from calib.target import board_points
 from mocks.scene import default_scene
@@ -39,7 +38,7 @@ def cell(setup):
         Y = make_transform(Rotation.from_euler("xz", [10.0, 20.0], degrees=True).as_matrix(),
                            [-0.15, -0.1, 0.04])
     C0 = look_at_view(CENTRE, 0.0, 0.0, 0.0, D0)
-    return tcp_pose_for_view(C0, X, Y, setup), X, Y
+    return robot_from_camera(C0, X, Y, setup), X, Y
 
 
 def plan(setup="eye_in_hand", n=15, **kw):
@@ -55,7 +54,7 @@ def test_planned_stations_keep_the_board_in_view_inside_the_workspace(setup):
     _, X, Y = cell(setup)
     p = plan(setup)
     assert p.tcp_poses.shape == p.views.shape == (15, 4, 4)
-    C = camera_view(p.tcp_poses, X, Y, setup)
+    C = camera_from_robot(p.tcp_poses, X, Y, setup)
     np.testing.assert_allclose(C, p.views, atol=1e-12)
     margin = 0.04 * min(SIZE) - 1e-6
     s = SQUARE
@@ -95,7 +94,7 @@ def test_hand_eye_solver_recovers_x_on_noise_free_observations_of_the_plan(setup
     X_guess = perturb(X_true, np.deg2rad(1.0), 0.005, rng)
     Y_guess = perturb(Y_true, np.deg2rad(1.0), 0.005, rng)
     p = plan(setup, n=10, hand_eye_guess=X_guess, target_pose_guess=Y_guess)
-    C = camera_view(p.tcp_poses, X_true, Y_true, setup)
+    C = camera_from_robot(p.tcp_poses, X_true, Y_true, setup)
     result = calibrate_hand_eye(p.tcp_poses, C, setup=setup, method="sm")
     assert_pose_close(result.hand_eye, X_true, rot=1e-9, trans=1e-9)
     assert_pose_close(result.target_pose, Y_true, rot=1e-9, trans=1e-9)
@@ -182,7 +181,7 @@ def test_rough_target_from_image_closes_the_chain(setup):
     P0, X, Y = cell(setup)
     P0 = P0 @ make_transform(Rotation.from_euler("xy", [8.0, -5.0], degrees=True).as_matrix(),
                              [0.01, -0.02, 0.0])
-    C = camera_view(P0, X, Y, setup)
+    C = camera_from_robot(P0, X, Y, setup)
     uv = cv2.projectPoints(board_points(CORNERS, SQUARE), cv2.Rodrigues(C[:3, :3])[0],
                            C[:3, 3], K, DIST)[0].reshape(-1, 2)
     Y_est = rough_target_from_image(uv, K, CORNERS, SQUARE, P0, X, setup=setup, dist=DIST)

@@ -6,23 +6,22 @@ import numpy as np
 import pytest
 
 from calib.camera import project
+from calib.chain import camera_from_robot
 from calib.geometry import make_transform, perturb
 from calib.target import board_points
 from calib.validation import (
     dot_hit,
     leave_one_out,
     motion_residuals,
-    predicted_camera_poses,
     reprojection_rms,
 )
 from mocks.posesim import default_cell, robot_poses, sample_camera_poses
+from tests.helpers import exact_stations
 
 
 @pytest.fixture(params=["eye_in_hand", "eye_to_hand"])
 def exact(request):
-    cell = default_cell(request.param)
-    C = sample_camera_poses(cell, 8, np.random.default_rng(1))
-    return cell, robot_poses(cell, C), C
+    return exact_stations(request.param, 8, seed=1)
 
 
 def test_exact_data_has_zero_residuals_and_perfect_predictions(exact):
@@ -30,7 +29,7 @@ def test_exact_data_has_zero_residuals_and_perfect_predictions(exact):
     res = motion_residuals(P, C, cell.hand_eye, setup=cell.setup)
     assert res.n_motions == 28 and res.E_R < 1e-20 and res.E_t < 1e-20
     np.testing.assert_allclose(
-        predicted_camera_poses(P, cell.hand_eye, cell.target_pose, setup=cell.setup), C,
+        camera_from_robot(P, cell.hand_eye, cell.target_pose, cell.setup), C,
         atol=1e-12)
     loo = leave_one_out(P, C, setup=cell.setup)
     assert loo.stations.tolist() == list(range(8))
