@@ -23,8 +23,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
+from calib.chain import station_motions
 from calib.geometry import invert, make_transform, pose_error
-from calib.handeye import METHODS, calibrate_hand_eye, station_motions
+from calib.handeye import METHODS, calibrate_hand_eye
 from calib.peers import HAND_EYE_METHODS
 from calib.screw import solve_sm
 from mocks.posesim import default_cell, simulate

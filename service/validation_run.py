@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
+from calib.chain import SETUPS
 from calib.geometry import (
     check_transforms,
     invert,
@@ -41,7 +42,6 @@ from calib.geometry import (
     matrix_from_ur_pose,
     ur_pose_from_matrix,
 )
-from calib.handeye import SETUPS
 from calib.target import board_points
 from drivers.base import Robot
 
