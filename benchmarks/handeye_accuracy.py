@@ -33,7 +33,7 @@ from mocks.posesim import default_cell, simulate
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-OPENCV = [m for m in METHODS if m not in ("sm", "joint")]
+OPENCV = [m for m in METHODS if m not in ("sm", "refine")]
 OUT = Path(__file__).parent / "results"
 
 
@@ -120,10 +120,10 @@ def speed(repeats: int = 300):
 
     out = {}
     for name, fn in [("sm core", sm), ("opencv park core", park), ("sm via API", api("sm")),
-                     ("park via API", api("park")), ("joint via API", api("joint"))]:
+                     ("park via API", api("park")), ("refine via API", api("refine"))]:
         fn()
         times = []
-        for _ in range(repeats if "joint" not in name else max(repeats // 20, 5)):
+        for _ in range(repeats if "refine" not in name else max(repeats // 20, 5)):
             t0 = time.perf_counter()
             fn()
             times.append(time.perf_counter() - t0)
@@ -163,12 +163,12 @@ def main() -> None:
         for m, (r, t, yr, yt) in res.items():
             print(f"{m:<11} {r:10.4f} {t:11.4f} {yr:10.4f} {yt:11.4f} {r / best_r:11.3f} "
                   f"{t / best_t:13.3f}")
-        sm, joint = res["sm"], res["joint"]
+        sm, refined = res["sm"], res["refine"]
         print(f"targets: SM rot <= 1.05x best OpenCV: {sm[0] / best_r:.3f} "
               f"[{'ok' if sm[0] <= 1.05 * best_r else 'MISS'}]; SM trans <= best OpenCV: "
-              f"{sm[1] / best_t:.3f} [{'ok' if sm[1] <= best_t else 'MISS'}]; joint/SM rot "
-              f"{joint[0] / sm[0]:.3f}, trans {joint[1] / sm[1]:.3f} "
-              f"[{'ok' if joint[0] <= 1.05 * sm[0] and joint[1] <= 1.05 * sm[1] else 'MISS'}]")
+              f"{sm[1] / best_t:.3f} [{'ok' if sm[1] <= best_t else 'MISS'}]; refine/SM rot "
+              f"{refined[0] / sm[0]:.3f}, trans {refined[1] / sm[1]:.3f} "
+              f"[{'ok' if refined[0] <= 1.05 * sm[0] and refined[1] <= 1.05 * sm[1] else 'MISS'}]")
 
     print("\n# Speed, 20 stations (median seconds per solve)")
     sp = speed(30 if args.quick else 300)

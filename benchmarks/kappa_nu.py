@@ -6,7 +6,7 @@
 (b) Our default (joint ML over corners and robot poses, with nu and kappa) against OpenCV's
     pipeline (``calibrateCamera`` on the nominal board + the best ``calibrateHandEye`` method) on
     rendered scenes (kappa = 1.005, nu = 0.9975), RMS over many seeds, with the Cramer-Rao lower
-    bound of the same measurement model (``calib.joint.cramer_rao_bound``) and our reported
+    bound of the same measurement model (``calib.bounds.cramer_rao_bound``) and our reported
     sigmas against the Monte-Carlo spread.
 (c) Speed: ``cellcal calibrate`` on 20 rendered 1280x1024 images against the OpenCV pipeline
     (detection + calibrateCamera + calibrateHandEye) on the same files, and on 200 stations.
@@ -29,13 +29,14 @@ import matplotlib
 import numpy as np
 from tqdm import tqdm
 
-from calib.chain import camera_from_robot
+from calib.bounds import cramer_rao_bound
+from calib.chain import RobotNoise, camera_from_robot
 from calib.geometry import make_transform, perturb, pose_error, ur_pose_from_matrix
 from calib.handeye import calibrate_hand_eye
-from calib.joint import cramer_rao_bound
+from calib.joint import CellParameters, JointOptions
 from calib.peers import HAND_EYE_METHODS
 from calib.pipeline import calibrate_stations
-from calib.target import board_points, detect_checkerboard
+from calib.target import Board, board_points, detect_checkerboard
 from mocks.render import RenderParams, render_board
 from mocks.scene import MockScene, camera_pose_for_tcp, default_scene, sample_station_poses
 from service.cli.main import main as cellcal
@@ -152,10 +153,9 @@ def comparison(seeds: int, stations: int = 15) -> dict[str, np.ndarray]:
         cv_err = [pose_error(calibrate_hand_eye(P_ok, _cv_poses(rv, tv), method=m).hand_eye,
                              X_true) for m in CV_METHODS]
         bound = cramer_rao_bound(
-            P_true, inner_corners=t.inner_corners, square_size=t.square_size_m,
-            K=cam.k_matrix, dist=cam.dist_coeffs, nu=t.nu, kappa=t.kappa, hand_eye=X_true,
-            target_pose=Y_true, sigma_px=sigma_px, robot_noise_rot=ROBOT_ROT,
-            robot_noise_trans=ROBOT_TRANS)
+            P_true, Board(tuple(t.inner_corners), t.square_size_m),
+            CellParameters(cam.k_matrix, cam.dist_coeffs, t.nu, t.kappa, X_true, Y_true),
+            JointOptions(sigma_px=sigma_px, noise=RobotNoise(ROBOT_ROT, ROBOT_TRANS)))
         er, et = pose_error(ours.hand_eye, X_true)
         s = ours.sigmas
         rows.append([

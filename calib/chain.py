@@ -35,6 +35,26 @@ MIN_AXIS_SPREAD_DEG = 2.0
 #: Largest number of motion pairs formed: all pairs of up to 200 stations, a spread subset
 #: beyond (memory and time stay bounded for any station count).
 MAX_MOTION_PAIRS = 19_900
+#: Reading noise of a UR-class robot: σ of the error's rotation angle (rad) and length (m).
+DEFAULT_ROBOT_NOISE_ROT_RAD = float(np.deg2rad(0.05))
+DEFAULT_ROBOT_NOISE_TRANS_M = 0.25e-3
+
+
+@dataclass(frozen=True)
+class RobotNoise:
+    """Noise of the robot's pose readings, as in Strobl & Hirzinger section IV-A.
+
+    ``rot_rad`` is the σ of the error's rotation *angle* about a random axis and ``trans_m``
+    the σ of its translation *length* along a random direction (``calib.geometry.perturb``
+    draws it), so each component of the rotation vector (translation) has σ / √3.
+    """
+
+    rot_rad: float = DEFAULT_ROBOT_NOISE_ROT_RAD
+    trans_m: float = DEFAULT_ROBOT_NOISE_TRANS_M
+
+    def __post_init__(self) -> None:
+        if not (self.rot_rad > 0 and self.trans_m > 0):
+            raise ValueError("robot noise levels (rotation rad, translation m) must be positive")
 
 
 def check_setup(setup: str) -> str:

@@ -6,8 +6,11 @@ determine the solution, and runs the chosen method:
 
 * ``sm`` — screw motions (Zhao & Liu), exact on noise-free data (``calib.screw``);
 * ``tsai``, ``park``, ``horaud``, ``andreff``, ``daniilidis``, ``shah``, ``li`` — OpenCV;
-* ``joint`` (default) — SM, then the weighted least-squares refinement of X, Y (and kappa on
+* ``refine`` (default) — SM, then the weighted least-squares refinement of X, Y (and kappa on
   request) from all stations (``calib.refine``), which also reports uncertainty.
+
+(``joint``, the corner-level maximum likelihood of ``calib.joint``, needs the corners, not
+only the poses; ``calib.pipeline`` runs it.)
 
 Every method returns the hand-eye *and* the target pose; for methods that only give one of
 them, the other is the average of the per-station loop closures.
@@ -30,13 +33,12 @@ from calib.chain import (
 )
 from calib.geometry import check_transforms, make_transform
 from calib.peers import HAND_EYE_METHODS, ROBOT_WORLD_METHODS, solve_opencv
-from calib.refine import pose_residuals, refine
+from calib.refine import RefineOptions, pose_residuals, refine
 from calib.screw import solve_sm
 
-METHODS = ("sm", *HAND_EYE_METHODS, *ROBOT_WORLD_METHODS, "joint")
+#: Solvers of pose-only hand-eye: screw motions, OpenCV's, and SM with the refinement.
+METHODS = ("sm", *HAND_EYE_METHODS, *ROBOT_WORLD_METHODS, "refine")
 MIN_STATIONS = 3
-DEFAULT_ROBOT_NOISE_ROT_RAD = np.deg2rad(0.05)
-DEFAULT_ROBOT_NOISE_TRANS_M = 0.25e-3
 
 
 @dataclass(frozen=True)
@@ -44,7 +46,7 @@ class HandEyeResult:
     """Hand-eye estimate with what a user needs to trust it.
 
     ``hand_eye`` is tcp_T_cam (eye-in-hand) or base_T_cam (eye-to-hand); ``target_pose`` is
-    base_T_target or tcp_T_target. ``sigmas`` (from ``joint`` only) holds standard deviations:
+    base_T_target or tcp_T_target. ``sigmas`` (from ``refine`` only) holds standard deviations:
     ``hand_eye_rot_rad`` and ``target_pose_rot_rad`` (3,) as small rotations in the frame of the
     transform's first index, ``hand_eye_trans_m`` and ``target_pose_trans_m`` (3,) in that frame,
     and ``kappa``. ``station_residuals`` has shape (n, 2): per-station rotation (rad) and
@@ -94,50 +96,47 @@ def solve_screw(T_base_tcp: np.ndarray, C: np.ndarray, setup: str,
 
 
 def calibrate_hand_eye(T_base_tcp: np.ndarray, T_cam_target: np.ndarray, *,
-                       setup: str = "eye_in_hand", method: str = "joint",
-                       estimate_kappa: bool = False,
-                       robot_noise_rot: float = DEFAULT_ROBOT_NOISE_ROT_RAD,
-                       robot_noise_trans: float = DEFAULT_ROBOT_NOISE_TRANS_M) -> HandEyeResult:
+                       setup: str = "eye_in_hand", method: str = "refine",
+                       options: RefineOptions | None = None) -> HandEyeResult:
     """Hand-eye and target pose from station poses.
 
     Parameters
     ----------
-    T_base_tcp : shape (n, 4, 4), robot readings base_T_tcp, metres.
-    T_cam_target : shape (n, 4, 4), camera observations cam_T_target, metres.
+    T_base_tcp : shape (n, 4, 4), robot readings T_base_tcp, metres.
+    T_cam_target : shape (n, 4, 4), camera observations T_cam_target, metres.
     setup : ``eye_in_hand`` or ``eye_to_hand``.
     method : one of ``METHODS``.
-    estimate_kappa : ``joint`` only: estimate the board scale (camera translations scale with
-        it, Strobl & Hirzinger eq. 6). Off by default for pose-only data.
-    robot_noise_rot, robot_noise_trans : expected robot pose noise (rad, m); starting weights.
+    options : ``refine`` only: the expected robot pose noise (starting weights) and whether to
+        estimate the board scale κ (camera translations scale with it, Strobl & Hirzinger
+        eq. 6; off by default for pose-only data).
     """
     if method not in METHODS:
         raise ValueError(f"unknown method '{method}': choose one of {', '.join(METHODS)}")
-    if estimate_kappa and method != "joint":
-        raise ValueError("kappa can only be estimated by the 'joint' method")
+    options = RefineOptions() if options is None else options
+    if options.estimate_kappa and method != "refine":
+        raise ValueError("kappa can only be estimated by the 'refine' method")
     T_base_tcp, C = validate_stations(T_base_tcp, T_cam_target)
-    P = robot_chain(T_base_tcp, setup)
     motions = tool_side_motions(T_base_tcp, C, setup)
     check_motion_diversity(motions)
 
     if method in HAND_EYE_METHODS or method in ROBOT_WORLD_METHODS:
-        X, Y = solve_opencv(P, C, method)
+        X, Y = solve_opencv(robot_chain(T_base_tcp, setup), C, method)
         if Y is None:
-            Y = average_transform(P @ X @ C)
+            Y = average_transform(target_from_station(T_base_tcp, X, C, setup))
     else:
         X, Y = solve_screw(T_base_tcp, C, setup, motions)
     common = dict(setup=setup, method=method, motions_used=len(motions.A),
                   motions_skipped=motions.skipped)
-    if method != "joint":
-        res = pose_residuals(P, C, X, Y, inverted=setup == "eye_to_hand")
+    if method != "refine":
+        res = pose_residuals(T_base_tcp, C, X, Y, setup)
         return HandEyeResult(hand_eye=X, target_pose=Y, station_residuals=_norms(res), **common)
 
-    fit = refine(P, C, X, Y, noise_rot=robot_noise_rot, noise_trans=robot_noise_trans,
-                 estimate_kappa=estimate_kappa, inverted=setup == "eye_to_hand")
+    fit = refine(T_base_tcp, C, (X, Y), setup, options)
     sd = np.sqrt(np.clip(np.diag(fit.covariance), 0.0, None))
     sigmas: dict[str, np.ndarray | float] = {
         "hand_eye_rot_rad": sd[0:3], "hand_eye_trans_m": sd[3:6],
         "target_pose_rot_rad": sd[6:9], "target_pose_trans_m": sd[9:12]}
-    if estimate_kappa:
+    if options.estimate_kappa:
         sigmas["kappa"] = float(sd[12])
     return HandEyeResult(hand_eye=fit.X, target_pose=fit.Y, kappa=fit.kappa, sigmas=sigmas,
                          station_residuals=_norms(fit.residuals),

@@ -30,33 +30,25 @@ Stations whose correction is implausible are dropped one at a time, worst first,
 solved again: the distance ``sqrt((angle/σ_rot)² + (length/σ_trans)²)`` of δ_i (Mahalanobis in
 the noise model above, a chi variable with 2 degrees of freedom) beyond ``outlier_sigma``.
 
-:func:`nu_from_extrinsics` implements Method #2: ν from the extrinsic residuals of eq. (6), by a
-1-D search over ν around a start value with the intrinsic bundle adjustment at fixed ν.
+The same model gives the Cramér-Rao bound (``calib.bounds``); ν by Method #2 is in ``calib.nu``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import OptimizeResult, least_squares, minimize_scalar
+from scipy.optimize import OptimizeResult, least_squares
 from scipy.sparse import csr_matrix
 from scipy.stats import chi2
 
 from calib import so3
 from calib.camera import project
-from calib.chain import check_setup, robot_chain
+from calib.chain import RobotNoise, check_setup, robot_chain
 from calib.geometry import check_transforms, invert
-from calib.handeye import (
-    DEFAULT_ROBOT_NOISE_ROT_RAD,
-    DEFAULT_ROBOT_NOISE_TRANS_M,
-    MIN_STATIONS,
-    calibrate_hand_eye,
-)
-from calib.intrinsics import calibrate_intrinsics
-from calib.refine import pose_residuals
-from calib.target import board_points
+from calib.handeye import MIN_STATIONS
+from calib.target import Board
 
 #: Camera and board parameters, in the order of :attr:`JointResult.covariance`.
 CAMERA_PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "nu", "kappa")
@@ -70,25 +62,81 @@ FIXABLE = (*CAMERA_PARAMS,)
 OUTLIER_SIGMA = 5.0
 
 _N_CAM = len(CAMERA_PARAMS)
-_N_GLOBAL = len(GLOBAL_PARAMS)
 _NU, _KAPPA = CAMERA_PARAMS.index("nu"), CAMERA_PARAMS.index("kappa")
 #: Median of the chi distribution with 2 degrees of freedom (the correction's distance).
 _DISTANCE_MEDIAN = float(np.sqrt(chi2.ppf(0.5, 2)))
 
 
 @dataclass(frozen=True)
-class JointResult:
-    """Joint maximum-likelihood estimate with its uncertainty.
+class CornerStations:
+    """What was measured at n stations: corners of a board and the robot readings.
 
-    Attributes
-    ----------
-    K : shape (3, 3)
-    dist : shape (5,)
-        ``[k1, k2, p1, p2, k3]``.
-    nu, kappa : float
-        Board aspect ratio and scale: true corner (i, j) at (κν i s, κ j s, 0).
-    hand_eye, target_pose : shape (4, 4)
-        X and Y (see module docstring for the frames per setup).
+    ``image_points`` holds n arrays (N_i, 2) of detected corners (pixels), ``T_base_tcp`` the
+    readings (n, 4, 4) in metres, ``point_ids`` optionally n int arrays (N_i,) with the grid
+    index ``j * cols + i`` of each corner (default: the full grid, row-major).
+    """
+
+    image_points: Sequence[np.ndarray]
+    T_base_tcp: np.ndarray
+    board: Board
+    point_ids: Sequence[np.ndarray] | None = None
+
+
+@dataclass(frozen=True)
+class CellParameters:
+    """The global unknowns of the joint model: start values, or the truth for a bound.
+
+    ``K`` (3, 3), ``dist`` (5,) ``[k1, k2, p1, p2, k3]``, the board's ``nu`` and ``kappa``,
+    ``hand_eye`` X and ``target_pose`` Y (4, 4) in the frames of the setup (module docstring).
+    """
+
+    K: np.ndarray
+    dist: np.ndarray
+    nu: float
+    kappa: float
+    hand_eye: np.ndarray
+    target_pose: np.ndarray
+
+    def camera_vector(self) -> np.ndarray:
+        """The values of ``CAMERA_PARAMS``, shape (11,)."""
+        K = np.asarray(self.K, dtype=float)
+        return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+                         *np.asarray(self.dist, dtype=float)[:5], self.nu, self.kappa])
+
+
+@dataclass(frozen=True)
+class JointOptions:
+    """How the joint problem is weighted and solved.
+
+    ``sigma_px`` is the corner noise per coordinate (pixels, e.g. ``IntrinsicsResult.sigma_px``),
+    ``noise`` the robot reading noise (the prior on δ_i), ``fix`` names from ``FIXABLE`` held at
+    their start values, ``outlier_sigma`` the limit beyond which a station's correction drops
+    it (in units of the configured robot noise, or of the observed spread when that is larger;
+    None keeps all), ``max_nfev`` the evaluation budget per solve.
+    """
+
+    sigma_px: float
+    setup: str = "eye_in_hand"
+    noise: RobotNoise = field(default_factory=RobotNoise)
+    fix: tuple[str, ...] = ()
+    outlier_sigma: float | None = OUTLIER_SIGMA
+    max_nfev: int = 100
+
+    def __post_init__(self) -> None:
+        check_setup(self.setup)
+        unknown = [f for f in self.fix if f not in FIXABLE]
+        if unknown:
+            raise ValueError(f"fix: unknown parameters {unknown}; choose from {FIXABLE}")
+        if not self.sigma_px > 0:
+            raise ValueError("sigma_px must be positive")
+
+
+@dataclass(frozen=True)
+class JointResult(CellParameters):
+    """Joint maximum-likelihood estimate (the :class:`CellParameters` fields) and its uncertainty.
+
+    Attributes (beyond the estimate)
+    --------------------------------
     covariance : shape (23, 23)
         Over ``GLOBAL_PARAMS``, marginalised over the station corrections; rotations of X and Y
         are small rotations on the left (axes of the frame named first, e.g. tcp for
@@ -121,12 +169,6 @@ class JointResult:
     converged : bool
     """
 
-    K: np.ndarray
-    dist: np.ndarray
-    nu: float
-    kappa: float
-    hand_eye: np.ndarray
-    target_pose: np.ndarray
     covariance: np.ndarray
     sigmas: dict[str, float | np.ndarray]
     stations: np.ndarray
@@ -144,146 +186,80 @@ class JointResult:
     converged: bool
 
 
-def solve_joint(image_points: Sequence[np.ndarray], T_base_tcp: np.ndarray, *,
-                inner_corners: Sequence[int], square_size: float, K: np.ndarray,
-                dist: np.ndarray, nu: float, kappa: float, hand_eye: np.ndarray,
-                target_pose: np.ndarray, setup: str = "eye_in_hand", sigma_px: float,
-                point_ids: Sequence[np.ndarray] | None = None,
-                robot_noise_rot: float = DEFAULT_ROBOT_NOISE_ROT_RAD,
-                robot_noise_trans: float = DEFAULT_ROBOT_NOISE_TRANS_M,
-                fix: Sequence[str] = (), outlier_sigma: float | None = OUTLIER_SIGMA,
-                max_nfev: int = 100) -> JointResult:
+def solve_joint(stations: CornerStations, start: CellParameters,
+                options: JointOptions) -> JointResult:
     """Joint ML estimate of camera, ν, κ, X, Y and the robot corrections, from start values.
 
-    Parameters
-    ----------
-    image_points : sequence of n arrays, shape (N_i, 2)
-        Detected corners per station, pixels.
-    T_base_tcp : shape (n, 4, 4)
-        Robot readings base_T_tcp, metres.
-    inner_corners : (cols, rows)
-    square_size : float
-        Nominal square size, metres.
-    K, dist, nu, kappa, hand_eye, target_pose
-        Start values (e.g. intrinsics by Method #1, X, Y, κ by the eq. 6 refinement).
-    setup : ``eye_in_hand`` or ``eye_to_hand``.
-    sigma_px : float
-        Corner noise per coordinate, pixels (e.g. ``IntrinsicsResult.sigma_px``).
-    point_ids : sequence of n int arrays, shape (N_i,), optional
-        Grid index ``j * cols + i`` of each corner; default: the full grid, row-major.
-    robot_noise_rot, robot_noise_trans : float
-        Robot reading noise (rad, m), σ of the error's angle and length: the prior on δ_i.
-    fix : names from ``FIXABLE`` held at their start values.
-    outlier_sigma : float or None
-        Drop stations whose correction lies beyond this Mahalanobis distance (in units of the
-        configured robot noise, or of the observed spread when that is larger); None keeps all.
-    max_nfev : int
-        Evaluation budget per solve.
+    ``start`` holds e.g. the intrinsics by Method #1 and X, Y, κ by the eq. (6) refinement.
+    Stations whose correction is implausible are dropped one at a time (module docstring).
     """
-    check_setup(setup)
-    unknown = [f for f in fix if f not in FIXABLE]
-    if unknown:
-        raise ValueError(f"fix: unknown parameters {unknown}; choose from {FIXABLE}")
-    if not (sigma_px > 0 and robot_noise_rot > 0 and robot_noise_trans > 0):
-        raise ValueError("sigma_px, robot_noise_rot and robot_noise_trans must be positive")
-    T_base_tcp = check_transforms(T_base_tcp, "tcp_pose")
+    T_base_tcp = check_transforms(stations.T_base_tcp, "tcp_pose")
     n = len(T_base_tcp)
-    if len(image_points) != n:
-        raise ValueError(f"{len(image_points)} corner sets but {n} robot poses")
-    grid = board_points(tuple(inner_corners), square_size)[:, :2]
-    ids = ([np.arange(len(grid))] * n if point_ids is None
-           else [np.asarray(i, dtype=int) for i in point_ids])
-    pts = [np.asarray(p, dtype=float).reshape(-1, 2) for p in image_points]
+    if len(stations.image_points) != n:
+        raise ValueError(f"{len(stations.image_points)} corner sets but {n} robot poses")
+    grid = stations.board.points()[:, :2]
+    ids = ([np.arange(len(grid))] * n if stations.point_ids is None
+           else [np.asarray(i, dtype=int) for i in stations.point_ids])
+    pts = [np.asarray(p, dtype=float).reshape(-1, 2) for p in stations.image_points]
     if any(len(p) != len(i) for p, i in zip(pts, ids, strict=True)):
         raise ValueError("every station needs one grid index per corner (point_ids)")
 
-    cam = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *np.asarray(dist, float)[:5], nu, kappa])
-    X, Y = np.asarray(hand_eye, float), np.asarray(target_pose, float)
     keep = list(range(n))
     rejected: list[tuple[int, str]] = []
     while True:
-        problem = _Problem([grid[ids[k]] for k in keep], [pts[k] for k in keep],
-                           T_base_tcp[keep], setup, cam, X, Y, tuple(fix), sigma_px,
-                           robot_noise_rot, robot_noise_trans)
+        problem = JointProblem([grid[ids[k]] for k in keep], [pts[k] for k in keep],
+                               T_base_tcp[keep], start, options)
         # lsmr needs more than its default min(m, n) iterations on small, ill-conditioned
         # problems (far cameras, eye-to-hand) to give Gauss-Newton steps.
         lsmr = {"atol": 1e-10, "btol": 1e-10, "maxiter": max(problem.shape[1], 1000)}
         sol = least_squares(problem.residuals, problem.x0(), jac=problem.jacobian,
                             method="trf", x_scale="jac", tr_solver="lsmr", tr_options=lsmr,
-                            ftol=1e-12, xtol=1e-12, gtol=1e-12, max_nfev=max_nfev)
-        cam, X, Y, delta = problem.unpack(sol.x)
-        d = _distance(delta, robot_noise_rot, robot_noise_trans)
+                            ftol=1e-12, xtol=1e-12, gtol=1e-12, max_nfev=options.max_nfev)
+        start, delta = problem.unpack(sol.x)
+        d = _distance(delta, options.noise)
         scale = max(1.0, float(np.median(d)) / _DISTANCE_MEDIAN)
         worst = int(np.argmax(d))
-        if outlier_sigma is None or d[worst] <= outlier_sigma * scale \
-                or len(keep) <= MIN_STATIONS:
+        limit = options.outlier_sigma
+        if limit is None or d[worst] <= limit * scale or len(keep) <= MIN_STATIONS:
             break
         rejected.append((keep[worst], (
             f"robot pose inconsistent with the image: it needs a correction of "
             f"{np.degrees(np.linalg.norm(delta[worst, :3])):.3f} deg / "
             f"{1e3 * np.linalg.norm(delta[worst, 3:]):.2f} mm, {d[worst] / scale:.1f} sigma "
-            f"(limit {outlier_sigma:g})")))
+            f"(limit {limit:g})")))
         del keep[worst]
     return problem.result(sol, np.array(keep), tuple(rejected))
 
 
-def cramer_rao_bound(T_base_tcp: np.ndarray, *, inner_corners: Sequence[int],
-                     square_size: float, K: np.ndarray, dist: np.ndarray, nu: float,
-                     kappa: float, hand_eye: np.ndarray, target_pose: np.ndarray,
-                     setup: str = "eye_in_hand", sigma_px: float,
-                     robot_noise_rot: float = DEFAULT_ROBOT_NOISE_ROT_RAD,
-                     robot_noise_trans: float = DEFAULT_ROBOT_NOISE_TRANS_M,
-                     fix: Sequence[str] = ()) -> dict[str, float | np.ndarray]:
-    """Cramér-Rao lower bound of the joint model at the truth, for benchmarks.
-
-    The inverse Fisher information ``(JᵀJ)⁻¹`` of the normalised residuals (``_Problem``)
-    at the true parameters, full board seen at every true robot pose ``T_base_tcp`` (n, 4, 4),
-    station blocks eliminated as in :func:`solve_joint`. Returns the covariance (23, 23) over
-    ``GLOBAL_PARAMS`` as ``covariance``, its 3x3 blocks ``hand_eye_rot``, ``hand_eye_trans``,
-    ``target_pose_rot``, ``target_pose_trans``, and the standard deviation of each name in
-    ``CAMERA_PARAMS``.
-    """
-    grid = board_points(tuple(inner_corners), square_size)[:, :2]
-    n = len(T_base_tcp)
-    cam = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *np.asarray(dist, float)[:5], nu, kappa])
-    # the Jacobian does not depend on the observations: placeholders suffice
-    problem = _Problem([grid] * n, [np.zeros_like(grid)] * n, np.asarray(T_base_tcp, float),
-                       setup, cam, np.asarray(hand_eye, float), np.asarray(target_pose, float),
-                       tuple(fix), sigma_px, robot_noise_rot, robot_noise_trans)
-    cov = np.zeros((_N_GLOBAL, _N_GLOBAL))
-    cov[np.ix_(problem.free, problem.free)] = problem.covariance(problem.x0(), 1.0)
-    bound: dict[str, float | np.ndarray] = {
-        name: float(np.sqrt(cov[i, i])) for i, name in enumerate(CAMERA_PARAMS)}
-    for name, start in (("hand_eye_rot", 11), ("hand_eye_trans", 14), ("target_pose_rot", 17),
-                        ("target_pose_trans", 20)):
-        bound[name] = cov[start:start + 3, start:start + 3]
-    bound["covariance"] = cov
-    return bound
-
-
-class _Problem:
+class JointProblem:
     """Residuals and sparse Jacobian of the joint problem for a fixed set of stations.
 
     ``x = [free global parameters, n x δ_i]``; the global rotations and translations of X and Y
-    are offsets from the reference ``X0``, ``Y0`` (left rotation vector, added translation).
-    Residual rows: 2 per corner (station by station), then 6 per station.
+    are offsets from the reference ``start.hand_eye``, ``start.target_pose`` (left rotation
+    vector and added translation, :func:`calib.so3.left_update`). Residual rows: 2 per corner
+    (station by station), then 6 per station.
+
+    ``grid`` and ``img`` hold per station the nominal board coordinates (N_i, 2) of its corners
+    and their detections (N_i, 2); ``T_base_tcp`` (n, 4, 4) the robot readings.
     """
 
     def __init__(self, grid: list[np.ndarray], img: list[np.ndarray], T_base_tcp: np.ndarray,
-                 setup: str, cam0: np.ndarray, X0: np.ndarray, Y0: np.ndarray,
-                 fixed: tuple[str, ...], sigma_px: float, sigma_rot: float,
-                 sigma_trans: float) -> None:
+                 start: CellParameters, options: JointOptions) -> None:
         counts = np.array([len(g) for g in grid])
         self.obj, self.img = np.concatenate(grid), np.concatenate(img)
         self.counts, self.starts = counts, np.concatenate([[0], np.cumsum(counts)[:-1]])
         self.station = np.repeat(np.arange(len(counts)), counts)
-        self.M = invert(robot_chain(T_base_tcp, setup))  # tcp_T_base, or base_T_tcp
-        self.eye_in_hand = setup == "eye_in_hand"
-        self.cam0, self.X0, self.Y0 = cam0, X0, Y0
-        self.free = np.array([name not in fixed for name in CAMERA_PARAMS] + [True] * 12)
-        self.sigma_px = sigma_px
+        self.M = invert(robot_chain(T_base_tcp, options.setup))  # T_tcp_base, or T_base_tcp
+        self.eye_in_hand = options.setup == "eye_in_hand"
+        self.cam0 = start.camera_vector()
+        self.X0 = np.asarray(start.hand_eye, dtype=float)
+        self.Y0 = np.asarray(start.target_pose, dtype=float)
+        self.free = np.array([name not in options.fix for name in CAMERA_PARAMS] + [True] * 12)
+        self.sigma_px = options.sigma_px
+        self.noise = options.noise
         # per component: the angle (length) σ spread over three directions
-        self.prior_sigma = np.array([sigma_rot] * 3 + [sigma_trans] * 3) / np.sqrt(3.0)
+        self.prior_sigma = np.array([options.noise.rot_rad] * 3
+                                    + [options.noise.trans_m] * 3) / np.sqrt(3.0)
         self.n_stations = len(counts)
         nf = int(self.free.sum())
         m, n = len(self.obj), self.n_stations
@@ -308,16 +284,23 @@ class _Problem:
         g[self.free] = x[:self.n_free_global]
         return g, g[_N_CAM:], x[self.n_free_global:].reshape(-1, 6)
 
-    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Camera parameters (11,), X, Y (4, 4) and corrections δ (n, 6) of ``x``."""
         g, xy, delta = self._globals(x)
-        return g[:_N_CAM], so3.left_update(self.X0, xy[:6]), so3.left_update(self.Y0, xy[6:]), delta
+        X, Y = so3.left_update(self.X0, xy[:6]), so3.left_update(self.Y0, xy[6:])
+        return g[:_N_CAM], X, Y, delta
+
+    def unpack(self, x: np.ndarray) -> tuple[CellParameters, np.ndarray]:
+        """The global parameters of ``x`` and the corrections δ (n, 6)."""
+        cam, X, Y, delta = self._unpack(x)
+        return CellParameters(K=_camera_matrix(cam), dist=cam[4:9].copy(), nu=float(cam[_NU]),
+                              kappa=float(cam[_KAPPA]), hand_eye=X, target_pose=Y), delta
 
     def _evaluate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Normalised residuals (2m + 6n,) and corner blocks (m, 2, n_free + 6)."""
         if self._cache is not None and np.array_equal(self._cache[0], x):
             return self._cache[1], self._cache[2]
-        cam, X, Y, delta = self.unpack(x)
+        cam, X, Y, delta = self._unpack(x)
         _, xy, _ = self._globals(x)
         s = self.station
         nu, kappa = cam[_NU], cam[_KAPPA]
@@ -337,8 +320,7 @@ class _Problem:
             R, t, inverse, _ = links[name]
             inputs[name] = v
             v = _apply(R, t, v, inverse)
-        K = np.array([[cam[0], 0.0, cam[2]], [0.0, cam[1], cam[3]], [0.0, 0.0, 1.0]])
-        uv, J = project(v, K, cam[4:9], jacobian=True)
+        uv, J = project(v, _camera_matrix(cam), cam[4:9], jacobian=True)
 
         # Back-propagate d uv / d(point) through the links, collecting (rotation, translation)
         # parameter blocks: R v + t moves by -[R v]x J_l da and dt; Rᵀ(v - t) by
@@ -380,10 +362,10 @@ class _Problem:
                           shape=self.shape)
 
     def covariance(self, x: np.ndarray, variance_factor: float) -> np.ndarray:
-        """Covariance of the free globals (Schur complement over the station blocks).
+        """Covariance (23, 23) over ``GLOBAL_PARAMS``, zero for fixed ones.
 
-        With JᵀJ = [[U, W], [Wᵀ, V]] and V block diagonal (6 x 6 per station):
-        cov = s² (U - Σ_i W_i V_i⁻¹ W_iᵀ)⁻¹.
+        The station blocks are eliminated by a Schur complement: with JᵀJ = [[U, W], [Wᵀ, V]]
+        and V block diagonal (6 x 6 per station), cov = s² (U - Σ_i W_i V_i⁻¹ W_iᵀ)⁻¹.
         """
         J = self.jacobian(x)
         g = self.n_free_global
@@ -394,17 +376,18 @@ class _Problem:
         V = JtJ[g:, g:].reshape(n, 6, n, 6)[np.arange(n), :, np.arange(n), :]  # (n, 6, 6)
         WV = W @ np.linalg.inv(V)
         S = U - np.einsum("nij,nkj->ik", WV, W)
-        return variance_factor * np.linalg.inv(S)
+        cov = np.zeros((len(GLOBAL_PARAMS), len(GLOBAL_PARAMS)))
+        cov[np.ix_(self.free, self.free)] = variance_factor * np.linalg.inv(S)
+        return cov
 
     def result(self, sol: OptimizeResult, stations: np.ndarray,
                rejected: tuple[tuple[int, str], ...]) -> JointResult:
         x = sol.x
         r, _ = self._evaluate(x)
-        cam, X, Y, delta = self.unpack(x)
+        est, delta = self.unpack(x)
         m, n = self.shape
         variance_factor = float(r @ r) / max(m - n, 1)
-        cov = np.zeros((_N_GLOBAL, _N_GLOBAL))
-        cov[np.ix_(self.free, self.free)] = self.covariance(x, variance_factor)
+        cov = self.covariance(x, variance_factor)
         sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
         sigmas: dict[str, float | np.ndarray] = {
             name: float(sd[i]) for i, name in enumerate(CAMERA_PARAMS)}
@@ -412,25 +395,26 @@ class _Problem:
                       target_pose_rot_rad=sd[17:20], target_pose_trans_m=sd[20:23])
         residuals_px = r[:2 * len(self.obj)].reshape(-1, 2) * self.sigma_px
         sq = np.sum(residuals_px ** 2, axis=1)
-        K = np.array([[cam[0], 0.0, cam[2]], [0.0, cam[1], cam[3]], [0.0, 0.0, 1.0]])
         return JointResult(
-            K=K, dist=cam[4:9].copy(), nu=float(cam[_NU]), kappa=float(cam[_KAPPA]),
-            hand_eye=X, target_pose=Y, covariance=cov, sigmas=sigmas, stations=stations,
-            corrections=delta.copy(),
-            mahalanobis=_distance(delta, *(self.prior_sigma[[0, 3]] * np.sqrt(3.0))),
+            **vars(est), covariance=cov, sigmas=sigmas, stations=stations,
+            corrections=delta.copy(), mahalanobis=_distance(delta, self.noise),
             rms_px_per_station=np.sqrt(np.add.reduceat(sq, self.starts) / self.counts),
             rms_px=float(np.sqrt(sq.mean())), residuals_px=residuals_px, rejected=rejected,
-            sigma_px=self.sigma_px,
-            robot_noise_rot=float(self.prior_sigma[0] * np.sqrt(3.0)),
-            robot_noise_trans=float(self.prior_sigma[3] * np.sqrt(3.0)),
+            sigma_px=self.sigma_px, robot_noise_rot=self.noise.rot_rad,
+            robot_noise_trans=self.noise.trans_m,
             variance_factor=variance_factor,
             nfev=int(sol.nfev), converged=bool(sol.status > 0))
 
 
-def _distance(delta: np.ndarray, sigma_rot: float, sigma_trans: float) -> np.ndarray:
+def _distance(delta: np.ndarray, noise: RobotNoise) -> np.ndarray:
     """Mahalanobis distance of corrections (n, 6) under angle/length noise σ, shape (n,)."""
-    return np.hypot(np.linalg.norm(delta[:, :3], axis=1) / sigma_rot,
-                    np.linalg.norm(delta[:, 3:], axis=1) / sigma_trans)
+    return np.hypot(np.linalg.norm(delta[:, :3], axis=1) / noise.rot_rad,
+                    np.linalg.norm(delta[:, 3:], axis=1) / noise.trans_m)
+
+
+def _camera_matrix(cam: np.ndarray) -> np.ndarray:
+    """K (3, 3) from the camera parameter vector ``fx, fy, cx, cy, ...``."""
+    return np.array([[cam[0], 0.0, cam[2]], [0.0, cam[1], cam[3]], [0.0, 0.0, 1.0]])
 
 
 def _apply(R: np.ndarray, t: np.ndarray, v: np.ndarray, inverse: bool) -> np.ndarray:
@@ -443,52 +427,3 @@ def _apply(R: np.ndarray, t: np.ndarray, v: np.ndarray, inverse: bool) -> np.nda
 def _rows_times(G: np.ndarray, M: np.ndarray) -> np.ndarray:
     """Stacked ``G @ M``, shapes (m, 2, 3), (3, 3) or (m, 3, 3) -> (m, 2, 3)."""
     return np.einsum("mki,ij->mkj", G, M) if M.ndim == 2 else np.einsum("mki,mij->mkj", G, M)
-
-
-def nu_from_extrinsics(image_points: Sequence[np.ndarray], T_base_tcp: np.ndarray, *,
-                       inner_corners: Sequence[int], square_size: float,
-                       image_size: Sequence[int], nu0: float, setup: str = "eye_in_hand",
-                       point_ids: Sequence[np.ndarray] | None = None,
-                       fix: Sequence[str] = (), half_width: float = 0.005,
-                       robot_noise_rot: float = DEFAULT_ROBOT_NOISE_ROT_RAD,
-                       robot_noise_trans: float = DEFAULT_ROBOT_NOISE_TRANS_M
-                       ) -> tuple[float, float]:
-    """ν from the extrinsic residuals, Strobl & Hirzinger Method #2; returns (ν, σ_ν).
-
-    For each trial ν the intrinsic bundle adjustment runs with ν held (eq. 3 with the board
-    model scaled by ν), then X, Y and κ are refined from the poses (eq. 6); the cost is the
-    sum of squared pose residuals over the *configured* robot noise, so that costs at
-    different ν compare. A bounded 1-D search within ``nu0 ± half_width`` (the paper's
-    "very restricted local search" started from Method #1) finds the minimum; σ_ν follows
-    from the cost's curvature (Δχ² = 1, scaled by the reduced χ² at the minimum).
-
-    Parameters
-    ----------
-    image_points : sequence of n arrays, shape (N_i, 2)
-    T_base_tcp : shape (n, 4, 4)
-    inner_corners, square_size, image_size, point_ids, fix : as in ``calibrate_intrinsics``.
-    nu0 : float
-        Start, e.g. the Method #1 estimate.
-    """
-    weights = np.array([robot_noise_rot] * 3 + [robot_noise_trans] * 3)
-    P = robot_chain(check_transforms(T_base_tcp, "tcp_pose"), setup)
-
-    def cost(nu: float) -> float:
-        intr = calibrate_intrinsics(image_points, inner_corners, square_size, image_size,
-                                    point_ids=point_ids, estimate_nu=False, nu=nu, fix=fix)
-        he = calibrate_hand_eye(T_base_tcp, intr.T_cam_target, setup=setup, method="joint",
-                                estimate_kappa=True, robot_noise_rot=robot_noise_rot,
-                                robot_noise_trans=robot_noise_trans)
-        r = pose_residuals(P, intr.T_cam_target, he.hand_eye, he.target_pose, he.kappa,
-                           inverted=setup == "eye_to_hand")
-        return float(np.sum((r / weights) ** 2))
-
-    sol = minimize_scalar(cost, bounds=(nu0 - half_width, nu0 + half_width), method="bounded",
-                          options={"xatol": 1e-6})
-    nu, f0 = float(sol.x), float(sol.fun)
-    h = 1e-3 * half_width + 2e-4
-    curvature = (cost(nu + h) + cost(nu - h) - 2.0 * f0) / (h * h)
-    dof = max(6 * len(P) - 14, 1)
-    sigma = float(np.sqrt(2.0 / curvature * f0 / dof)) if curvature > 0 else np.inf
-    return nu, sigma
-

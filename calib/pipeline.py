@@ -7,13 +7,14 @@ One entry point, :func:`calibrate_stations`, for the CLI and the service (``prod
       -> intrinsics with ν (Method #1, eq. 5; skipped when intrinsics are given)
       -> [no robot poses: intrinsics-only result]
       -> symmetric boards: one physical target origin in every image, from the robot motions
-      -> hand-eye: SM, then the eq. (6) refinement of X, Y, κ (``calibrate_hand_eye``)
-         [ν by Method #2 on request]
+      -> hand-eye: SM, then the eq. (6) refinement of X, Y, κ (``calibrate_hand_eye``, ``refine``)
+         [ν by Method #2 on request, ``calib.nu``]
       -> joint maximum likelihood over corners and robot poses (``calib.joint``; the default)
       -> validation (``calib.validation``)
 
-With ``method`` one of the other hand-eye methods, the hand-eye comes from that method on the
-per-image camera poses of the intrinsic stage (κ = 1, no joint stage).
+With ``method`` ``refine`` the result is that of the pose-level refinement (κ estimated, no
+joint stage); with one of the other hand-eye methods, the hand-eye comes from that method on
+the per-image camera poses of the intrinsic stage (κ = 1, no joint stage).
 """
 
 from __future__ import annotations
@@ -28,23 +29,37 @@ from typing import Any
 import numpy as np
 
 from calib.camera import solve_pnp
-from calib.chain import camera_from_robot, check_setup, robot_chain
-from calib.geometry import check_ur_poses, invert, make_transform, rotation_angle
-from calib.handeye import (
+from calib.chain import (
     DEFAULT_ROBOT_NOISE_ROT_RAD,
     DEFAULT_ROBOT_NOISE_TRANS_M,
-    METHODS,
-    calibrate_hand_eye,
+    RobotNoise,
+    camera_from_robot,
+    check_setup,
+    robot_chain,
 )
+from calib.geometry import check_ur_poses, invert, make_transform, rotation_angle
+from calib.handeye import METHODS as HAND_EYE_METHODS
+from calib.handeye import calibrate_hand_eye
 from calib.intrinsics import MIN_IMAGES, calibrate_intrinsics
-from calib.joint import OUTLIER_SIGMA, nu_from_extrinsics, solve_joint
-from calib.target import Detection, board_points, detect_checkerboard
+from calib.joint import (
+    OUTLIER_SIGMA,
+    CellParameters,
+    CornerStations,
+    JointOptions,
+    solve_joint,
+)
+from calib.nu import NuSearch, nu_from_extrinsics
+from calib.refine import RefineOptions, scale_translations
+from calib.target import Board, Detection, board_points, detect_checkerboard
 from calib.validation import (
     leave_one_out,
     motion_residuals,
     reprojection_rms,
 )
 
+#: Calibration methods: the pose-level hand-eye solvers, and ``joint`` (the default), the
+#: maximum likelihood over all corners and robot poses started from ``refine``.
+METHODS = (*HAND_EYE_METHODS, "joint")
 #: Ways to estimate ν: ``images`` (Method #1, eq. 5) or ``extrinsics`` (Method #2).
 NU_METHODS = ("images", "extrinsics")
 #: Leave-one-out validation holds out at most this many stations (evenly spread).
@@ -144,7 +159,7 @@ def calibrate_stations(observations: Iterable[Observation],
     image_size : (width, height); required when no observation is an image.
     intrinsics : (K (3, 3), dist (5,)), optional
         Known camera: the intrinsic stage is skipped and K, dist are held in the joint stage.
-    method : ``joint`` (default) or any other name of ``calib.handeye.METHODS``.
+    method : a name of ``METHODS``: ``joint`` (default), ``refine``, ``sm`` or an OpenCV solver.
     estimate_nu, estimate_kappa : bool
         False holds ν (κ) at 1: the traditional nominal-size calibration.
     nu_method : ``images`` (Method #1) or ``extrinsics`` (Method #2; ``joint`` only), then ν
@@ -238,28 +253,26 @@ def calibrate_stations(observations: Iterable[Observation],
     if any(d.ambiguous for d, _ in (detections[k] for k in usable)):
         C, corners = _resolve_symmetric_origin(robot_chain(T_base_tcp, setup), C, corners,
                                                grid, nu)
-    fit = calibrate_hand_eye(T_base_tcp, C, setup=setup, method=method,
-                             estimate_kappa=method == "joint" and estimate_kappa,
-                             robot_noise_rot=robot_noise_rot, robot_noise_trans=robot_noise_trans)
+    noise = RobotNoise(robot_noise_rot, robot_noise_trans)
+    pose_method = "refine" if method == "joint" else method
+    fit = calibrate_hand_eye(T_base_tcp, C, setup=setup, method=pose_method, options=RefineOptions(
+        noise=noise, estimate_kappa=pose_method == "refine" and estimate_kappa))
     X, Y, kappa = fit.hand_eye, fit.target_pose, fit.kappa
+    if method == "refine":
+        sigmas.update(fit.sigmas)
     keep = np.arange(len(usable))
     joint = None
     if method == "joint":
         fix = ("kappa",) * (not estimate_kappa) + ("nu",) * (not estimate_nu)
         if intrinsics is not None:
             fix += ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+        stations = CornerStations(corners, T_base_tcp, Board((cols, rows), square_size))
         if nu_method == "extrinsics":
-            nu, sigma_nu = nu_from_extrinsics(
-                corners, T_base_tcp, inner_corners=(cols, rows), square_size=square_size,
-                image_size=size, nu0=nu, setup=setup, robot_noise_rot=robot_noise_rot,
-                robot_noise_trans=robot_noise_trans)
+            nu, sigma_nu = nu_from_extrinsics(stations, size, nu,
+                                              NuSearch(setup=setup, noise=noise))
             fix += ("nu",)
-        joint = solve_joint(corners, T_base_tcp, inner_corners=(cols, rows),
-                            square_size=square_size, K=K, dist=dist, nu=nu, kappa=kappa,
-                            hand_eye=X, target_pose=Y, setup=setup, sigma_px=sigma_px,
-                            robot_noise_rot=robot_noise_rot,
-                            robot_noise_trans=robot_noise_trans, fix=fix,
-                            outlier_sigma=outlier_sigma)
+        joint = solve_joint(stations, CellParameters(K, dist, nu, kappa, X, Y), JointOptions(
+            sigma_px=sigma_px, setup=setup, noise=noise, fix=fix, outlier_sigma=outlier_sigma))
         K, dist, nu, kappa = joint.K, joint.dist, joint.nu, joint.kappa
         X, Y, keep = joint.hand_eye, joint.target_pose, joint.stations
         rejected += [(ids[usable[i]], reason) for i, reason in joint.rejected]
@@ -269,8 +282,7 @@ def calibrate_stations(observations: Iterable[Observation],
         common.update(K=K, dist=dist)
 
     # Validation on the kept stations, camera poses at true scale.
-    P, Ck = T_base_tcp[keep], C[keep].copy()
-    Ck[:, :3, 3] *= kappa
+    P, Ck = T_base_tcp[keep], scale_translations(C[keep], kappa)
     true_grid = board_points((cols, rows), square_size, kappa=kappa, nu=nu)
     pts = [corners[i] for i in keep]
     chain = reprojection_rms(pts, [true_grid] * len(keep), K, dist,

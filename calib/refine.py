@@ -15,13 +15,24 @@ pose noise, which adds to the robot's.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
 
 from calib import so3
+from calib.chain import RobotNoise, robot_from_camera
 from calib.geometry import invert
+
+
+@dataclass(frozen=True)
+class RefineOptions:
+    """Options of :func:`refine`: the starting noise levels (re-estimated from the residuals),
+    whether to estimate the board scale κ (eq. 6), and how often to re-weight."""
+
+    noise: RobotNoise = field(default_factory=RobotNoise)
+    estimate_kappa: bool = False
+    reweight_iterations: int = 3
 
 
 @dataclass(frozen=True)
@@ -30,7 +41,7 @@ class Refinement:
 
     ``covariance`` is over ``(dθ_X, dt_X, dθ_Y, dt_Y[, kappa])`` (12 or 13): ``dθ`` are small
     rotations applied on the left (in the frame of the transform's first index, e.g. tcp for
-    X = tcp_T_cam), ``dt`` translations in metres in that same frame.
+    X = T_tcp_cam), ``dt`` translations in metres in that same frame.
     """
 
     X: np.ndarray
@@ -42,58 +53,62 @@ class Refinement:
     residuals: np.ndarray  # shape (n, 6): rotation (rad) and translation (m) per station
 
 
-def _compose(params: np.ndarray, X0: np.ndarray, Y0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return so3.left_update(X0, params[0:6]), so3.left_update(Y0, params[6:12])
+def scale_translations(T_cam_target: np.ndarray, kappa: float) -> np.ndarray:
+    """Camera poses (n, 4, 4) with their translations times κ: the true-scale poses (eq. 6)."""
+    C = np.array(T_cam_target, dtype=float)
+    C[..., :3, 3] *= kappa
+    return C
 
 
-def pose_residuals(P: np.ndarray, C: np.ndarray, X: np.ndarray, Y: np.ndarray,
-                   kappa: float = 1.0, *, inverted: bool = False) -> np.ndarray:
+def pose_residuals(T_base_tcp: np.ndarray, T_cam_target: np.ndarray, hand_eye: np.ndarray,
+                   target_pose: np.ndarray, setup: str) -> np.ndarray:
     """Per-station robot-pose prediction error in the tcp frame, shape (n, 6): rotvec, metres.
 
-    The predicted robot chain pose is ``Y inv(C_i(kappa)) inv(X)``. The error is taken in the
-    tcp frame, where robot reading noise lives: ``inv(P_i) @ prediction`` when ``P`` is
-    base_T_tcp (eye-in-hand), ``P_i @ inv(prediction)`` when ``P`` is its inverse
-    (``inverted``, eye-to-hand). Identity for perfect data.
+    The robot pose predicted from the camera (at true scale) through X and Y,
+    :func:`calib.chain.robot_from_camera`, against the reading: ``inv(T_base_tcp) @ T̂_base_tcp``,
+    taken in the tcp frame where robot reading noise lives. Identity for perfect data.
     """
-    Ck = C.copy()
-    Ck[:, :3, 3] *= kappa
-    predicted = Y @ invert(Ck) @ invert(X)
-    E = P @ invert(predicted) if inverted else invert(P) @ predicted
+    E = invert(T_base_tcp) @ robot_from_camera(T_cam_target, hand_eye, target_pose, setup)
     return np.hstack([so3.log(E[:, :3, :3]), E[:, :3, 3]])
 
 
-def refine(P: np.ndarray, C: np.ndarray, X0: np.ndarray, Y0: np.ndarray, *,
-           noise_rot: float, noise_trans: float, estimate_kappa: bool = False,
-           inverted: bool = False, reweight_iterations: int = 3) -> Refinement:
-    """Least-squares X, Y (and kappa) from all stations, started at ``X0``, ``Y0``.
+def refine(T_base_tcp: np.ndarray, T_cam_target: np.ndarray, start: tuple[np.ndarray, np.ndarray],
+           setup: str, options: RefineOptions) -> Refinement:
+    """Least-squares X, Y (and κ) from all stations, started at ``start`` = (X0, Y0).
 
     Parameters
     ----------
-    P : shape (n, 4, 4), robot chain poses.
-    C : shape (n, 4, 4), cam_T_target at nominal board scale.
-    X0, Y0 : shape (4, 4), starting values (e.g. from SM).
-    noise_rot, noise_trans : initial noise levels (rad, m) of the pose residuals.
-    estimate_kappa : also estimate the board scale kappa (eq. 6).
-    inverted : ``P`` is tcp_T_base (eye-to-hand); see ``pose_residuals``.
+    T_base_tcp : shape (n, 4, 4), robot readings.
+    T_cam_target : shape (n, 4, 4), camera poses at nominal board scale.
+    start : X0, Y0, shape (4, 4) each, starting values (e.g. from SM).
+    setup : ``eye_in_hand`` or ``eye_to_hand``.
+    options : starting noise levels, κ estimation, re-weighting.
     """
+    X0, Y0 = start
+    n = len(T_base_tcp)
+    estimate_kappa = options.estimate_kappa
     n_par = 13 if estimate_kappa else 12
     x = np.zeros(n_par)
     if estimate_kappa:
         x[12] = 1.0
+    noise_rot, noise_trans = options.noise.rot_rad, options.noise.trans_m
     weights = np.array([1.0 / noise_rot] * 3 + [1.0 / noise_trans] * 3)
 
-    def fun(p: np.ndarray) -> np.ndarray:
-        X, Y = _compose(p, X0, Y0)
-        kappa = p[12] if estimate_kappa else 1.0
-        return (pose_residuals(P, C, X, Y, kappa, inverted=inverted) * weights).ravel()
+    def residuals(p: np.ndarray) -> np.ndarray:
+        C = scale_translations(T_cam_target, p[12]) if estimate_kappa else T_cam_target
+        return pose_residuals(T_base_tcp, C, so3.left_update(X0, p[0:6]),
+                              so3.left_update(Y0, p[6:12]), setup)
 
-    dof = max(6 * P.shape[0] - n_par, 1)
-    for _ in range(max(reweight_iterations, 1)):
+    def fun(p: np.ndarray) -> np.ndarray:
+        return (residuals(p) * weights).ravel()
+
+    dof = max(6 * n - n_par, 1)
+    for _ in range(max(options.reweight_iterations, 1)):
         sol = least_squares(fun, x, method="lm", x_scale="jac", jac="3-point")
         x = sol.x
         r = sol.fun.reshape(-1, 6) / weights
         # variance components: each block's mean square, corrected for the fitted parameters
-        correction = 6 * P.shape[0] / dof
+        correction = 6 * n / dof
         noise_rot = max(float(np.sqrt(np.mean(r[:, :3] ** 2) * correction)), 1e-9)
         noise_trans = max(float(np.sqrt(np.mean(r[:, 3:] ** 2) * correction)), 1e-12)
         weights = np.array([1.0 / noise_rot] * 3 + [1.0 / noise_trans] * 3)
@@ -101,8 +116,6 @@ def refine(P: np.ndarray, C: np.ndarray, X0: np.ndarray, Y0: np.ndarray, *,
     J = sol.jac
     s2 = float(sol.fun @ sol.fun) / dof
     covariance = np.linalg.pinv(J.T @ J) * s2
-    X, Y = _compose(sol.x, X0, Y0)
-    kappa = float(sol.x[12]) if estimate_kappa else 1.0
-    return Refinement(X=X, Y=Y, kappa=kappa, covariance=covariance, noise_rot=noise_rot,
-                      noise_trans=noise_trans,
-                      residuals=pose_residuals(P, C, X, Y, kappa, inverted=inverted))
+    return Refinement(X=so3.left_update(X0, sol.x[0:6]), Y=so3.left_update(Y0, sol.x[6:12]),
+                      kappa=float(sol.x[12]) if estimate_kappa else 1.0, covariance=covariance,
+                      noise_rot=noise_rot, noise_trans=noise_trans, residuals=residuals(sol.x))

@@ -79,6 +79,18 @@ class Detection:
     ambiguous: bool = False
 
 
+@dataclass(frozen=True)
+class Board:
+    """A checkerboard as printed: ``inner_corners`` (cols, rows), nominal ``square_size`` (m)."""
+
+    inner_corners: tuple[int, int]
+    square_size: float
+
+    def points(self, *, kappa: float = 1.0, nu: float = 1.0) -> np.ndarray:
+        """Inner corners in the target frame, (cols * rows, 3): :func:`board_points`."""
+        return board_points(self.inner_corners, self.square_size, kappa=kappa, nu=nu)
+
+
 def board_points(inner_corners: tuple[int, int], square_size: float, *, kappa: float = 1.0,
                  nu: float = 1.0) -> np.ndarray:
     """Inner corners in the target frame, shape (cols * rows, 3), row-major (x along cols).

@@ -254,9 +254,9 @@ def run_pose_demo(*, seed: int = 1, stations: int = 15) -> int:
     print(f"{'method':<11} {'hand-eye err':>21} {'target-pose err':>21}")
     for method, dr, dt, yr, yt, _ in rows:
         print(f"{method:<11} {dr:9.4f} deg {dt:7.3f} mm {yr:9.4f} deg {yt:7.3f} mm")
-    joint = rows[-1][5]
-    sd_t = np.linalg.norm(joint.sigmas["hand_eye_trans_m"]) * 1e3
-    sd_r = np.degrees(np.linalg.norm(joint.sigmas["hand_eye_rot_rad"]))
-    print(f"\njoint (default) reports 1-sigma hand-eye uncertainty: {sd_r:.4f} deg, "
+    refined = rows[-1][5]
+    sd_t = np.linalg.norm(refined.sigmas["hand_eye_trans_m"]) * 1e3
+    sd_r = np.degrees(np.linalg.norm(refined.sigmas["hand_eye_rot_rad"]))
+    print(f"\nrefine (default) reports 1-sigma hand-eye uncertainty: {sd_r:.4f} deg, "
           f"{sd_t:.3f} mm (norm over axes)")
     return 0

@@ -12,6 +12,7 @@ import pytest
 
 from calib.geometry import matrix_from_ur_pose, pose_error, ur_pose_from_matrix
 from calib.handeye import calibrate_hand_eye
+from calib.refine import RefineOptions
 from calib.target import board_points, detect_checkerboard
 from drivers.capture import CapturedStation, capture_station
 from drivers.errors import RobotError
@@ -159,7 +160,8 @@ def test_captured_station_set_format(captured_set) -> None:
 def test_captured_poses_and_images_recover_the_scene_hand_eye(captured_set) -> None:
     path, _ = captured_set
     P, C = pnp_observations(path.parent, SCENE.target.nu)
-    result = calibrate_hand_eye(P, C, setup=SCENE.setup, estimate_kappa=True)
+    result = calibrate_hand_eye(P, C, setup=SCENE.setup,
+                                options=RefineOptions(estimate_kappa=True))
     # Robot readings carry 0.02 deg / 0.1 mm noise; ten stations pin X far below that.
     assert_pose_close(result.hand_eye, SCENE.hand_eye_matrix, rot=np.deg2rad(0.03), trans=3e-4)
     assert_pose_close(result.target_pose, SCENE.target_pose_matrix, rot=np.deg2rad(0.03),

@@ -29,7 +29,7 @@ def cell_data():
     return cell, P, C
 
 
-@pytest.mark.parametrize("method", ["joint", "sm", "park", "shah"])
+@pytest.mark.parametrize("method", ["refine", "sm", "park", "shah"])
 def test_calibrate_writes_a_result(tmp_path, cell_data, method):
     cell, P, C = cell_data
     d = write_station_set(tmp_path / "set", P, C)
@@ -42,7 +42,7 @@ def test_calibrate_writes_a_result(tmp_path, cell_data, method):
     assert dr < np.deg2rad(0.1) and dt < 1e-3
     assert len(doc["stations"]) == 12
     assert doc["software"]["version"]
-    if method == "joint":
+    if method == "refine":
         assert len(doc["uncertainty"]["hand_eye_trans_m"]) == 3
 
 
@@ -120,6 +120,15 @@ def test_unknown_method_is_a_usage_error(tmp_path, cell_data):
     assert "invalid choice: 'magic'" in proc.stderr and "Traceback" not in proc.stderr
 
 
+def test_joint_needs_images(tmp_path, cell_data, capsys):
+    """``joint`` is the corner-level maximum likelihood; a pose-only set has no corners."""
+    _, P, C = cell_data
+    d = write_station_set(tmp_path / "set", P, C)
+    assert main(["calibrate", str(d), "--method", "joint"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "needs images" in err and "'refine'" in err
+
+
 def test_degenerate_set_through_the_console_script(tmp_path):
     # all stations rotate about one axis
     rng = np.random.default_rng(0)
@@ -140,4 +149,4 @@ def test_degenerate_set_through_the_console_script(tmp_path):
 def test_demo_runs(capsys):
     assert main(["demo", "--poses-only", "--stations", "8"]) == 0
     out = capsys.readouterr().out
-    assert "joint" in out and "hand-eye err" in out
+    assert "refine" in out and "hand-eye err" in out

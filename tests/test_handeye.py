@@ -4,6 +4,7 @@ from scipy.spatial.transform import Rotation
 
 from calib.geometry import invert, make_transform, pose_error
 from calib.handeye import METHODS, calibrate_hand_eye
+from calib.refine import RefineOptions
 from calib.screw import screw_parameters, solve_sm
 from mocks.posesim import default_cell, simulate
 from tests.helpers import assert_pose_close, random_transforms
@@ -53,14 +54,15 @@ def test_screw_parameters_reconstruct_the_motion():
     np.testing.assert_allclose(Rotation.from_rotvec(u * theta[:, None]).as_matrix(), R, atol=1e-12)
 
 
-def test_joint_recovers_kappa_exactly():
+def test_refine_recovers_kappa_exactly():
     """Camera translations of a board kappa times its nominal size are kappa times too small."""
     rng = np.random.default_rng(5)
     P, C, X, _ = exact_stations(rng, 12, "eye_in_hand")
     kappa = 1.005
     C_nominal = C.copy()
     C_nominal[:, :3, 3] /= kappa
-    result = calibrate_hand_eye(P, C_nominal, method="joint", estimate_kappa=True)
+    result = calibrate_hand_eye(P, C_nominal, method="refine",
+                                options=RefineOptions(estimate_kappa=True))
     assert result.kappa == pytest.approx(kappa, abs=1e-9)
     assert_pose_close(result.hand_eye, X, rot=1e-9, trans=1e-9)
     # without kappa the nominal-size board biases the translation
@@ -159,8 +161,8 @@ def test_unknown_method_and_setup():
         calibrate_hand_eye(P, C, method="magic")
     with pytest.raises(ValueError, match="unknown setup 'eye_on_hand'"):
         calibrate_hand_eye(P, C, setup="eye_on_hand")
-    with pytest.raises(ValueError, match="kappa can only be estimated by the 'joint' method"):
-        calibrate_hand_eye(P, C, method="park", estimate_kappa=True)
+    with pytest.raises(ValueError, match="kappa can only be estimated by the 'refine' method"):
+        calibrate_hand_eye(P, C, method="park", options=RefineOptions(estimate_kappa=True))
 
 
 @pytest.mark.slow

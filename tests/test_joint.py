@@ -5,10 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from calib.bounds import cramer_rao_bound
 from calib.camera import project
+from calib.chain import RobotNoise
 from calib.geometry import invert, perturb, pose_error
-from calib.joint import GLOBAL_PARAMS, _Problem, cramer_rao_bound, solve_joint
-from calib.target import board_points
+from calib.joint import (
+    GLOBAL_PARAMS,
+    CellParameters,
+    CornerStations,
+    JointOptions,
+    JointProblem,
+    solve_joint,
+)
+from calib.target import Board, board_points
 from mocks.posesim import default_cell, robot_poses, sample_camera_poses
 from tests.helpers import assert_pose_close
 
@@ -34,20 +43,26 @@ def synthetic_stations(setup: str, n: int, rng: np.random.Generator, *, pixel_no
     return dict(cell=cell, corners=corners, P=P, P_true=P_true, C=C)
 
 
-def start_values(data: dict, rng: np.random.Generator) -> dict:
+def start_values(data: dict, rng: np.random.Generator) -> CellParameters:
     """Start values a few per mille / mm / 0.5 deg off the truth."""
     cell = data["cell"]
-    return dict(K=cell.K * [[1.003], [0.998], [1.0]], dist=DIST * 0.8, nu=1.0, kappa=1.0,
-                hand_eye=perturb(cell.hand_eye, 0.01, 0.003, rng),
-                target_pose=perturb(cell.target_pose, 0.01, 0.003, rng))
+    return CellParameters(K=cell.K * [[1.003], [0.998], [1.0]], dist=DIST * 0.8, nu=1.0,
+                          kappa=1.0, hand_eye=perturb(cell.hand_eye, 0.01, 0.003, rng),
+                          target_pose=perturb(cell.target_pose, 0.01, 0.003, rng))
+
+
+def stations(data: dict, P: np.ndarray | None = None, n: int | None = None) -> CornerStations:
+    """The corners of ``data`` (the first ``n`` sets) with robot readings ``P``."""
+    return CornerStations(data["corners"][:n], data["P"] if P is None else P,
+                          Board(BOARD, SQUARE))
 
 
 @pytest.mark.parametrize("setup", ["eye_in_hand", "eye_to_hand"])
 def test_noise_free_corners_give_the_truth(setup):
     rng = np.random.default_rng(2)
     data = synthetic_stations(setup, 10, rng)
-    res = solve_joint(data["corners"], data["P"], inner_corners=BOARD, square_size=SQUARE,
-                      setup=setup, sigma_px=0.1, **start_values(data, rng))
+    res = solve_joint(stations(data), start_values(data, rng),
+                      JointOptions(sigma_px=0.1, setup=setup))
     cell = data["cell"]
     assert res.converged and res.rejected == ()
     assert abs(res.nu - NU) < 1e-9 and abs(res.kappa - KAPPA) < 1e-9
@@ -64,9 +79,9 @@ def test_jacobian_matches_finite_differences(setup):
     data = synthetic_stations(setup, 3, rng, robot_noise=True)
     cell = data["cell"]
     grid = board_points(BOARD, SQUARE)[:, :2]
-    cam0 = np.array([*cell.K[[0, 1, 0, 1], [0, 1, 2, 2]], *DIST, NU, KAPPA])
-    problem = _Problem([grid] * 3, data["corners"], data["P"], setup, cam0, cell.hand_eye,
-                       cell.target_pose, ("k3",), 0.2, ROT, TRANS)
+    truth = CellParameters(cell.K, DIST, NU, KAPPA, cell.hand_eye, cell.target_pose)
+    options = JointOptions(sigma_px=0.2, setup=setup, noise=RobotNoise(ROT, TRANS), fix=("k3",))
+    problem = JointProblem([grid] * 3, data["corners"], data["P"], truth, options)
     # away from the reference so the SO(3) Jacobians are not the identity
     x = problem.x0() + rng.normal(0.0, 1e-2, problem.shape[1]) * np.r_[
         np.abs(problem.x0()[:10]) * 1e-2, np.ones(problem.shape[1] - 10)]
@@ -86,8 +101,7 @@ def test_corrupted_robot_pose_is_dropped_with_a_reason():
     data = synthetic_stations("eye_in_hand", 12, rng, pixel_noise=0.1, robot_noise=True)
     P = data["P"].copy()
     P[5] = perturb(P[5], np.deg2rad(0.5), 3e-3, rng)
-    res = solve_joint(data["corners"], P, inner_corners=BOARD, square_size=SQUARE,
-                      sigma_px=0.1, **start_values(data, rng))
+    res = solve_joint(stations(data, P), start_values(data, rng), JointOptions(sigma_px=0.1))
     assert [i for i, _ in res.rejected] == [5]
     assert "robot pose inconsistent with the image" in res.rejected[0][1]
     assert 5 not in res.stations and len(res.stations) == 11
@@ -98,8 +112,8 @@ def test_corrupted_robot_pose_is_dropped_with_a_reason():
 def test_uncertainty_is_reported_for_every_parameter():
     rng = np.random.default_rng(5)
     data = synthetic_stations("eye_in_hand", 15, rng, pixel_noise=0.1, robot_noise=True)
-    res = solve_joint(data["corners"], data["P"], inner_corners=BOARD, square_size=SQUARE,
-                      sigma_px=0.1, fix=("k3",), **start_values(data, rng))
+    res = solve_joint(stations(data), start_values(data, rng),
+                      JointOptions(sigma_px=0.1, fix=("k3",)))
     assert res.covariance.shape == (len(GLOBAL_PARAMS),) * 2
     assert res.sigmas["k3"] == 0.0
     for name in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "nu", "kappa"):
@@ -115,14 +129,13 @@ def test_uncertainty_is_reported_for_every_parameter():
 def test_bad_arguments_are_named():
     rng = np.random.default_rng(6)
     data = synthetic_stations("eye_in_hand", 4, rng)
-    common = dict(inner_corners=BOARD, square_size=SQUARE, sigma_px=0.1,
-                  **start_values(data, rng))
+    start = start_values(data, rng)
     with pytest.raises(ValueError, match="unknown setup 'hand_eye'"):
-        solve_joint(data["corners"], data["P"], setup="hand_eye", **common)
+        solve_joint(stations(data), start, JointOptions(sigma_px=0.1, setup="hand_eye"))
     with pytest.raises(ValueError, match=r"fix: unknown parameters \['X'\]"):
-        solve_joint(data["corners"], data["P"], fix=("X",), **common)
+        solve_joint(stations(data), start, JointOptions(sigma_px=0.1, fix=("X",)))
     with pytest.raises(ValueError, match="3 corner sets but 4 robot poses"):
-        solve_joint(data["corners"][:3], data["P"], **common)
+        solve_joint(stations(data, n=3), start, JointOptions(sigma_px=0.1))
 
 
 @pytest.mark.slow
@@ -130,8 +143,8 @@ def test_two_hundred_stations_converge():
     """Scale check; the time it takes is measured in benchmarks/kappa_nu.py, not here."""
     rng = np.random.default_rng(7)
     data = synthetic_stations("eye_in_hand", 200, rng, pixel_noise=0.1, robot_noise=True)
-    res = solve_joint(data["corners"], data["P"], inner_corners=BOARD, square_size=SQUARE,
-                      sigma_px=0.1, outlier_sigma=None, **start_values(data, rng))
+    res = solve_joint(stations(data), start_values(data, rng),
+                      JointOptions(sigma_px=0.1, outlier_sigma=None))
     assert res.converged and abs(res.kappa - KAPPA) < 4 * res.sigmas["kappa"]
 
 
@@ -151,8 +164,8 @@ def test_reported_sigma_matches_monte_carlo_spread():
         corners = [project(true @ C[:3, :3].T + C[:3, 3], cell.K, DIST)
                    + rng.normal(0.0, 0.1, (len(true), 2)) for C in base["C"]]
         P = perturb(base["P_true"], ROT, TRANS, rng)
-        res = solve_joint(corners, P, inner_corners=BOARD, square_size=SQUARE, sigma_px=0.1,
-                          outlier_sigma=None, **start_values(base, rng))
+        res = solve_joint(CornerStations(corners, P, Board(BOARD, SQUARE)),
+                          start_values(base, rng), JointOptions(sigma_px=0.1, outlier_sigma=None))
         dX = res.hand_eye @ invert(cell.hand_eye)  # left error, the frame of the sigmas
         assert pose_error(dX, np.eye(4))[0] < 1e-2
         errors.append(np.r_[dX[[2, 0, 1], [1, 2, 0]], res.hand_eye[:3, 3] - cell.hand_eye[:3, 3],
@@ -171,11 +184,10 @@ def test_cramer_rao_bound_matches_the_reported_sigmas():
     rng = np.random.default_rng(10)
     data = synthetic_stations("eye_in_hand", 12, rng, pixel_noise=0.1, robot_noise=True)
     cell = data["cell"]
-    res = solve_joint(data["corners"], data["P"], inner_corners=BOARD, square_size=SQUARE,
-                      sigma_px=0.1, **start_values(data, rng))
-    bound = cramer_rao_bound(data["P_true"], inner_corners=BOARD, square_size=SQUARE, K=cell.K,
-                             dist=DIST, nu=NU, kappa=KAPPA, hand_eye=cell.hand_eye,
-                             target_pose=cell.target_pose, sigma_px=0.1)
+    res = solve_joint(stations(data), start_values(data, rng), JointOptions(sigma_px=0.1))
+    bound = cramer_rao_bound(data["P_true"], Board(BOARD, SQUARE),
+                             CellParameters(cell.K, DIST, NU, KAPPA, cell.hand_eye,
+                                            cell.target_pose), JointOptions(sigma_px=0.1))
     ratio = res.sigmas["kappa"] / bound["kappa"]
     assert 0.8 < ratio / np.sqrt(res.variance_factor) < 1.2
     np.testing.assert_allclose(np.sqrt(np.diag(bound["hand_eye_trans"])),

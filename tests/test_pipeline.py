@@ -137,6 +137,16 @@ def test_other_hand_eye_methods_use_the_per_image_poses(method):
     assert rot < np.deg2rad(0.1)
 
 
+def test_refine_is_the_pose_level_estimate_without_the_joint_stage():
+    res = calibrate(detections(), rendered_stations()[1], method="refine")
+    assert res.method == "refine" and res.variance_factor is None
+    assert res.stations[0].correction_rot_rad is None  # no robot corrections: not joint
+    assert res.sigmas["kappa"] > 0 and res.sigmas["hand_eye_trans_m"].shape == (3,)
+    assert abs(res.kappa - SCENE.target.kappa) < 4 * res.sigmas["kappa"]
+    rot, _ = pose_error(res.hand_eye, SCENE.hand_eye_matrix)
+    assert rot < np.deg2rad(0.1)
+
+
 def test_symmetric_board_origin_is_made_consistent():
     """An 8x6 board looks the same turned by 180 deg; half the detections come out turned."""
     cell = default_cell("eye_in_hand", inner_corners=(8, 6))
