@@ -23,17 +23,22 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from calib.chain import station_motions
-from calib.geometry import invert, make_transform, pose_error
-from calib.handeye import METHODS, calibrate_hand_eye
-from calib.peers import HAND_EYE_METHODS
-from calib.screw import solve_sm
+from calib import (
+    OPENCV_HAND_EYE_METHODS,
+    POSE_METHODS,
+    calibrate_hand_eye,
+    invert,
+    make_transform,
+    pose_error,
+    solve_sm,
+    station_motions,
+)
 from mocks.posesim import default_cell, simulate
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-OPENCV = [m for m in METHODS if m not in ("sm", "refine")]
+OPENCV = [m for m in POSE_METHODS if m not in ("sm", "refine")]
 OUT = Path(__file__).parent / "results"
 
 
@@ -86,11 +91,11 @@ def paper_errors(methods, n_motions, sigma, trials, seed):
 
 def realistic(setup: str, seeds: int, stations: int = 15):
     cell = default_cell(setup)
-    err = {m: [] for m in METHODS}
-    yerr = {m: [] for m in METHODS}
+    err = {m: [] for m in POSE_METHODS}
+    yerr = {m: [] for m in POSE_METHODS}
     for seed in tqdm(range(seeds), desc=f"realistic {setup}", leave=False):
         P, C = simulate(cell, stations, np.random.default_rng(seed))
-        for m in METHODS:
+        for m in POSE_METHODS:
             r = calibrate_hand_eye(P, C, setup=setup, method=m)
             err[m].append(pose_error(r.hand_eye, cell.hand_eye))
             yerr[m].append(pose_error(r.target_pose, cell.target_pose))
@@ -98,7 +103,7 @@ def realistic(setup: str, seeds: int, stations: int = 15):
     def rms(v):
         a = np.array(v)
         return np.degrees(np.sqrt(np.mean(a[:, 0] ** 2))), 1e3 * np.sqrt(np.mean(a[:, 1] ** 2))
-    return {m: (*rms(err[m]), *rms(yerr[m])) for m in METHODS}
+    return {m: (*rms(err[m]), *rms(yerr[m])) for m in POSE_METHODS}
 
 
 def speed(repeats: int = 300):
@@ -113,7 +118,7 @@ def speed(repeats: int = 300):
     Rg, tg, Rc, tc = list(P[:, :3, :3]), list(P[:, :3, 3:]), list(C[:, :3, :3]), list(C[:, :3, 3:])
 
     def park():
-        cv2.calibrateHandEye(Rg, tg, Rc, tc, method=HAND_EYE_METHODS["park"])
+        cv2.calibrateHandEye(Rg, tg, Rc, tc, method=OPENCV_HAND_EYE_METHODS["park"])
 
     def api(method):
         return lambda: calibrate_hand_eye(P, C, method=method)

@@ -29,14 +29,24 @@ import matplotlib
 import numpy as np
 from tqdm import tqdm
 
-from calib.bounds import cramer_rao_bound
-from calib.chain import RobotNoise, camera_from_robot
-from calib.geometry import make_transform, perturb, pose_error, ur_pose_from_matrix
-from calib.handeye import calibrate_hand_eye
-from calib.joint import CellParameters, JointOptions
-from calib.peers import HAND_EYE_METHODS
-from calib.pipeline import calibrate_stations
-from calib.target import Board, board_points, detect_checkerboard
+from calib import (
+    OPENCV_HAND_EYE_METHODS,
+    Board,
+    CellParameters,
+    JointOptions,
+    RobotNoise,
+    board_points,
+    calibrate_hand_eye,
+    calibrate_stations,
+    camera_from_robot,
+    cramer_rao_bound,
+    detect_checkerboard,
+    make_transform,
+    matrix_from_ur_pose,
+    perturb,
+    pose_error,
+    ur_pose_from_matrix,
+)
 from mocks.render import RenderParams, render_board
 from mocks.scene import MockScene, camera_pose_for_tcp, default_scene, sample_station_poses
 from service.cli.main import main as cellcal
@@ -46,7 +56,7 @@ import matplotlib.pyplot as plt
 
 OUT = Path(__file__).parent / "results"
 ROBOT_ROT, ROBOT_TRANS = np.deg2rad(0.05), 0.25e-3
-CV_METHODS = list(HAND_EYE_METHODS)
+CV_METHODS = list(OPENCV_HAND_EYE_METHODS)
 
 
 def bench_scene(*, kappa: float = 1.005, nu: float = 0.9975) -> MockScene:
@@ -237,7 +247,6 @@ def opencv_pipeline(directory: Path, scene: MockScene) -> None:
             poses.append(st["tcp_pose"])
     _, _, _, rv, tv = cv2.calibrateCamera([grid] * len(corners), corners,
                                           tuple(scene.camera.image_size), None, None)
-    from calib.geometry import matrix_from_ur_pose
     P = matrix_from_ur_pose(np.array(poses))
     cv2.calibrateHandEye(list(P[:, :3, :3]), list(P[:, :3, 3:]), [cv2.Rodrigues(r)[0]
                          for r in rv], list(tv), method=cv2.CALIB_HAND_EYE_PARK)

@@ -57,8 +57,7 @@ import httpx
 import matplotlib
 import numpy as np
 
-from calib.geometry import ur_pose_from_matrix
-from calib.target import detect_checkerboard
+from calib import detect_checkerboard, ur_pose_from_matrix
 from mocks.scene import default_scene, sample_station_poses
 
 matplotlib.use("Agg")

@@ -1,0 +1,127 @@
+"""cellcal's calibration mathematics: pure functions on arrays, no I/O and no devices.
+
+This is the public surface that ``service``, ``drivers``, ``mocks`` and ``benchmarks`` import
+(``from calib import calibrate_stations``). Modules inside ``calib`` import each other directly;
+the layout is in ``docs/architecture.md``:
+
+* ``so3``, ``geometry`` — rotations and rigid transforms, UR pose vectors, validation;
+* ``chain`` — the cell as one loop ``P X C = Y``: setups, camera-from-robot, motions;
+* ``camera``, ``target`` — the pinhole model with distortion, PnP; the board and its detection;
+* ``screw``, ``peers``, ``refine``, ``handeye`` — pose-level hand-eye (SM, OpenCV, ``refine``);
+* ``intrinsics``, ``joint``, ``nu``, ``bounds`` — corner-level estimation: Method #1, the joint
+  maximum likelihood, Method #2, the Cramér-Rao bound;
+* ``validation``, ``planning``, ``pipeline`` — trust metrics, station planning, the whole flow.
+"""
+
+from calib.bounds import cramer_rao_bound
+from calib.camera import project, solve_pnp
+from calib.chain import (
+    SETUPS,
+    Motions,
+    RobotNoise,
+    camera_from_robot,
+    check_setup,
+    hand_eye_from_station,
+    robot_chain,
+    robot_from_camera,
+    station_motions,
+    target_from_station,
+)
+from calib.geometry import (
+    check_joint_positions,
+    check_transforms,
+    check_ur_pose,
+    check_ur_poses,
+    invert,
+    make_transform,
+    matrix_from_ur_pose,
+    perturb,
+    pose_error,
+    rotation_angle,
+    ur_pose_from_matrix,
+)
+from calib.handeye import POSE_METHODS, HandEyeResult, calibrate_hand_eye
+from calib.intrinsics import MIN_IMAGES, IntrinsicsResult, calibrate_intrinsics
+from calib.joint import (
+    CAMERA_PARAMS,
+    CellParameters,
+    CornerStations,
+    JointOptions,
+    JointResult,
+    solve_joint,
+)
+from calib.nu import NuSearch, nu_from_extrinsics
+from calib.peers import OPENCV_HAND_EYE_METHODS, OPENCV_ROBOT_WORLD_METHODS
+from calib.pipeline import METHODS, CalibrationResult, StationReport, calibrate_stations
+from calib.planning import Plan, plan_stations, rough_target_from_image
+from calib.refine import RefineOptions
+from calib.screw import solve_sm
+from calib.target import (
+    MIN_CONTRAST,
+    Board,
+    Detection,
+    board_points,
+    detect_checkerboard,
+)
+from calib.validation import dot_hit, leave_one_out, motion_residuals, reprojection_rms
+
+__all__ = [
+    "CAMERA_PARAMS",
+    "METHODS",
+    "MIN_CONTRAST",
+    "MIN_IMAGES",
+    "OPENCV_HAND_EYE_METHODS",
+    "OPENCV_ROBOT_WORLD_METHODS",
+    "POSE_METHODS",
+    "SETUPS",
+    "Board",
+    "CalibrationResult",
+    "CellParameters",
+    "CornerStations",
+    "Detection",
+    "HandEyeResult",
+    "IntrinsicsResult",
+    "JointOptions",
+    "JointResult",
+    "Motions",
+    "NuSearch",
+    "Plan",
+    "RefineOptions",
+    "RobotNoise",
+    "StationReport",
+    "board_points",
+    "calibrate_hand_eye",
+    "calibrate_intrinsics",
+    "calibrate_stations",
+    "camera_from_robot",
+    "check_joint_positions",
+    "check_setup",
+    "check_transforms",
+    "check_ur_pose",
+    "check_ur_poses",
+    "cramer_rao_bound",
+    "detect_checkerboard",
+    "dot_hit",
+    "hand_eye_from_station",
+    "invert",
+    "leave_one_out",
+    "make_transform",
+    "matrix_from_ur_pose",
+    "motion_residuals",
+    "nu_from_extrinsics",
+    "perturb",
+    "plan_stations",
+    "pose_error",
+    "project",
+    "reprojection_rms",
+    "robot_chain",
+    "robot_from_camera",
+    "rotation_angle",
+    "rough_target_from_image",
+    "solve_joint",
+    "solve_pnp",
+    "solve_sm",
+    "station_motions",
+    "target_from_station",
+    "ur_pose_from_matrix",
+]

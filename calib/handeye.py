@@ -32,12 +32,12 @@ from calib.chain import (
     tool_side_motions,
 )
 from calib.geometry import check_transforms, make_transform
-from calib.peers import HAND_EYE_METHODS, ROBOT_WORLD_METHODS, solve_opencv
+from calib.peers import OPENCV_HAND_EYE_METHODS, OPENCV_ROBOT_WORLD_METHODS, solve_opencv
 from calib.refine import RefineOptions, pose_residuals, refine
 from calib.screw import solve_sm
 
 #: Solvers of pose-only hand-eye: screw motions, OpenCV's, and SM with the refinement.
-METHODS = ("sm", *HAND_EYE_METHODS, *ROBOT_WORLD_METHODS, "refine")
+POSE_METHODS = ("sm", *OPENCV_HAND_EYE_METHODS, *OPENCV_ROBOT_WORLD_METHODS, "refine")
 MIN_STATIONS = 3
 
 
@@ -105,13 +105,13 @@ def calibrate_hand_eye(T_base_tcp: np.ndarray, T_cam_target: np.ndarray, *,
     T_base_tcp : shape (n, 4, 4), robot readings T_base_tcp, metres.
     T_cam_target : shape (n, 4, 4), camera observations T_cam_target, metres.
     setup : ``eye_in_hand`` or ``eye_to_hand``.
-    method : one of ``METHODS``.
+    method : one of ``POSE_METHODS``.
     options : ``refine`` only: the expected robot pose noise (starting weights) and whether to
         estimate the board scale κ (camera translations scale with it, Strobl & Hirzinger
         eq. 6; off by default for pose-only data).
     """
-    if method not in METHODS:
-        raise ValueError(f"unknown method '{method}': choose one of {', '.join(METHODS)}")
+    if method not in POSE_METHODS:
+        raise ValueError(f"unknown method '{method}': choose one of {', '.join(POSE_METHODS)}")
     options = RefineOptions() if options is None else options
     if options.estimate_kappa and method != "refine":
         raise ValueError("kappa can only be estimated by the 'refine' method")
@@ -119,7 +119,7 @@ def calibrate_hand_eye(T_base_tcp: np.ndarray, T_cam_target: np.ndarray, *,
     motions = tool_side_motions(T_base_tcp, C, setup)
     check_motion_diversity(motions)
 
-    if method in HAND_EYE_METHODS or method in ROBOT_WORLD_METHODS:
+    if method in OPENCV_HAND_EYE_METHODS or method in OPENCV_ROBOT_WORLD_METHODS:
         X, Y = solve_opencv(robot_chain(T_base_tcp, setup), C, method)
         if Y is None:
             Y = average_transform(target_from_station(T_base_tcp, X, C, setup))

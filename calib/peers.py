@@ -13,7 +13,7 @@ import numpy as np
 
 from calib.geometry import invert, make_transform
 
-HAND_EYE_METHODS = {
+OPENCV_HAND_EYE_METHODS = {
     "tsai": cv2.CALIB_HAND_EYE_TSAI,
     "park": cv2.CALIB_HAND_EYE_PARK,
     "horaud": cv2.CALIB_HAND_EYE_HORAUD,
@@ -23,7 +23,7 @@ HAND_EYE_METHODS = {
 #: OpenCV's hand-eye methods form every station pair (memory ~ n^2): larger sets are solved on
 #: this many evenly spread stations (200 stations = 19,900 pairs).
 MAX_PEER_STATIONS = 200
-ROBOT_WORLD_METHODS = {
+OPENCV_ROBOT_WORLD_METHODS = {
     "shah": cv2.CALIB_ROBOT_WORLD_HAND_EYE_SHAH,
     "li": cv2.CALIB_ROBOT_WORLD_HAND_EYE_LI,
 }
@@ -36,22 +36,22 @@ def solve_opencv(P: np.ndarray, C: np.ndarray, method: str) -> tuple[np.ndarray,
     ----------
     P : shape (n, 4, 4), robot chain poses (base_T_tcp for eye-in-hand).
     C : shape (n, 4, 4), camera observations cam_T_target.
-    method : a key of ``HAND_EYE_METHODS`` or ``ROBOT_WORLD_METHODS``.
+    method : a key of ``OPENCV_HAND_EYE_METHODS`` or ``OPENCV_ROBOT_WORLD_METHODS``.
 
     At most ``MAX_PEER_STATIONS`` stations, evenly spread over the set, are passed on.
     """
     if len(P) > MAX_PEER_STATIONS:
         keep = np.unique(np.linspace(0, len(P) - 1, MAX_PEER_STATIONS).astype(int))
         P, C = P[keep], C[keep]
-    if method in HAND_EYE_METHODS:
+    if method in OPENCV_HAND_EYE_METHODS:
         R, t = cv2.calibrateHandEye(
             list(P[:, :3, :3]), list(P[:, :3, 3:]), list(C[:, :3, :3]), list(C[:, :3, 3:]),
-            method=HAND_EYE_METHODS[method])
+            method=OPENCV_HAND_EYE_METHODS[method])
         return make_transform(R, t.ravel()), None
     Pinv = invert(P)
     R_base2world, t_base2world, R_gripper2cam, t_gripper2cam = cv2.calibrateRobotWorldHandEye(
         list(C[:, :3, :3]), list(C[:, :3, 3:]), list(Pinv[:, :3, :3]), list(Pinv[:, :3, 3:]),
-        method=ROBOT_WORLD_METHODS[method])
+        method=OPENCV_ROBOT_WORLD_METHODS[method])
     X = invert(make_transform(R_gripper2cam, t_gripper2cam.ravel()))
     Y = invert(make_transform(R_base2world, t_base2world.ravel()))
     return X, Y

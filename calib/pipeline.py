@@ -38,8 +38,7 @@ from calib.chain import (
     robot_chain,
 )
 from calib.geometry import check_ur_poses, invert, make_transform, rotation_angle
-from calib.handeye import METHODS as HAND_EYE_METHODS
-from calib.handeye import calibrate_hand_eye
+from calib.handeye import POSE_METHODS, calibrate_hand_eye
 from calib.intrinsics import MIN_IMAGES, calibrate_intrinsics
 from calib.joint import (
     OUTLIER_SIGMA,
@@ -59,7 +58,7 @@ from calib.validation import (
 
 #: Calibration methods: the pose-level hand-eye solvers, and ``joint`` (the default), the
 #: maximum likelihood over all corners and robot poses started from ``refine``.
-METHODS = (*HAND_EYE_METHODS, "joint")
+METHODS = (*POSE_METHODS, "joint")
 #: Ways to estimate ν: ``images`` (Method #1, eq. 5) or ``extrinsics`` (Method #2).
 NU_METHODS = ("images", "extrinsics")
 #: Leave-one-out validation holds out at most this many stations (evenly spread).

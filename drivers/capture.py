@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.geometry import check_ur_pose, matrix_from_ur_pose, pose_error
+from calib import check_ur_pose, matrix_from_ur_pose, pose_error
 from drivers.base import Camera, Robot
 from drivers.errors import RobotError
 

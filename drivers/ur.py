@@ -27,7 +27,7 @@ import numpy as np
 import rtde_control
 import rtde_receive
 
-from calib.geometry import check_joint_positions, check_ur_pose
+from calib import check_joint_positions, check_ur_pose
 from drivers.base import RobotSession, RobotStatus
 from drivers.errors import (
     EmergencyStopError,

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from calib.geometry import (
+from calib import (
     check_joint_positions,
     check_ur_pose,
     perturb,

@@ -12,9 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calib.camera import solve_pnp
-from calib.chain import robot_from_camera
-from calib.geometry import invert, make_transform, perturb
+from calib import invert, make_transform, perturb, robot_from_camera, solve_pnp
 
 #: A 1280x1024 camera with a 1400 px focal length (about 49 deg horizontal field of view).
 DEFAULT_K = np.array([[1400.0, 0.0, 640.0], [0.0, 1400.0, 512.0], [0.0, 0.0, 1.0]])

@@ -21,14 +21,15 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from scipy.spatial.transform import Rotation
 
-from calib.chain import camera_from_robot, robot_from_camera
-from calib.geometry import (
+from calib import (
+    board_points,
+    camera_from_robot,
     check_transforms,
     invert,
     make_transform,
     matrix_from_ur_pose,
+    robot_from_camera,
 )
-from calib.target import board_points
 
 #: Fraction of the image the pattern spans (along its tighter axis) at the working distance.
 WORKING_FILL = 0.65

@@ -63,7 +63,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from calib.geometry import matrix_from_ur_pose, ur_pose_from_matrix
+from calib import matrix_from_ur_pose, ur_pose_from_matrix
 from mocks import ur_kinematics as kin
 
 DASHBOARD_PORT = 29999

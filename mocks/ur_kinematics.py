@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calib.geometry import matrix_from_ur_pose, ur_pose_from_matrix
+from calib import matrix_from_ur_pose, ur_pose_from_matrix
 
 #: UR5e DH parameters (metres, radians).
 DH_A = np.array([0.0, -0.425, -0.3922, 0.0, 0.0, 0.0])

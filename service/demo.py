@@ -28,8 +28,7 @@ import httpx
 import numpy as np
 from tqdm import tqdm
 
-from calib.geometry import pose_error
-from calib.handeye import METHODS, calibrate_hand_eye
+from calib import POSE_METHODS, calibrate_hand_eye, pose_error
 from mocks.posesim import default_cell, simulate
 from mocks.scene import MockScene, default_scene, load_scene
 from service.exports import FORMATS
@@ -246,7 +245,7 @@ def run_pose_demo(*, seed: int = 1, stations: int = 15) -> int:
     print(f"Simulated eye-in-hand cell: {stations} stations, robot noise 0.05 deg / 0.25 mm, "
           "camera poses from PnP on 0.15 px corner noise\n")
     rows = []
-    for method in tqdm(METHODS, desc="calibrating", unit="method", leave=False):
+    for method in tqdm(POSE_METHODS, desc="calibrating", unit="method", leave=False):
         result = calibrate_hand_eye(P, C, method=method)
         dr, dt = pose_error(result.hand_eye, cell.hand_eye)
         yr, yt = pose_error(result.target_pose, cell.target_pose)

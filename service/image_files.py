@@ -27,7 +27,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calib.target import Detection
+from calib import Detection
 
 #: Default largest image, width x height (a 50 MP sensor).
 DEFAULT_MAX_PIXELS = 50_000_000

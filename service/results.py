@@ -9,10 +9,13 @@ from typing import Any
 
 import numpy as np
 
-from calib.geometry import ur_pose_from_matrix
-from calib.handeye import HandEyeResult
-from calib.joint import CAMERA_PARAMS
-from calib.pipeline import CalibrationResult, StationReport
+from calib import (
+    CAMERA_PARAMS,
+    CalibrationResult,
+    HandEyeResult,
+    StationReport,
+    ur_pose_from_matrix,
+)
 
 
 def software_version() -> str:

@@ -11,7 +11,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from calib.pipeline import METHODS
+from calib import METHODS
 from service.exports import FORMATS
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]

@@ -26,7 +26,7 @@ from pydantic import (
     model_validator,
 )
 
-from calib.geometry import check_ur_pose, check_ur_poses
+from calib import check_ur_pose, check_ur_poses
 from drivers.capture import CapturedStation
 
 STATIONS_FILE = "stations.json"

@@ -34,15 +34,15 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
-from calib.chain import SETUPS
-from calib.geometry import (
+from calib import (
+    SETUPS,
+    board_points,
     check_transforms,
     invert,
     make_transform,
     matrix_from_ur_pose,
     ur_pose_from_matrix,
 )
-from calib.target import board_points
 from drivers.base import Robot
 
 #: Approach distance (m) above each point, along the board normal.

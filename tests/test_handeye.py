@@ -3,7 +3,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from calib.geometry import invert, make_transform, pose_error
-from calib.handeye import METHODS, calibrate_hand_eye
+from calib.handeye import POSE_METHODS, calibrate_hand_eye
 from calib.refine import RefineOptions
 from calib.screw import screw_parameters, solve_sm
 from mocks.posesim import default_cell, simulate
@@ -23,7 +23,7 @@ def exact_stations(rng, n, setup):
 
 
 @pytest.mark.parametrize("setup", ["eye_in_hand", "eye_to_hand"])
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", POSE_METHODS)
 def test_every_method_is_exact_on_noise_free_data(setup, method):
     for seed in range(3):
         P, C, X, Y = exact_stations(np.random.default_rng(seed), 10, setup)

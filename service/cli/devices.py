@@ -17,8 +17,7 @@ import cv2
 import numpy as np
 from pydantic import ValidationError
 
-from calib.geometry import check_ur_pose
-from calib.target import MIN_CONTRAST
+from calib import MIN_CONTRAST, check_ur_pose
 from drivers.base import Camera, Robot
 from drivers.errors import DeviceError
 from drivers.registry import CAMERA_URLS, ROBOT_URLS, open_camera, open_robot
