@@ -2,7 +2,7 @@
 
 Conventions are in ``docs/conventions.md``: ``K`` is 3x3 (no skew), ``dist = [k1, k2, p1, p2, k3]``,
 the camera frame is x right, y down, z along the optical axis. A point ``p`` in the target frame
-goes to the camera frame as ``R(rvec) @ p + tvec``, i.e. ``(rvec, tvec)`` is ``cam_T_target``.
+goes to the camera frame as ``R(rvec) @ p + tvec``, i.e. ``(rvec, tvec)`` is ``T_cam_target``.
 The distortion is the undistorted-to-distorted model of Strobl & Hirzinger, footnote 8 (as in
 OpenCV), applied to normalised coordinates ``x = X/Z, y = Y/Z``::
 
@@ -68,7 +68,7 @@ def project(points: np.ndarray, K: np.ndarray, dist: np.ndarray,
     dist : shape (5,)
         ``[k1, k2, p1, p2, k3]``.
     rvec, tvec : shape (3,) or (P, 3), optional
-        Pose(s) ``cam_T_target`` as rotation vector and translation (metres). Both or neither.
+        Pose(s) ``T_cam_target`` as rotation vector and translation (metres). Both or neither.
     pose_index : shape (N,), optional
         Index into the P poses for each point; required when P poses are given.
     jacobian : bool

@@ -1,7 +1,7 @@
 """Hand-eye calibration from station poses: one entry point, every method, one result type.
 
-``calibrate_hand_eye`` takes the robot poses (base_T_tcp) and camera observations
-(cam_T_target) of the stations, validates them, builds the motion pairs, checks that they
+``calibrate_hand_eye`` takes the robot poses (T_base_tcp) and camera observations
+(T_cam_target) of the stations, validates them, builds the motion pairs, checks that they
 determine the solution, and runs the chosen method:
 
 * ``sm`` — screw motions (Zhao & Liu), exact on noise-free data (``calib.screw``);
@@ -45,8 +45,8 @@ MIN_STATIONS = 3
 class HandEyeResult:
     """Hand-eye estimate with what a user needs to trust it.
 
-    ``hand_eye`` is tcp_T_cam (eye-in-hand) or base_T_cam (eye-to-hand); ``target_pose`` is
-    base_T_target or tcp_T_target. ``sigmas`` (from ``refine`` only) holds standard deviations:
+    ``hand_eye`` is T_tcp_cam (eye-in-hand) or T_base_cam (eye-to-hand); ``target_pose`` is
+    T_base_target or T_tcp_target. ``sigmas`` (from ``refine`` only) holds standard deviations:
     ``hand_eye_rot_rad`` and ``target_pose_rot_rad`` (3,) as small rotations in the frame of the
     transform's first index, ``hand_eye_trans_m`` and ``target_pose_trans_m`` (3,) in that frame,
     and ``kappa``. ``station_residuals`` has shape (n, 2): per-station rotation (rad) and

@@ -54,7 +54,7 @@ class InitialIntrinsics:
     nu : float
         Median over images of ``|A⁻¹h1| / |A⁻¹h2|``.
     rvecs, tvecs : shape (N, 3)
-        Per-image ``cam_T_target`` (κ = 1, the board scaled by ``nu`` in x).
+        Per-image ``T_cam_target`` (κ = 1, the board scaled by ``nu`` in x).
     """
 
     K: np.ndarray
@@ -80,7 +80,7 @@ class IntrinsicsResult:
     residuals : tuple of N arrays, shape (N_i, 2)
         Observed minus predicted pixel coordinates.
     T_cam_target : shape (N, 4, 4)
-        ``cam_T_target`` per image in the nominal-scale target frame (κ = 1).
+        ``T_cam_target`` per image in the nominal-scale target frame (κ = 1).
     image_size : tuple[int, int]
         ``(width, height)``.
     covariance : shape (10, 10)
@@ -89,7 +89,7 @@ class IntrinsicsResult:
     sigmas : dict[str, float]
         Standard deviation per name in ``PARAM_NAMES`` (0 when fixed).
     pose_covariance : shape (N, 6, 6)
-        Covariance of ``[rvec, tvec]`` of each ``cam_T_target`` (marginal, same σ²).
+        Covariance of ``[rvec, tvec]`` of each ``T_cam_target`` (marginal, same σ²).
     sigma_px : float
         Residual standard deviation per coordinate, ``sqrt(SSR / (m - n))``.
     fixed : tuple[str, ...]

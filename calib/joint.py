@@ -8,10 +8,10 @@ footnote 5; their Method #1 residuals plus the robot readings as noisy measureme
 * every detected corner ``m``, with the camera pose of station i implied by the robot chain
   (``docs/conventions.md``) instead of being free per image::
 
-      eye-in-hand:  C_i = inv(X) inv(P_i E_i) Y          (X = tcp_T_cam, Y = base_T_target)
-      eye-to-hand:  C_i = inv(X) (P_i E_i) Y             (X = base_T_cam, Y = tcp_T_target)
+      eye-in-hand:  C_i = inv(X) inv(P_i E_i) Y          (X = T_tcp_cam, Y = T_base_target)
+      eye-to-hand:  C_i = inv(X) (P_i E_i) Y             (X = T_base_cam, Y = T_tcp_target)
 
-  with ``P_i`` the reading base_T_tcp and ``E_i = exp(δ_i)`` the unknown reading error applied
+  with ``P_i`` the reading T_base_tcp and ``E_i = exp(δ_i)`` the unknown reading error applied
   on the right, in the tcp frame (as ``calib.geometry.perturb`` draws UR noise), and the true
   corner (i, j) at (κν i s, κ j s, 0) (eq. 4): residual ``(m̂ - m) / σ_px``;
 * every robot reading, through its correction: residual ``δ_i / (σ_rot, σ_trans) · √3``.
@@ -140,7 +140,7 @@ class JointResult(CellParameters):
     covariance : shape (23, 23)
         Over ``GLOBAL_PARAMS``, marginalised over the station corrections; rotations of X and Y
         are small rotations on the left (axes of the frame named first, e.g. tcp for
-        tcp_T_cam), translations in metres in that frame. Fixed parameters have zero rows.
+        T_tcp_cam), translations in metres in that frame. Fixed parameters have zero rows.
     sigmas : dict[str, float | ndarray]
         Standard deviations: one float per name in ``CAMERA_PARAMS``; ``hand_eye_rot_rad``,
         ``hand_eye_trans_m``, ``target_pose_rot_rad``, ``target_pose_trans_m`` shape (3,).

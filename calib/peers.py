@@ -3,7 +3,7 @@
 ``tsai``, ``park``, ``horaud``, ``andreff``, ``daniilidis`` solve ``A X = X B`` through
 ``cv2.calibrateHandEye``; ``shah`` and ``li`` solve ``A X = Z B`` for hand-eye and target pose
 together through ``cv2.calibrateRobotWorldHandEye``. Inputs are in the eye-in-hand form of
-``docs/conventions.md`` (``P_i X C_i = Y``): ``P`` robot chain poses, ``C`` = cam_T_target.
+``docs/conventions.md`` (``P_i X C_i = Y``): ``P`` robot chain poses, ``C`` = T_cam_target.
 """
 
 from __future__ import annotations
@@ -34,8 +34,8 @@ def solve_opencv(P: np.ndarray, C: np.ndarray, method: str) -> tuple[np.ndarray,
 
     Parameters
     ----------
-    P : shape (n, 4, 4), robot chain poses (base_T_tcp for eye-in-hand).
-    C : shape (n, 4, 4), camera observations cam_T_target.
+    P : shape (n, 4, 4), robot chain poses (T_base_tcp for eye-in-hand).
+    C : shape (n, 4, 4), camera observations T_cam_target.
     method : a key of ``OPENCV_HAND_EYE_METHODS`` or ``OPENCV_ROBOT_WORLD_METHODS``.
 
     At most ``MAX_PEER_STATIONS`` stations, evenly spread over the set, are passed on.

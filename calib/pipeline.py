@@ -97,8 +97,8 @@ class StationReport:
 class CalibrationResult:
     """Everything of the ``cellcal/result@1`` document (``product.md``) and more.
 
-    ``hand_eye`` is tcp_T_cam (eye-in-hand) or base_T_cam (eye-to-hand), ``target_pose``
-    base_T_target or tcp_T_target; both None for an intrinsics-only calibration. ``sigmas``
+    ``hand_eye`` is T_tcp_cam (eye-in-hand) or T_base_cam (eye-to-hand), ``target_pose``
+    T_base_target or T_tcp_target; both None for an intrinsics-only calibration. ``sigmas``
     holds 1-σ standard deviations: floats for ``fx fy cx cy k1 k2 p1 p2 k3 nu kappa`` (0 when
     fixed or not estimated), arrays (3,) for ``hand_eye_rot_rad``, ``hand_eye_trans_m``,
     ``target_pose_rot_rad``, ``target_pose_trans_m`` (small rotations about the axes of the
@@ -149,7 +149,7 @@ def calibrate_stations(observations: Iterable[Observation],
         (e.g. ``ok=False`` with the reason a file could not be read), or detected corners,
         float shape (cols * rows, 2) in the order of ``board_points``. Consumed once, so a
         generator keeps only one image in memory.
-    tcp_poses : n UR pose vectors base_T_tcp ``[x, y, z, rx, ry, rz]`` (m, rad) or None
+    tcp_poses : n UR pose vectors T_base_tcp ``[x, y, z, rx, ry, rz]`` (m, rad) or None
         None (or no pose at all) gives an intrinsics-only calibration.
     inner_corners : (cols, rows)
     square_size : nominal square size, metres.
@@ -375,7 +375,7 @@ def _check_intrinsics(K: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.n
 def _poses_from_known_intrinsics(corners: list[np.ndarray], grid: np.ndarray, K: np.ndarray,
                                  dist: np.ndarray
                                  ) -> tuple[np.ndarray, float, np.ndarray]:
-    """Per-image cam_T_target (nominal board) by PnP, σ_px and per-image RMS (n,)."""
+    """Per-image T_cam_target (nominal board) by PnP, σ_px and per-image RMS (n,)."""
     poses, sq = [], []
     for m in corners:
         try:
@@ -412,7 +412,7 @@ def _resolve_symmetric_origin(P: np.ndarray, C: np.ndarray, corners: list[np.nda
     with the robot's wins. Turning the frame reverses the corner order.
     """
     centre = np.array([grid[-1, 0] * nu, grid[-1, 1], 0.0])  # far corner, nominal scale
-    F = make_transform(np.diag([-1.0, -1.0, 1.0]), centre)  # old_T_new
+    F = make_transform(np.diag([-1.0, -1.0, 1.0]), centre)  # T_old_new
     C, corners = C.copy(), list(corners)
     angle_A = rotation_angle((invert(P[0]) @ P[1:])[:, :3, :3])
     for k in range(1, len(C)):

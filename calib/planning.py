@@ -6,14 +6,14 @@ the two unknowns of the calibration, in the result's own convention:
 ============  ==========================  ===========================================
 setup         ``hand_eye_guess``          ``target_pose_guess``
 ============  ==========================  ===========================================
-eye-in-hand   tcp_T_cam (camera on tool)  base_T_target (board fixed in the cell)
-eye-to-hand   base_T_cam (fixed camera)   tcp_T_target (board carried by the tool)
+eye-in-hand   T_tcp_cam (camera on tool)  T_base_target (board fixed in the cell)
+eye-to-hand   T_base_cam (fixed camera)   T_tcp_target (board carried by the tool)
 ============  ==========================  ===========================================
 
 Rough values are enough (a CAD guess for the hand-eye, :func:`rough_target_from_image` for
 the target): the plan keeps a margin around the board in the image.
 
-Every station is first chosen as a *view* ``cam_T_target``: the camera looks at a point near
+Every station is first chosen as a *view* ``T_cam_target``: the camera looks at a point near
 the pattern centre along the board normal tilted by up to ``max_tilt_deg`` about an in-plane
 axis (axes spread around the circle, so the motions between stations rotate about varied
 axes), rolled about its optical axis, from a distance in ``distance_band``. A view is kept when
@@ -66,9 +66,9 @@ class Plan:
     Attributes
     ----------
     tcp_poses : shape (n, 4, 4)
-        base_T_tcp to command, visiting order.
+        T_base_tcp to command, visiting order.
     views : shape (n, 4, 4)
-        cam_T_target expected at each station under the guesses.
+        T_cam_target expected at each station under the guesses.
     travel : float
         Path length from the start through all stations: metres plus
         ``ROTATION_WEIGHT_M_PER_RAD`` times radians (:func:`path_length`).
@@ -93,7 +93,7 @@ def plan_stations(n: int, *, start_tcp_pose: np.ndarray, target_pose_guess: np.n
     Parameters
     ----------
     n : number of stations, at least ``MIN_STATIONS``.
-    start_tcp_pose : shape (4, 4), base_T_tcp where the robot is now; the tour starts here and
+    start_tcp_pose : shape (4, 4), T_base_tcp where the robot is now; the tour starts here and
         the views' roll is measured from the start view's.
     target_pose_guess, hand_eye_guess : shape (4, 4), rough unknowns (module docstring table).
     K : shape (3, 3), approximate camera matrix; ``image_size`` (width, height) in pixels.
@@ -186,8 +186,8 @@ def rough_target_from_image(corners: np.ndarray, K: np.ndarray, inner_corners: t
                             dist: ArrayLike | None = None) -> np.ndarray:
     """Rough target pose from one detection at the start pose, for :func:`plan_stations`.
 
-    ``solvePnP`` of the nominal board gives cam_T_target, closed through the chain:
-    base_T_target = ``P X C`` eye-in-hand, tcp_T_target = ``inv(P) X C`` eye-to-hand
+    ``solvePnP`` of the nominal board gives T_cam_target, closed through the chain:
+    T_base_target = ``P X C`` eye-in-hand, T_tcp_target = ``inv(P) X C`` eye-to-hand
     (``docs/conventions.md``). Approximate intrinsics are fine: errors of a few percent in
     focal length move the board by a few percent of its distance, which the plan's margin
     absorbs.
@@ -197,12 +197,12 @@ def rough_target_from_image(corners: np.ndarray, K: np.ndarray, inner_corners: t
     corners : shape (cols * rows, 2), detected corners in the order of ``board_points``.
     K : shape (3, 3); ``dist`` OpenCV coefficients, default none.
     inner_corners : (cols, rows); ``square_size`` nominal, metres.
-    start_tcp_pose : shape (4, 4), base_T_tcp when the image was taken.
-    hand_eye_guess : shape (4, 4), tcp_T_cam (eye-in-hand) or base_T_cam (eye-to-hand).
+    start_tcp_pose : shape (4, 4), T_base_tcp when the image was taken.
+    hand_eye_guess : shape (4, 4), T_tcp_cam (eye-in-hand) or T_base_cam (eye-to-hand).
 
     Returns
     -------
-    target_pose : shape (4, 4), base_T_target (eye-in-hand) or tcp_T_target (eye-to-hand).
+    target_pose : shape (4, 4), T_base_target (eye-in-hand) or T_tcp_target (eye-to-hand).
     """
     check_setup(setup)
     obj = board_points(inner_corners, square_size)
@@ -222,7 +222,7 @@ def rough_target_from_image(corners: np.ndarray, K: np.ndarray, inner_corners: t
 
 def look_at_view(look_at: np.ndarray, tilt: float, azimuth: float, roll: float,
                  distance: float) -> np.ndarray:
-    """cam_T_target, shape (4, 4), of a camera ``distance`` m from ``look_at`` (target frame).
+    """T_cam_target, shape (4, 4), of a camera ``distance`` m from ``look_at`` (target frame).
 
     The optical axis is the board normal +z (which points away from a camera seeing the
     front) tilted by ``tilt`` rad about the in-plane axis at ``azimuth`` rad from x; at zero

@@ -133,9 +133,9 @@ def dot_hit(points_cam: np.ndarray, probe_base: np.ndarray, hand_eye: np.ndarray
             setup: str = "eye_in_hand") -> tuple[np.ndarray, np.ndarray]:
     """Target points reconstructed in the base frame (eq. 24) and their distance to the probe.
 
-    Eq. (24), ``D_r = C⁻¹ X D_c`` with ``C⁻¹`` = base_T_tcp: eye-in-hand the point seen at
+    Eq. (24), ``D_r = C⁻¹ X D_c`` with ``C⁻¹`` = T_base_tcp: eye-in-hand the point seen at
     ``points_cam`` from the station with reading ``T_base_tcp`` is at ``T_base_tcp X D_c``;
-    eye-to-hand (X = base_T_cam) at ``X D_c`` and ``T_base_tcp`` is not needed.
+    eye-to-hand (X = T_base_cam) at ``X D_c`` and ``T_base_tcp`` is not needed.
 
     Parameters
     ----------

@@ -142,7 +142,7 @@ class MockRobot(RobotSession):
 
     @property
     def true_pose(self) -> np.ndarray:
-        """The true (noise-free) base_T_tcp, shape (4, 4): what the camera sees from."""
+        """The true (noise-free) T_base_tcp, shape (4, 4): what the camera sees from."""
         with self._lock:
             return self._T.copy()
 

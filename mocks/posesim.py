@@ -54,7 +54,7 @@ def default_cell(setup: str = "eye_in_hand", *, inner_corners: tuple[int, int] =
 def sample_camera_poses(cell: Cell, n: int, rng: np.random.Generator, *,
                         distance: tuple[float, float] = (0.35, 0.6),
                         max_tilt_deg: float = 35.0, margin_px: float = 20.0) -> np.ndarray:
-    """cam_T_target for ``n`` views that see the whole board, shape (n, 4, 4).
+    """T_cam_target for ``n`` views that see the whole board, shape (n, 4, 4).
 
     Each camera looks at a point near the board centre from a distance in ``distance``, with its
     axis tilted up to ``max_tilt_deg`` from the board normal about a random axis and a random
@@ -84,14 +84,14 @@ def sample_camera_poses(cell: Cell, n: int, rng: np.random.Generator, *,
 
 
 def project(cell: Cell, C: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Pixel coordinates (N, 2) of target-frame ``points`` (N, 3) seen from cam_T_target ``C``."""
+    """Pixel coordinates (N, 2) of target-frame ``points`` (N, 3) seen from T_cam_target ``C``."""
     p = points @ C[:3, :3].T + C[:3, 3]
     uv = p @ cell.K.T
     return uv[:, :2] / uv[:, 2:3]
 
 
 def robot_poses(cell: Cell, C: np.ndarray) -> np.ndarray:
-    """True base_T_tcp (n, 4, 4) that put the camera at cam_T_target ``C`` (n, 4, 4)."""
+    """True T_base_tcp (n, 4, 4) that put the camera at T_cam_target ``C`` (n, 4, 4)."""
     return robot_from_camera(C, cell.hand_eye, cell.target_pose, cell.setup)
 
 
@@ -115,7 +115,7 @@ def pnp_observations(cell: Cell, C: np.ndarray, pixel_noise: float,
 def simulate(cell: Cell, n: int, rng: np.random.Generator, *,
              robot_rot_sigma: float = np.deg2rad(0.05), robot_trans_sigma: float = 0.25e-3,
              pixel_noise: float = 0.15) -> tuple[np.ndarray, np.ndarray]:
-    """Noisy station data: robot readings base_T_tcp and PnP camera poses, each (n, 4, 4)."""
+    """Noisy station data: robot readings T_base_tcp and PnP camera poses, each (n, 4, 4)."""
     C_true = sample_camera_poses(cell, n, rng)
     P = perturb(robot_poses(cell, C_true), robot_rot_sigma, robot_trans_sigma, rng)
     C = pnp_observations(cell, C_true, pixel_noise, rng) if pixel_noise > 0 else C_true

@@ -110,9 +110,9 @@ class MockScene(_Strict):
     camera: Camera
     target: Target
     setup: Literal["eye_in_hand", "eye_to_hand"]
-    hand_eye: Matrix4 = Field(description="true tcp_T_cam (eye-in-hand) or base_T_cam, 4x4")
+    hand_eye: Matrix4 = Field(description="true T_tcp_cam (eye-in-hand) or T_base_cam, 4x4")
     target_pose: Matrix4 = Field(
-        description="true base_T_target (eye-in-hand) or tcp_T_target, 4x4")
+        description="true T_base_target (eye-in-hand) or T_tcp_target, 4x4")
     noise: Noise = Field(default_factory=Noise)
     seed: int = 0
     start_tcp_pose: list[float] | None = Field(

@@ -3,7 +3,7 @@
 Standard Denavit-Hartenberg parameters published by Universal Robots for the UR5e
 (``T_i = Rz(theta_i) Tz(d_i) Tx(a_i) Rx(alpha_i)``), no tool offset: the emulated TCP is the
 flange, as on a controller with a zero TCP set. Poses follow ``docs/conventions.md``
-(``[x, y, z, rx, ry, rz]``, base_T_tcp, metres and radians).
+(``[x, y, z, rx, ry, rz]``, T_base_tcp, metres and radians).
 
 The inverse is numerical (damped least squares on the geometric Jacobian) rather than the closed
 form: the emulator only needs the solution nearest a seed (the current joints), which is what the
@@ -27,7 +27,7 @@ HOME_Q = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
 
 
 def _frames(q: np.ndarray) -> list[np.ndarray]:
-    """base_T_i for i = 0..6 (base, then each link frame), each shape (4, 4)."""
+    """T_base_i for i = 0..6 (base, then each link frame), each shape (4, 4)."""
     T = np.eye(4)
     out = [T]
     for theta, d, a, alpha in zip(q, DH_D, DH_A, DH_ALPHA, strict=True):
@@ -42,12 +42,12 @@ def _frames(q: np.ndarray) -> list[np.ndarray]:
 
 
 def fk_matrix(q: np.ndarray) -> np.ndarray:
-    """base_T_tcp, shape (4, 4), for joint angles ``q`` shape (6,)."""
+    """T_base_tcp, shape (4, 4), for joint angles ``q`` shape (6,)."""
     return _frames(np.asarray(q, dtype=float))[-1]
 
 
 def fk_pose(q: np.ndarray) -> np.ndarray:
-    """base_T_tcp as a UR pose vector, shape (6,), for joint angles shape (6,)."""
+    """T_base_tcp as a UR pose vector, shape (6,), for joint angles shape (6,)."""
     return ur_pose_from_matrix(fk_matrix(q))
 
 
