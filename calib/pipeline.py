@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from calib.camera import solve_pnp
+from calib.camera import project, solve_pnp
 from calib.chain import (
     DEFAULT_ROBOT_NOISE_ROT_RAD,
     DEFAULT_ROBOT_NOISE_TRANS_M,
@@ -396,9 +396,8 @@ def _view_residuals(corners: Sequence[np.ndarray], T_cam_target: np.ndarray, gri
 
     ``T_cam_target`` (n, 4, 4) and ``grid`` (N, 3) in the same (nominal-scale) target frame.
     """
-    rvecs = Rotation.from_matrix(T_cam_target[:, :3, :3]).as_rotvec()
-    return [cv2.projectPoints(grid, r, T[:3, 3], K, dist)[0].reshape(-1, 2) - m
-            for m, r, T in zip(corners, rvecs, T_cam_target, strict=True)]
+    return [project(grid @ T[:3, :3].T + T[:3, 3], K, dist) - m
+            for m, T in zip(corners, T_cam_target, strict=True)]
 
 
 def _resolve_symmetric_origin(P: np.ndarray, C: np.ndarray, corners: list[np.ndarray],
