@@ -14,7 +14,7 @@ the layout is in ``docs/architecture.md``:
 """
 
 from calib.bounds import cramer_rao_bound
-from calib.camera import project, solve_pnp
+from calib.camera import Pinhole, solve_pnp
 from calib.chain import (
     SETUPS,
     Motions,
@@ -85,6 +85,7 @@ __all__ = [
     "JointResult",
     "Motions",
     "NuSearch",
+    "Pinhole",
     "Plan",
     "RefineOptions",
     "RobotNoise",
@@ -112,7 +113,6 @@ __all__ = [
     "perturb",
     "plan_stations",
     "pose_error",
-    "project",
     "reprojection_rms",
     "robot_chain",
     "robot_from_camera",

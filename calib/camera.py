@@ -53,95 +53,102 @@ class ProjectionJacobian:
     points: np.ndarray
 
 
-def project(points: np.ndarray, K: np.ndarray, dist: np.ndarray,
-            rvec: np.ndarray | None = None, tvec: np.ndarray | None = None, *,
-            pose_index: np.ndarray | None = None,
-            jacobian: bool = False) -> np.ndarray | tuple[np.ndarray, ProjectionJacobian]:
-    """Project 3D points to distorted pixel coordinates (eq. 1 with U-D distortion).
+@dataclass(frozen=True)
+class Pinhole:
+    """The camera model of the module docstring.
 
-    Parameters
-    ----------
-    points : shape (N, 3)
-        Points in the target frame, or in the camera frame when ``rvec`` and ``tvec`` are None.
-    K : shape (3, 3)
-        Camera matrix ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``; a skew entry is ignored.
-    dist : shape (5,)
-        ``[k1, k2, p1, p2, k3]``.
-    rvec, tvec : shape (3,) or (P, 3), optional
-        Pose(s) ``T_cam_target`` as rotation vector and translation (metres). Both or neither.
-    pose_index : shape (N,), optional
-        Index into the P poses for each point; required when P poses are given.
-    jacobian : bool
-        Also return the analytic :class:`ProjectionJacobian`.
-
-    Returns
-    -------
-    uv : shape (N, 2)
-        Pixel coordinates.
-    jac : ProjectionJacobian
-        Only when ``jacobian`` is true.
+    ``K`` (3, 3) is ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` (a skew entry is ignored),
+    ``dist`` (5,) is ``[k1, k2, p1, p2, k3]``.
     """
-    P = np.asarray(points, dtype=float).reshape(-1, 3)
-    n = P.shape[0]
-    if (rvec is None) != (tvec is None):
-        raise ValueError("project: give both rvec and tvec, or neither")
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    k1, k2, p1, p2, k3 = np.asarray(dist, dtype=float)
 
-    if rvec is None:
-        Pc = P
-    else:
-        rvec = np.asarray(rvec, dtype=float).reshape(-1, 3)
-        tvec = np.asarray(tvec, dtype=float).reshape(-1, 3)
-        if pose_index is None:
-            if len(rvec) != 1:
-                raise ValueError("project: pose_index is required with several poses")
-            pose_index = np.zeros(n, dtype=int)
-        R = so3.exp(rvec)[pose_index]  # (N, 3, 3)
-        RP = _matmul_vec(R, P)
-        Pc = RP + tvec[pose_index]
+    K: np.ndarray
+    dist: np.ndarray
 
-    iz = 1.0 / Pc[:, 2]
-    x = Pc[:, 0] * iz
-    y = Pc[:, 1] * iz
-    xx, yy, xy = x * x, y * y, x * y
-    r2 = xx + yy
-    r4 = r2 * r2
-    r6 = r4 * r2
-    radial = 1.0 + k1 * r2 + k2 * r4 + k3 * r6
-    xd = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx)
-    yd = y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy
-    uv = np.empty((n, 2))
-    uv[:, 0] = fx * xd + cx
-    uv[:, 1] = fy * yd + cy
-    if not jacobian:
-        return uv
+    def project(self, points: np.ndarray, rvec: np.ndarray | None = None,
+                tvec: np.ndarray | None = None, *, pose_index: np.ndarray | None = None,
+                jacobian: bool = False) -> np.ndarray | tuple[np.ndarray, ProjectionJacobian]:
+        """Project 3D points to distorted pixel coordinates (eq. 1 with U-D distortion).
 
-    d_intr = np.zeros((n, 2, 4))
-    d_intr[:, 0, 0] = xd
-    d_intr[:, 1, 1] = yd
-    d_intr[:, 0, 2] = d_intr[:, 1, 3] = 1.0
-    d_dist = np.empty((n, 2, 5))
-    d_dist[:, 0] = np.column_stack([x * r2, x * r4, 2.0 * xy, r2 + 2.0 * xx, x * r6]) * fx
-    d_dist[:, 1] = np.column_stack([y * r2, y * r4, r2 + 2.0 * yy, 2.0 * xy, y * r6]) * fy
+        Parameters
+        ----------
+        points : shape (N, 3)
+            Points in the target frame, or in the camera frame when ``rvec`` and ``tvec`` are None.
+        rvec, tvec : shape (3,) or (P, 3), optional
+            Pose(s) ``T_cam_target`` as rotation vector and translation (metres). Both or neither.
+        pose_index : shape (N,), optional
+            Index into the P poses for each point; required when P poses are given.
+        jacobian : bool
+            Also return the analytic :class:`ProjectionJacobian`.
 
-    # d uv / d Pc = d uv/d(x_d, y_d) . d(x_d, y_d)/d(x, y) . d(x, y)/d(X, Y, Z)
-    drad = 2.0 * (k1 + 2.0 * k2 * r2 + 3.0 * k3 * r4)  # d radial / d x = drad * x
-    cross = drad * xy + 2.0 * p1 * x + 2.0 * p2 * y
-    a = ((fx * (radial + drad * xx + 2.0 * p1 * y + 6.0 * p2 * x), fx * cross),
-         (fy * cross, fy * (radial + drad * yy + 6.0 * p1 * y + 2.0 * p2 * x)))
-    d_cam = np.empty((n, 2, 3))
-    for k in range(2):
-        d_cam[:, k, 0] = a[k][0] * iz
-        d_cam[:, k, 1] = a[k][1] * iz
-        d_cam[:, k, 2] = -(a[k][0] * x + a[k][1] * y) * iz
+        Returns
+        -------
+        uv : shape (N, 2)
+            Pixel coordinates.
+        jac : ProjectionJacobian
+            Only when ``jacobian`` is true.
+        """
+        P = np.asarray(points, dtype=float).reshape(-1, 3)
+        n = P.shape[0]
+        if (rvec is None) != (tvec is None):
+            raise ValueError("project: give both rvec and tvec, or neither")
+        K = self.K
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        k1, k2, p1, p2, k3 = np.asarray(self.dist, dtype=float)
 
-    if rvec is None:
-        empty = np.zeros((n, 2, 3))
-        return uv, ProjectionJacobian(d_intr, d_dist, empty, empty, d_cam)
-    # d(R p)/d rvec = -[R p]x J_l(rvec), J_l the left Jacobian of SO(3); g [v]x = g x v.
-    d_rvec = _matmul_rows(np.cross(RP[:, None, :], d_cam), so3.left_jacobian(rvec)[pose_index])
-    return uv, ProjectionJacobian(d_intr, d_dist, d_rvec, d_cam, _matmul_rows(d_cam, R))
+        if rvec is None:
+            Pc = P
+        else:
+            rvec = np.asarray(rvec, dtype=float).reshape(-1, 3)
+            tvec = np.asarray(tvec, dtype=float).reshape(-1, 3)
+            if pose_index is None:
+                if len(rvec) != 1:
+                    raise ValueError("project: pose_index is required with several poses")
+                pose_index = np.zeros(n, dtype=int)
+            R = so3.exp(rvec)[pose_index]  # (N, 3, 3)
+            RP = _matmul_vec(R, P)
+            Pc = RP + tvec[pose_index]
+
+        iz = 1.0 / Pc[:, 2]
+        x = Pc[:, 0] * iz
+        y = Pc[:, 1] * iz
+        xx, yy, xy = x * x, y * y, x * y
+        r2 = xx + yy
+        r4 = r2 * r2
+        r6 = r4 * r2
+        radial = 1.0 + k1 * r2 + k2 * r4 + k3 * r6
+        xd = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx)
+        yd = y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy
+        uv = np.empty((n, 2))
+        uv[:, 0] = fx * xd + cx
+        uv[:, 1] = fy * yd + cy
+        if not jacobian:
+            return uv
+
+        d_intr = np.zeros((n, 2, 4))
+        d_intr[:, 0, 0] = xd
+        d_intr[:, 1, 1] = yd
+        d_intr[:, 0, 2] = d_intr[:, 1, 3] = 1.0
+        d_dist = np.empty((n, 2, 5))
+        d_dist[:, 0] = np.column_stack([x * r2, x * r4, 2.0 * xy, r2 + 2.0 * xx, x * r6]) * fx
+        d_dist[:, 1] = np.column_stack([y * r2, y * r4, r2 + 2.0 * yy, 2.0 * xy, y * r6]) * fy
+
+        # d uv / d Pc = d uv/d(x_d, y_d) . d(x_d, y_d)/d(x, y) . d(x, y)/d(X, Y, Z)
+        drad = 2.0 * (k1 + 2.0 * k2 * r2 + 3.0 * k3 * r4)  # d radial / d x = drad * x
+        cross = drad * xy + 2.0 * p1 * x + 2.0 * p2 * y
+        a = ((fx * (radial + drad * xx + 2.0 * p1 * y + 6.0 * p2 * x), fx * cross),
+             (fy * cross, fy * (radial + drad * yy + 6.0 * p1 * y + 2.0 * p2 * x)))
+        d_cam = np.empty((n, 2, 3))
+        for k in range(2):
+            d_cam[:, k, 0] = a[k][0] * iz
+            d_cam[:, k, 1] = a[k][1] * iz
+            d_cam[:, k, 2] = -(a[k][0] * x + a[k][1] * y) * iz
+
+        if rvec is None:
+            empty = np.zeros((n, 2, 3))
+            return uv, ProjectionJacobian(d_intr, d_dist, empty, empty, d_cam)
+        # d(R p)/d rvec = -[R p]x J_l(rvec), J_l the left Jacobian of SO(3); g [v]x = g x v.
+        d_rvec = _matmul_rows(np.cross(RP[:, None, :], d_cam), so3.left_jacobian(rvec)[pose_index])
+        return uv, ProjectionJacobian(d_intr, d_dist, d_rvec, d_cam, _matmul_rows(d_cam, R))
 
 
 def solve_pnp(points_target: np.ndarray, image_points: np.ndarray, K: np.ndarray,
@@ -180,7 +187,7 @@ def solve_pnp(points_target: np.ndarray, image_points: np.ndarray, K: np.ndarray
         raise ValueError(f"solvePnP found no camera pose from {len(obj)} points: are K, dist "
                          "and the board right?")
     T_cam_target = make_transform(so3.exp(rvec.ravel()), tvec.ravel())
-    return T_cam_target, project(obj, K, dist, rvec.ravel(), tvec.ravel()) - img
+    return T_cam_target, Pinhole(K, dist).project(obj, rvec.ravel(), tvec.ravel()) - img
 
 
 def _matmul_vec(M: np.ndarray, v: np.ndarray) -> np.ndarray:

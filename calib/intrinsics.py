@@ -25,7 +25,7 @@ from scipy.optimize import least_squares
 from scipy.sparse import csr_matrix
 
 from calib import so3
-from calib.camera import project
+from calib.camera import Pinhole
 from calib.geometry import make_transform
 from calib.target import board_points
 
@@ -282,8 +282,8 @@ class _Problem:
         cam, poses = self.unpack(x)
         K = np.array([[cam[0], 0.0, cam[2]], [0.0, cam[1], cam[3]], [0.0, 0.0, 1.0]])
         pts = np.column_stack([self.obj[:, 0] * cam[_NU], self.obj[:, 1], np.zeros(len(self.obj))])
-        uv, J = project(pts, K, cam[4:9], poses[:, :3], poses[:, 3:], pose_index=self.image,
-                        jacobian=True)
+        uv, J = Pinhole(K, cam[4:9]).project(pts, poses[:, :3], poses[:, 3:],
+                                             pose_index=self.image, jacobian=True)
         d_nu = J.points[:, :, :1] * self.obj[:, None, :1]
         d_cam = np.concatenate([J.intrinsics, J.dist, d_nu], axis=2)[:, :, self.free]
         blocks = np.concatenate([d_cam, J.rvec, J.tvec], axis=2)

@@ -44,7 +44,7 @@ from scipy.sparse import csr_matrix
 from scipy.stats import chi2
 
 from calib import so3
-from calib.camera import project
+from calib.camera import Pinhole
 from calib.chain import RobotNoise, check_setup, robot_chain
 from calib.geometry import check_transforms, invert
 from calib.handeye import MIN_STATIONS
@@ -320,7 +320,7 @@ class JointProblem:
             R, t, inverse, _ = links[name]
             inputs[name] = v
             v = _apply(R, t, v, inverse)
-        uv, J = project(v, _camera_matrix(cam), cam[4:9], jacobian=True)
+        uv, J = Pinhole(_camera_matrix(cam), cam[4:9]).project(v, jacobian=True)
 
         # Back-propagate d uv / d(point) through the links, collecting (rotation, translation)
         # parameter blocks: R v + t moves by -[R v]x J_l da and dt; Rᵀ(v - t) by

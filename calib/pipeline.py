@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from calib.camera import project, solve_pnp
+from calib.camera import Pinhole, solve_pnp
 from calib.chain import (
     DEFAULT_ROBOT_NOISE_ROT_RAD,
     DEFAULT_ROBOT_NOISE_TRANS_M,
@@ -396,7 +396,7 @@ def _view_residuals(corners: Sequence[np.ndarray], T_cam_target: np.ndarray, gri
 
     ``T_cam_target`` (n, 4, 4) and ``grid`` (N, 3) in the same (nominal-scale) target frame.
     """
-    return [project(grid @ T[:3, :3].T + T[:3, 3], K, dist) - m
+    return [Pinhole(K, dist).project(grid @ T[:3, :3].T + T[:3, 3]) - m
             for m, T in zip(corners, T_cam_target, strict=True)]
 
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.camera import project
+from calib.camera import Pinhole
 from calib.chain import camera_from_robot, robot_chain, station_motions
 from calib.geometry import pose_error
 from calib.handeye import calibrate_hand_eye
@@ -92,7 +92,7 @@ def reprojection_rms(image_points: Sequence[np.ndarray], points_target: Sequence
     """
     out = np.empty(len(image_points))
     for k, (m, p, C) in enumerate(zip(image_points, points_target, T_cam_target, strict=True)):
-        uv = project(np.asarray(p) @ C[:3, :3].T + C[:3, 3], K, dist)
+        uv = Pinhole(K, dist).project(np.asarray(p) @ C[:3, :3].T + C[:3, 3])
         out[k] = np.sqrt(np.mean(np.sum((uv - np.asarray(m)) ** 2, axis=1)))
     return out
 

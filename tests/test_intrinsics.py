@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calib.camera import project
+from calib.camera import Pinhole
 from calib.intrinsics import (
     PARAM_NAMES,
     IntrinsicsResult,
@@ -24,6 +24,7 @@ DATA = OPENCV_LEFT
 SIZE = (1280, 960)
 K_TRUE = np.array([[1000.0, 0.0, 645.0], [0.0, 1002.0, 478.0], [0.0, 0.0, 1.0]])
 DIST_TRUE = np.array([-0.2, 0.08, 0.0005, -0.0003, -0.01])
+CAMERA = Pinhole(K_TRUE, DIST_TRUE)
 BOARD = (11, 8)
 SQUARE = 0.03
 
@@ -44,7 +45,7 @@ def synthetic_views(rng: np.random.Generator, n: int, *, nu: float = 0.9975,
             * Rotation.from_euler("x", np.pi)
         t = np.array([rng.uniform(-0.12, 0.12), rng.uniform(-0.1, 0.1), rng.uniform(0.45, 0.9)])
         t -= R.apply(centre)
-        uv = project(true, K_TRUE, dist, R.as_rotvec(), t)
+        uv = Pinhole(K_TRUE, dist).project(true, R.as_rotvec(), t)
         if uv.min() < 5 or (uv > np.array(SIZE) - 5).any():
             continue
         views.append(uv + rng.normal(0.0, noise, uv.shape))
@@ -77,56 +78,55 @@ def test_project_matches_opencv(camera_case) -> None:
     points, rvecs, tvecs = camera_case
     for rv, tv in zip(rvecs, tvecs, strict=True):
         ref = cv2.projectPoints(points, rv, tv, K_TRUE, DIST_TRUE)[0][:, 0]
-        np.testing.assert_allclose(project(points, K_TRUE, DIST_TRUE, rv, tv), ref, atol=1e-9)
+        np.testing.assert_allclose(CAMERA.project(points, rv, tv), ref, atol=1e-9)
 
 
 @pytest.mark.parametrize("pose", [0, 1, 2], ids=["generic", "tiny-angle", "near-pi"])
 def test_project_jacobian_matches_finite_differences(camera_case, pose: int) -> None:
     points, rvecs, tvecs = camera_case
     rv, tv = rvecs[pose], tvecs[pose]
-    _, J = project(points, K_TRUE, DIST_TRUE, rv, tv, jacobian=True)
+    _, J = CAMERA.project(points, rv, tv, jacobian=True)
 
     def with_k(q: np.ndarray) -> np.ndarray:
         K = np.array([[q[0], 0.0, q[2]], [0.0, q[1], q[3]], [0.0, 0.0, 1.0]])
-        return project(points, K, DIST_TRUE, rv, tv)
+        return Pinhole(K, DIST_TRUE).project(points, rv, tv)
 
     q = np.array([K_TRUE[0, 0], K_TRUE[1, 1], K_TRUE[0, 2], K_TRUE[1, 2]])
     h = 1e-9 if pose == 1 else 1e-6
     np.testing.assert_allclose(J.intrinsics, finite_difference(with_k, q), atol=1e-6)
     np.testing.assert_allclose(
-        J.dist, finite_difference(lambda d: project(points, K_TRUE, d, rv, tv), DIST_TRUE),
+        J.dist, finite_difference(lambda d: Pinhole(K_TRUE, d).project(points, rv, tv), DIST_TRUE),
         atol=1e-5)
     np.testing.assert_allclose(
-        J.rvec, finite_difference(lambda r: project(points, K_TRUE, DIST_TRUE, r, tv), rv, h),
+        J.rvec, finite_difference(lambda r: CAMERA.project(points, r, tv), rv, h),
         atol=1e-4)
     np.testing.assert_allclose(
-        J.tvec, finite_difference(lambda t: project(points, K_TRUE, DIST_TRUE, rv, t), tv),
+        J.tvec, finite_difference(lambda t: CAMERA.project(points, rv, t), tv),
         atol=1e-4)
     for k in (0, 17):
         fd = finite_difference(
-            lambda p: project(p[None], K_TRUE, DIST_TRUE, rv, tv)[0], points[k])
+            lambda p: CAMERA.project(p[None], rv, tv)[0], points[k])
         np.testing.assert_allclose(J.points[k], fd, atol=1e-4)
 
 
 def test_project_camera_frame_and_pose_index(camera_case) -> None:
     points, rvecs, tvecs = camera_case
     idx = np.arange(len(points)) % 3
-    uv, J = project(points, K_TRUE, DIST_TRUE, rvecs, tvecs, pose_index=idx, jacobian=True)
+    uv, J = CAMERA.project(points, rvecs, tvecs, pose_index=idx, jacobian=True)
     for k in range(3):
-        uv_k, J_k = project(points[idx == k], K_TRUE, DIST_TRUE, rvecs[k], tvecs[k],
-                            jacobian=True)
+        uv_k, J_k = CAMERA.project(points[idx == k], rvecs[k], tvecs[k], jacobian=True)
         np.testing.assert_allclose(uv[idx == k], uv_k)
         np.testing.assert_allclose(J.rvec[idx == k], J_k.rvec)
     Pc = Rotation.from_rotvec(rvecs[0]).apply(points) + tvecs[0]
-    uv_c, J_c = project(Pc, K_TRUE, DIST_TRUE, jacobian=True)
-    np.testing.assert_allclose(uv_c, project(points, K_TRUE, DIST_TRUE, rvecs[0], tvecs[0]))
+    uv_c, J_c = CAMERA.project(Pc, jacobian=True)
+    np.testing.assert_allclose(uv_c, CAMERA.project(points, rvecs[0], tvecs[0]))
     np.testing.assert_allclose(
-        J_c.points[3], finite_difference(lambda p: project(p[None], K_TRUE, DIST_TRUE)[0], Pc[3]),
+        J_c.points[3], finite_difference(lambda p: CAMERA.project(p[None])[0], Pc[3]),
         atol=1e-4)
     with pytest.raises(ValueError, match="pose_index is required"):
-        project(points, K_TRUE, DIST_TRUE, rvecs, tvecs)
+        CAMERA.project(points, rvecs, tvecs)
     with pytest.raises(ValueError, match="both rvec and tvec"):
-        project(points, K_TRUE, DIST_TRUE, rvecs[0])
+        CAMERA.project(points, rvecs[0])
 
 
 def test_bundle_adjustment_jacobian_matches_finite_differences() -> None:
@@ -289,7 +289,8 @@ def test_bad_input_raises(good_views, change, message: str) -> None:
 
 
 def test_fronto_parallel_views_are_rejected() -> None:
-    views = [project(board_points(BOARD, SQUARE), K_TRUE, np.zeros(5), np.zeros(3), [dx, -0.1, 0.6])
+    pinhole = Pinhole(K_TRUE, np.zeros(5))
+    views = [pinhole.project(board_points(BOARD, SQUARE), np.zeros(3), [dx, -0.1, 0.6])
              for dx in (-0.15, -0.1, -0.05, 0.0)]
     with pytest.raises(ValueError, match="do not constrain fx and fy"):
         calibrate_intrinsics(views, BOARD, SQUARE, SIZE)
@@ -302,7 +303,7 @@ def test_predicted_sigmas_match_monte_carlo() -> None:
     """Reported σ of fx and ν agree with the spread over 50 noise seeds within ±25 %."""
     _, poses = synthetic_views(np.random.default_rng(6), 15, noise=0.0)
     true = board_points(BOARD, SQUARE, kappa=1.013, nu=0.9975)
-    clean = [project(true, K_TRUE, DIST_TRUE, p[:3], p[3:] * 1.013) for p in poses]
+    clean = [CAMERA.project(true, p[:3], p[3:] * 1.013) for p in poses]
     estimates, sigmas = [], []
     for seed in range(50):
         rng = np.random.default_rng(100 + seed)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from calib.bounds import cramer_rao_bound
-from calib.camera import project
+from calib.camera import Pinhole
 from calib.chain import RobotNoise
 from calib.geometry import invert, perturb, pose_error
 from calib.joint import (
@@ -37,7 +37,7 @@ def synthetic_stations(setup: str, n: int, rng: np.random.Generator, *, pixel_no
     true = board_points(BOARD, SQUARE, kappa=KAPPA, nu=NU)
     corners = []
     for Ck in C:
-        uv = project(true @ Ck[:3, :3].T + Ck[:3, 3], cell.K, DIST)
+        uv = Pinhole(cell.K, DIST).project(true @ Ck[:3, :3].T + Ck[:3, 3])
         corners.append(uv + rng.normal(0.0, pixel_noise, uv.shape) if pixel_noise else uv)
     P = perturb(P_true, ROT, TRANS, rng) if robot_noise else P_true
     return dict(cell=cell, corners=corners, P=P, P_true=P_true, C=C)
@@ -161,7 +161,7 @@ def test_reported_sigma_matches_monte_carlo_spread():
     errors, sigmas = [], []
     for seed in range(60):
         rng = np.random.default_rng(100 + seed)
-        corners = [project(true @ C[:3, :3].T + C[:3, 3], cell.K, DIST)
+        corners = [Pinhole(cell.K, DIST).project(true @ C[:3, :3].T + C[:3, 3])
                    + rng.normal(0.0, 0.1, (len(true), 2)) for C in base["C"]]
         P = perturb(base["P_true"], ROT, TRANS, rng)
         res = solve_joint(CornerStations(corners, P, Board(BOARD, SQUARE)),

@@ -7,7 +7,7 @@ from functools import cache
 import numpy as np
 import pytest
 
-from calib.camera import project
+from calib.camera import Pinhole
 from calib.geometry import perturb, pose_error, ur_pose_from_matrix
 from calib.pipeline import calibrate_stations
 from calib.target import Detection, board_points, detect_checkerboard
@@ -155,7 +155,7 @@ def test_symmetric_board_origin_is_made_consistent():
     pts = board_points((8, 6), 0.03)
     obs = []
     for k, c in enumerate(C):
-        uv = project(pts @ c[:3, :3].T + c[:3, 3], cell.K, np.zeros(5)) \
+        uv = Pinhole(cell.K, np.zeros(5)).project(pts @ c[:3, :3].T + c[:3, 3]) \
             + rng.normal(0.0, 0.1, (len(pts), 2))
         obs.append(Detection(ok=True, corners=uv[::-1] if k % 2 else uv, ambiguous=True))
     P = perturb(robot_poses(cell, C), np.deg2rad(0.05), 0.25e-3, rng)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.camera import project
+from calib.camera import Pinhole
 from calib.chain import camera_from_robot
 from calib.geometry import make_transform, perturb
 from calib.target import board_points
@@ -68,7 +68,7 @@ def test_reprojection_rms_per_station():
     C = sample_camera_poses(cell, 3, np.random.default_rng(5))
     pts = board_points((11, 8), 0.03)
     dist = np.array([-0.1, 0.05, 0.0, 0.0, 0.0])
-    image = [project(pts @ c[:3, :3].T + c[:3, 3], cell.K, dist) for c in C]
+    image = [Pinhole(cell.K, dist).project(pts @ c[:3, :3].T + c[:3, 3]) for c in C]
     image[1] = image[1] + [0.3, 0.4]
     rms = reprojection_rms(image, [pts] * 3, cell.K, dist, C)
     np.testing.assert_allclose(rms, [0.0, 0.5, 0.0], atol=1e-9)
