@@ -41,7 +41,12 @@ from calib.geometry import (
     ur_pose_from_matrix,
 )
 from calib.handeye import POSE_METHODS, HandEyeResult, calibrate_hand_eye
-from calib.intrinsics import MIN_IMAGES, IntrinsicsResult, calibrate_intrinsics
+from calib.intrinsics import (
+    MIN_IMAGES,
+    IntrinsicsOptions,
+    IntrinsicsResult,
+    calibrate_intrinsics,
+)
 from calib.joint import (
     CAMERA_PARAMS,
     CellParameters,
@@ -80,6 +85,7 @@ __all__ = [
     "CornerStations",
     "Detection",
     "HandEyeResult",
+    "IntrinsicsOptions",
     "IntrinsicsResult",
     "JointOptions",
     "JointResult",

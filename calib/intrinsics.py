@@ -27,7 +27,7 @@ from scipy.sparse import csr_matrix
 from calib import so3
 from calib.camera import Pinhole
 from calib.geometry import make_transform
-from calib.target import board_points
+from calib.target import Board, board_points
 
 #: Order of the camera parameters in :attr:`IntrinsicsResult.covariance`.
 PARAM_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "nu")
@@ -173,11 +173,25 @@ def initial_intrinsics(object_points_2d: Sequence[np.ndarray], image_points: Seq
     return InitialIntrinsics(K, nu, so3.log(R), a3 / lam[:, None])
 
 
-def calibrate_intrinsics(image_points: Sequence[np.ndarray], inner_corners: Sequence[int],
-                         square_size: float, image_size: Sequence[int], *,
-                         point_ids: Sequence[np.ndarray] | None = None,
-                         estimate_nu: bool = True, nu: float | None = None,
-                         fix: Iterable[str] = (), max_nfev: int = 200) -> IntrinsicsResult:
+@dataclass(frozen=True)
+class IntrinsicsOptions:
+    """Options of :func:`calibrate_intrinsics`.
+
+    ``estimate_nu``: estimate ν (Method #1); False gives the traditional calibration with ν
+    held. ``nu``: start value of ν when estimated (default: from the homographies), the held
+    value otherwise (default 1). ``fix``: names from ``FIXABLE`` to hold (``cx``, ``cy`` at the
+    image centre, distortion terms at 0). ``max_nfev``: budget of residual evaluations.
+    """
+
+    estimate_nu: bool = True
+    nu: float | None = None
+    fix: tuple[str, ...] = ()
+    max_nfev: int = 200
+
+
+def calibrate_intrinsics(image_points: Sequence[np.ndarray], board: Board,
+                         image_size: Sequence[int], options: IntrinsicsOptions | None = None, *,
+                         point_ids: Sequence[np.ndarray] | None = None) -> IntrinsicsResult:
     """Calibrate K, distortion and the board aspect ratio ν from checkerboard corners (eq. 5).
 
     Minimises the reprojection error over fx, fy, cx, cy, k1, k2, p1, p2, k3, ν and a 6-vector
@@ -187,24 +201,13 @@ def calibrate_intrinsics(image_points: Sequence[np.ndarray], inner_corners: Sequ
     ----------
     image_points : sequence of N arrays, shape (N_i, 2) or (N_i, 1, 2)
         Detected corners in pixels, one array per image (N ≥ 3).
-    inner_corners : (cols, rows)
-        Inner corners of the board; x runs along ``cols``.
-    square_size : float
-        Nominal square size in metres.
+    board : inner corners (cols, rows; x runs along ``cols``) and nominal square size (m).
     image_size : (width, height)
         Pixels.
+    options : :class:`IntrinsicsOptions` (default: estimate ν, nothing held).
     point_ids : sequence of N integer arrays, shape (N_i,), optional
         Grid index ``j * cols + i`` of each corner, for partial detections. Without it every
         image must hold all ``cols * rows`` corners in row-major order (OpenCV's).
-    estimate_nu : bool
-        Estimate ν (Method #1). False gives the traditional calibration with ν held fixed.
-    nu : float, optional
-        Start value of ν when estimated (default: from the homographies), the fixed value
-        otherwise (default 1).
-    fix : iterable of str
-        Names from ``FIXABLE`` to hold: ``cx``, ``cy`` at the image centre, distortion terms at 0.
-    max_nfev : int
-        Budget of residual evaluations for the optimiser.
 
     Returns
     -------
@@ -216,11 +219,13 @@ def calibrate_intrinsics(image_points: Sequence[np.ndarray], inner_corners: Sequ
         On fewer than 3 images, too few or non-finite points, wrong shapes, bad ids, an invalid
         image size or square size, unknown ``fix`` names, or views that do not constrain K.
     """
+    options = IntrinsicsOptions() if options is None else options
     width, height = _check_image_size(image_size)
-    cols, rows = _check_inner_corners(inner_corners)
-    square_size = _check_square_size(square_size)
-    fixed = _check_fix(fix)
+    cols, rows = _check_inner_corners(board.inner_corners)
+    square_size = _check_square_size(board.square_size)
+    fixed = _check_fix(options.fix)
     pts, ids = _check_points(image_points, point_ids, cols * rows, (width, height))
+    nu, estimate_nu = options.nu, options.estimate_nu
     if nu is not None and not (np.isfinite(nu) and 0.5 < nu < 2.0):
         raise ValueError(f"nu must be a finite aspect ratio near 1, got {nu}")
     if not estimate_nu:
@@ -232,16 +237,16 @@ def calibrate_intrinsics(image_points: Sequence[np.ndarray], inner_corners: Sequ
     cam0 = np.zeros(_N_CAM)
     cam0[:4] = init.K[0, 0], init.K[1, 1], init.K[0, 2], init.K[1, 2]
     cam0[_NU] = init.nu if nu is None and estimate_nu else (1.0 if nu is None else nu)
-    problem = _Problem(np.concatenate(obj), np.concatenate(pts), [len(p) for p in pts],
+    problem = IntrinsicsProblem(np.concatenate(obj), np.concatenate(pts), [len(p) for p in pts],
                        cam0, fixed)
     x0 = problem.pack(cam0, np.concatenate([init.rvecs, init.tvecs], axis=1))
     sol = least_squares(problem.residuals, x0, jac=problem.jacobian, method="trf",
                         x_scale="jac", tr_solver="lsmr",
-                        tr_options={"atol": 1e-12, "btol": 1e-12}, max_nfev=max_nfev)
+                        tr_options={"atol": 1e-12, "btol": 1e-12}, max_nfev=options.max_nfev)
     return problem.result(sol.x, (width, height), int(sol.nfev), sol.status > 0)
 
 
-class _Problem:
+class IntrinsicsProblem:
     """Residuals and sparse Jacobian of eq. (5) over the free camera parameters and N poses.
 
     Observations are concatenated image by image; ``x = [free camera params, N x (rvec, tvec)]``.
@@ -406,33 +411,45 @@ def _check_points(image_points: Sequence[np.ndarray], point_ids: Sequence[np.nda
         raise ValueError(f"point_ids has {len(point_ids)} entries for {len(image_points)} images")
     pts, ids = [], []
     for k, p in enumerate(image_points):
-        p = np.asarray(p, dtype=float)
-        if p.ndim == 3 and p.shape[1] == 1:
-            p = p[:, 0]
-        if p.ndim != 2 or p.shape[1] != 2:
-            raise ValueError(f"image_points[{k}]: expected shape (N, 2), got {p.shape}")
-        if not np.isfinite(p).all():
-            raise ValueError(f"image_points[{k}] contains NaN or inf")
-        if len(p) < MIN_POINTS:
-            raise ValueError(f"image_points[{k}] has {len(p)} corners; need at least {MIN_POINTS}")
-        outside = (p < -0.5).any(axis=1) | (p[:, 0] > image_size[0] - 0.5) \
-            | (p[:, 1] > image_size[1] - 0.5)
-        if outside.any():
-            raise ValueError(
-                f"image_points[{k}] has corners outside the {image_size[0]}x{image_size[1]} "
-                "image (is image_size (width, height)?)")
-        if point_ids is None:
-            if len(p) != n_grid:
-                raise ValueError(
-                    f"image_points[{k}] has {len(p)} corners but the board has {n_grid}; "
-                    "pass point_ids for partial detections")
-            i = np.arange(n_grid)
-        else:
-            i = np.asarray(point_ids[k])
-            if i.shape != (len(p),) or not np.issubdtype(i.dtype, np.integer):
-                raise ValueError(f"point_ids[{k}]: expected {len(p)} integers, got {i.shape}")
-            if i.min() < 0 or i.max() >= n_grid or len(np.unique(i)) != len(i):
-                raise ValueError(f"point_ids[{k}] must be distinct grid indices in [0, {n_grid})")
+        p = _check_image_points(k, p, image_size)
         pts.append(p)
-        ids.append(i)
+        ids.append(_check_point_ids(k, None if point_ids is None else point_ids[k], len(p),
+                                    n_grid))
     return pts, ids
+
+
+def _check_image_points(k: int, points: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
+    """Image ``k``'s corners as float (N, 2), or ``ValueError`` saying what is wrong."""
+    p = np.asarray(points, dtype=float)
+    if p.ndim == 3 and p.shape[1] == 1:
+        p = p[:, 0]
+    if p.ndim != 2 or p.shape[1] != 2:
+        raise ValueError(f"image_points[{k}]: expected shape (N, 2), got {p.shape}")
+    if not np.isfinite(p).all():
+        raise ValueError(f"image_points[{k}] contains NaN or inf")
+    if len(p) < MIN_POINTS:
+        raise ValueError(f"image_points[{k}] has {len(p)} corners; need at least {MIN_POINTS}")
+    outside = (p < -0.5).any(axis=1) | (p[:, 0] > image_size[0] - 0.5) \
+        | (p[:, 1] > image_size[1] - 0.5)
+    if outside.any():
+        raise ValueError(
+            f"image_points[{k}] has corners outside the {image_size[0]}x{image_size[1]} "
+            "image (is image_size (width, height)?)")
+    return p
+
+
+def _check_point_ids(k: int, point_ids: np.ndarray | None, n_points: int,
+                     n_grid: int) -> np.ndarray:
+    """Image ``k``'s grid indices (N,) int: the full grid when ``point_ids`` is None."""
+    if point_ids is None:
+        if n_points != n_grid:
+            raise ValueError(
+                f"image_points[{k}] has {n_points} corners but the board has {n_grid}; "
+                "pass point_ids for partial detections")
+        return np.arange(n_grid)
+    i = np.asarray(point_ids)
+    if i.shape != (n_points,) or not np.issubdtype(i.dtype, np.integer):
+        raise ValueError(f"point_ids[{k}]: expected {n_points} integers, got {i.shape}")
+    if i.min() < 0 or i.max() >= n_grid or len(np.unique(i)) != len(i):
+        raise ValueError(f"point_ids[{k}] must be distinct grid indices in [0, {n_grid})")
+    return i

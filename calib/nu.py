@@ -18,7 +18,7 @@ from scipy.optimize import minimize_scalar
 from calib.chain import RobotNoise, check_setup
 from calib.geometry import check_transforms
 from calib.handeye import calibrate_hand_eye
-from calib.intrinsics import calibrate_intrinsics
+from calib.intrinsics import IntrinsicsOptions, calibrate_intrinsics
 from calib.joint import CornerStations
 from calib.refine import RefineOptions, pose_residuals, scale_translations
 
@@ -51,14 +51,12 @@ def nu_from_extrinsics(stations: CornerStations, image_size: Sequence[int], nu0:
     noise = search.noise
     weights = np.array([noise.rot_rad] * 3 + [noise.trans_m] * 3)
     T_base_tcp = check_transforms(stations.T_base_tcp, "tcp_pose")
-    board = stations.board
     refine_kappa = RefineOptions(noise=noise, estimate_kappa=True)
 
     def cost(nu: float) -> float:
-        intr = calibrate_intrinsics(stations.image_points, board.inner_corners,
-                                    board.square_size, image_size,
-                                    point_ids=stations.point_ids, estimate_nu=False, nu=nu,
-                                    fix=search.fix)
+        intr = calibrate_intrinsics(stations.image_points, stations.board, image_size,
+                                    IntrinsicsOptions(estimate_nu=False, nu=nu, fix=search.fix),
+                                    point_ids=stations.point_ids)
         he = calibrate_hand_eye(T_base_tcp, intr.T_cam_target, setup=search.setup,
                                 method="refine", options=refine_kappa)
         r = pose_residuals(T_base_tcp, scale_translations(intr.T_cam_target, he.kappa),

@@ -39,7 +39,7 @@ from calib.chain import (
 )
 from calib.geometry import check_ur_poses, invert, make_transform, rotation_angle
 from calib.handeye import POSE_METHODS, calibrate_hand_eye
-from calib.intrinsics import MIN_IMAGES, calibrate_intrinsics
+from calib.intrinsics import MIN_IMAGES, IntrinsicsOptions, calibrate_intrinsics
 from calib.joint import (
     OUTLIER_SIGMA,
     CellParameters,
@@ -225,8 +225,8 @@ def calibrate_stations(observations: Iterable[Observation],
     corners = [detections[k][0].corners for k in usable]
 
     if intrinsics is None:
-        intr = calibrate_intrinsics(corners, (cols, rows), square_size, size,
-                                    estimate_nu=estimate_nu)
+        intr = calibrate_intrinsics(corners, Board((cols, rows), square_size), size,
+                                    IntrinsicsOptions(estimate_nu=estimate_nu))
         K, dist, nu, C = intr.K, intr.dist, intr.nu, intr.T_cam_target
         sigma_px, rms_img = intr.sigma_px, intr.rms_px_per_image
         sigmas: dict[str, float | np.ndarray] = {**intr.sigmas, "kappa": 0.0}

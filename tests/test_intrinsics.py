@@ -12,12 +12,13 @@ from scipy.spatial.transform import Rotation
 from calib.camera import Pinhole
 from calib.intrinsics import (
     PARAM_NAMES,
+    IntrinsicsOptions,
+    IntrinsicsProblem,
     IntrinsicsResult,
-    _Problem,
     calibrate_intrinsics,
     initial_intrinsics,
 )
-from calib.target import board_points, detect_checkerboard
+from calib.target import Board, board_points, detect_checkerboard
 from tests.helpers import OPENCV_LEFT
 
 DATA = OPENCV_LEFT
@@ -25,6 +26,13 @@ SIZE = (1280, 960)
 K_TRUE = np.array([[1000.0, 0.0, 645.0], [0.0, 1002.0, 478.0], [0.0, 0.0, 1.0]])
 DIST_TRUE = np.array([-0.2, 0.08, 0.0005, -0.0003, -0.01])
 CAMERA = Pinhole(K_TRUE, DIST_TRUE)
+
+
+def calibrate(image_points, inner_corners, square_size, image_size, *, point_ids=None,
+              **options):
+    """``calibrate_intrinsics`` with the board and options as plain arguments."""
+    return calibrate_intrinsics(image_points, Board(inner_corners, square_size), image_size,
+                                IntrinsicsOptions(**options), point_ids=point_ids)
 BOARD = (11, 8)
 SQUARE = 0.03
 
@@ -133,7 +141,7 @@ def test_bundle_adjustment_jacobian_matches_finite_differences() -> None:
     views, poses = synthetic_views(np.random.default_rng(2), 4)
     obj = np.tile(board_points(BOARD, SQUARE)[:, :2], (4, 1))
     cam = np.array([1000.0, 1002.0, 645.0, 478.0, *DIST_TRUE, 0.9975])
-    problem = _Problem(obj, np.concatenate(views), [88] * 4, cam, ("p2",))
+    problem = IntrinsicsProblem(obj, np.concatenate(views), [88] * 4, cam, ("p2",))
     x = problem.pack(cam, poses) + 1e-3
     J = problem.jacobian(x).toarray()
     fd = finite_difference(problem.residuals, x, 1e-7)
@@ -162,7 +170,7 @@ def test_initial_intrinsics_recovers_focal_and_nu() -> None:
 @cache
 def _synthetic_15() -> tuple[list[np.ndarray], np.ndarray, IntrinsicsResult]:
     views, poses = synthetic_views(np.random.default_rng(0), 15)
-    return views, poses, calibrate_intrinsics(views, BOARD, SQUARE, SIZE)
+    return views, poses, calibrate(views, BOARD, SQUARE, SIZE)
 
 
 def test_synthetic_recovers_nu_and_beats_fixed_nu() -> None:
@@ -177,7 +185,7 @@ def test_synthetic_recovers_nu_and_beats_fixed_nu() -> None:
     # poses in the nominal-scale frame: translations are the true ones divided by κ
     np.testing.assert_allclose(res.T_cam_target[:, :3, 3], poses[:, 3:], atol=2e-3)
 
-    traditional = calibrate_intrinsics(views, BOARD, SQUARE, SIZE, estimate_nu=False)
+    traditional = calibrate(views, BOARD, SQUARE, SIZE, estimate_nu=False)
     assert traditional.nu == 1.0 and traditional.sigmas["nu"] == 0.0
     assert "nu" in traditional.fixed
     # the bias of section IV-A: fixed ν = 1 leaves systematic residuals and shifts fx
@@ -188,9 +196,9 @@ def test_synthetic_recovers_nu_and_beats_fixed_nu() -> None:
 @pytest.mark.parametrize("nu0", [0.95, 1.06])
 def test_converges_from_bad_nu(nu0: float) -> None:
     views, _, ref = _synthetic_15()
-    res = calibrate_intrinsics(views, BOARD, SQUARE, SIZE, nu=nu0)
+    res = calibrate(views, BOARD, SQUARE, SIZE, nu=nu0)
     assert res.converged
-    assert not calibrate_intrinsics(views, BOARD, SQUARE, SIZE, nu=nu0, max_nfev=2).converged
+    assert not calibrate(views, BOARD, SQUARE, SIZE, nu=nu0, max_nfev=2).converged
     assert res.nu == pytest.approx(ref.nu, abs=1e-6)
     np.testing.assert_allclose(res.K, ref.K, atol=0.01)  # σ(c) ≈ 0.5 px
 
@@ -199,7 +207,7 @@ def test_partial_detections_and_fix() -> None:
     rng = np.random.default_rng(4)
     views, _ = synthetic_views(rng, 12)
     ids = [np.sort(rng.choice(88, size=rng.integers(40, 88), replace=False)) for _ in views]
-    res = calibrate_intrinsics([v[i] for v, i in zip(views, ids, strict=True)], BOARD, SQUARE,
+    res = calibrate([v[i] for v, i in zip(views, ids, strict=True)], BOARD, SQUARE,
                                SIZE, point_ids=ids, fix=("k3",))
     assert res.n_points == sum(len(i) for i in ids)
     assert [len(r) for r in res.residuals] == [len(i) for i in ids]
@@ -233,7 +241,7 @@ def _opencv_left() -> tuple[list[np.ndarray], dict]:
 
 def test_real_images_match_reference() -> None:
     corners, ref = _opencv_left()
-    res = calibrate_intrinsics(corners, (9, 6), 0.025, (ref["w"], ref["h"]))
+    res = calibrate(corners, (9, 6), 0.025, (ref["w"], ref["h"]))
     assert len(corners) == 13
     for ours, theirs in [(res.K[0, 0], ref["K"][0, 0]), (res.K[1, 1], ref["K"][1, 1]),
                          (res.K[0, 2], ref["K"][0, 2]), (res.K[1, 2], ref["K"][1, 2])]:
@@ -243,7 +251,7 @@ def test_real_images_match_reference() -> None:
 def test_real_images_rms_and_nu() -> None:
     corners, ref = _opencv_left()
     size = (ref["w"], ref["h"])
-    res = calibrate_intrinsics(corners, (9, 6), 0.025, size)
+    res = calibrate(corners, (9, 6), 0.025, size)
     obj = board_points((9, 6), 0.025).astype(np.float32)
     rms_cv, *_ = cv2.calibrateCamera([obj] * len(corners), [c.astype(np.float32) for c in corners],
                                      size, None, None)
@@ -253,7 +261,7 @@ def test_real_images_rms_and_nu() -> None:
     assert abs(res.nu - 1.0) < 4 * res.sigmas["nu"]
     assert abs(res.nu - 1.0) < 2.5e-3
     assert all(np.isfinite(v) and v > 0 for v in res.sigmas.values())
-    traditional = calibrate_intrinsics(corners, (9, 6), 0.025, size, estimate_nu=False)
+    traditional = calibrate(corners, (9, 6), 0.025, size, estimate_nu=False)
     assert traditional.rms_px == pytest.approx(rms_cv, abs=1e-4)
 
 
@@ -285,7 +293,7 @@ def test_bad_input_raises(good_views, change, message: str) -> None:
     args = {"image_points": good_views, "inner_corners": BOARD, "square_size": SQUARE,
             "image_size": SIZE} | change(good_views)
     with pytest.raises(ValueError, match=message):
-        calibrate_intrinsics(**args)
+        calibrate(**args)
 
 
 def test_fronto_parallel_views_are_rejected() -> None:
@@ -293,7 +301,7 @@ def test_fronto_parallel_views_are_rejected() -> None:
     views = [pinhole.project(board_points(BOARD, SQUARE), np.zeros(3), [dx, -0.1, 0.6])
              for dx in (-0.15, -0.1, -0.05, 0.0)]
     with pytest.raises(ValueError, match="do not constrain fx and fy"):
-        calibrate_intrinsics(views, BOARD, SQUARE, SIZE)
+        calibrate(views, BOARD, SQUARE, SIZE)
 
 
 # ---- slow: uncertainty and speed ---------------------------------------------------------------
@@ -307,7 +315,7 @@ def test_predicted_sigmas_match_monte_carlo() -> None:
     estimates, sigmas = [], []
     for seed in range(50):
         rng = np.random.default_rng(100 + seed)
-        res = calibrate_intrinsics([c + rng.normal(0.0, 0.15, c.shape) for c in clean],
+        res = calibrate([c + rng.normal(0.0, 0.15, c.shape) for c in clean],
                                    BOARD, SQUARE, SIZE)
         estimates.append([res.K[0, 0], res.nu])
         sigmas.append([res.sigmas["fx"], res.sigmas["nu"]])
@@ -319,5 +327,5 @@ def test_predicted_sigmas_match_monte_carlo() -> None:
 def test_200_images() -> None:
     """Scale check; the time it takes is measured in benchmarks/kappa_nu.py, not here."""
     views, _ = synthetic_views(np.random.default_rng(7), 200)
-    res = calibrate_intrinsics(views, BOARD, SQUARE, SIZE)
+    res = calibrate(views, BOARD, SQUARE, SIZE)
     assert abs(res.nu - 0.9975) < 3 * res.sigmas["nu"]
