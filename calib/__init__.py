@@ -58,7 +58,7 @@ from calib.joint import (
 from calib.nu import NuSearch, nu_from_extrinsics
 from calib.peers import OPENCV_HAND_EYE_METHODS, OPENCV_ROBOT_WORLD_METHODS
 from calib.pipeline import METHODS, CalibrationResult, StationReport, calibrate_stations
-from calib.planning import Plan, plan_stations, rough_target_from_image
+from calib.planning import CellGuess, Plan, PlanOptions, plan_stations, rough_target_from_image
 from calib.refine import RefineOptions
 from calib.screw import solve_sm
 from calib.target import (
@@ -81,6 +81,7 @@ __all__ = [
     "SETUPS",
     "Board",
     "CalibrationResult",
+    "CellGuess",
     "CellParameters",
     "CornerStations",
     "Detection",
@@ -93,6 +94,7 @@ __all__ = [
     "NuSearch",
     "Pinhole",
     "Plan",
+    "PlanOptions",
     "RefineOptions",
     "RobotNoise",
     "StationReport",

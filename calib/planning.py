@@ -26,12 +26,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
-from calib.camera import solve_pnp
+from calib.camera import Pinhole, solve_pnp
 from calib.chain import (
     camera_from_robot,
     check_motion_diversity,
@@ -42,7 +41,7 @@ from calib.chain import (
 )
 from calib.geometry import check_transforms, invert, make_transform, rotation_angle
 from calib.handeye import MIN_STATIONS
-from calib.target import board_points
+from calib.target import Board
 
 #: Metres of travel one radian of tool rotation is worth when ordering stations.
 ROTATION_WEIGHT_M_PER_RAD = 0.1
@@ -79,33 +78,76 @@ class Plan:
     travel: float
 
 
-def plan_stations(n: int, *, start_tcp_pose: np.ndarray, target_pose_guess: np.ndarray,
-                  hand_eye_guess: np.ndarray, K: np.ndarray, image_size: tuple[int, int],
-                  inner_corners: tuple[int, int], square_size: float,
-                  distance_band: tuple[float, float],
-                  workspace: tuple[ArrayLike, ArrayLike],
-                  setup: str = "eye_in_hand", dist: ArrayLike | None = None,
-                  max_tilt_deg: float = 35.0, max_roll_deg: float = 90.0,
-                  margin_frac: float = 0.04,
-                  rng: np.random.Generator | int | None = None) -> Plan:
+@dataclass(frozen=True)
+class CellGuess:
+    """What a plan assumes about the cell, in the result's own convention (module docstring).
+
+    ``start_tcp_pose`` (4, 4) is T_base_tcp where the robot is now (the tour starts here and
+    the views' roll is measured from the start view's); ``hand_eye`` and ``target_pose``
+    (4, 4) are the rough unknowns (``target_pose`` None until :func:`rough_target_from_image`
+    found it).
+    """
+
+    start_tcp_pose: np.ndarray
+    hand_eye: np.ndarray
+    target_pose: np.ndarray | None = None
+    setup: str = "eye_in_hand"
+
+
+@dataclass(frozen=True)
+class PlanOptions:
+    """What the views must satisfy, checked on construction (``ValueError`` saying what to change).
+
+    ``image_size`` (width, height) pixels; ``distance_band`` (near, far) metres from the camera
+    to the look-at point on the board; ``workspace`` (lo, hi), each (3,), the box in the base
+    frame the tcp positions must lie in; ``max_tilt_deg`` the largest angle between the optical
+    axis and the board normal; ``max_roll_deg`` the largest roll about the optical axis relative
+    to the start view; ``margin_frac`` the free image border around the board, as a fraction of
+    the smaller image side; ``rng`` a generator or seed.
+    """
+
+    image_size: tuple[int, int]
+    distance_band: tuple[float, float]
+    workspace: tuple[ArrayLike, ArrayLike]
+    max_tilt_deg: float = 35.0
+    max_roll_deg: float = 90.0
+    margin_frac: float = 0.04
+    rng: np.random.Generator | int | None = None
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.max_tilt_deg <= MAX_TILT_LIMIT_DEG:
+            raise ValueError(f"max_tilt_deg must be in (0, {MAX_TILT_LIMIT_DEG:g}], got "
+                             f"{self.max_tilt_deg}: tilted views are what make the hand-eye "
+                             "solvable")
+        near, far = (float(d) for d in self.distance_band)
+        if not 0.0 < near <= far:
+            raise ValueError(f"distance_band must be (near, far) metres with 0 < near <= far, "
+                             f"got {self.distance_band}")
+        lo, hi = self.box()
+        if not (lo < hi).all():
+            raise ValueError(f"workspace must be (lo, hi) with lo < hi on every axis, got "
+                             f"lo={lo.tolist()}, hi={hi.tolist()}")
+        if len(self.image_size) != 2 or min(self.image_size) <= 0:
+            raise ValueError(f"image_size must be (width, height) in pixels, got "
+                             f"{self.image_size}")
+
+    def box(self) -> tuple[np.ndarray, np.ndarray]:
+        """The workspace corners lo, hi as float arrays (3,)."""
+        lo, hi = (np.asarray(b, dtype=float).reshape(3) for b in self.workspace)
+        return lo, hi
+
+
+def plan_stations(n: int, guess: CellGuess, camera: Pinhole, board: Board,
+                  options: PlanOptions) -> Plan:
     """Plan ``n`` calibration stations; refuse requests that would give a degenerate plan.
 
     Parameters
     ----------
     n : number of stations, at least ``MIN_STATIONS``.
-    start_tcp_pose : shape (4, 4), T_base_tcp where the robot is now; the tour starts here and
-        the views' roll is measured from the start view's.
-    target_pose_guess, hand_eye_guess : shape (4, 4), rough unknowns (module docstring table).
-    K : shape (3, 3), approximate camera matrix; ``image_size`` (width, height) in pixels.
-    inner_corners : (cols, rows); ``square_size`` nominal, metres.
-    distance_band : (near, far), metres from the camera to the look-at point on the board.
-    workspace : (lo, hi), each shape (3,): box in the base frame the tcp positions must lie in.
-    setup : ``eye_in_hand`` or ``eye_to_hand``.
-    dist : OpenCV distortion coefficients, default none.
-    max_tilt_deg : largest angle between the optical axis and the board normal.
-    max_roll_deg : largest roll about the optical axis, relative to the start view.
-    margin_frac : free image border around the board, fraction of the smaller image side.
-    rng : generator or seed.
+    guess : the start pose and the rough unknowns (``target_pose`` required).
+    camera : approximate intrinsics (distortion may be zero).
+    board : inner corners (cols, rows) and nominal square size (m).
+    options : the constraints on the views, and the random generator.
 
     Raises
     ------
@@ -116,35 +158,15 @@ def plan_stations(n: int, *, start_tcp_pose: np.ndarray, target_pose_guess: np.n
     if n < MIN_STATIONS:
         raise ValueError(f"a plan needs at least {MIN_STATIONS} stations to determine the "
                          f"hand-eye, got {n}: ask for more stations (10-20 is typical)")
-    check_setup(setup)
-    if not 0.0 < max_tilt_deg <= MAX_TILT_LIMIT_DEG:
-        raise ValueError(f"max_tilt_deg must be in (0, {MAX_TILT_LIMIT_DEG:g}], got "
-                         f"{max_tilt_deg}: tilted views are what make the hand-eye solvable")
-    near, far = (float(d) for d in distance_band)
-    if not 0.0 < near <= far:
-        raise ValueError(f"distance_band must be (near, far) metres with 0 < near <= far, "
-                         f"got {distance_band}")
-    lo, hi = (np.asarray(b, dtype=float).reshape(3) for b in workspace)
-    if not (lo < hi).all():
-        raise ValueError(f"workspace must be (lo, hi) with lo < hi on every axis, got "
-                         f"lo={lo.tolist()}, hi={hi.tolist()}")
-    P0 = check_transforms(start_tcp_pose, "start_tcp_pose")[0]
-    X = check_transforms(hand_eye_guess, "hand_eye_guess")[0]
-    Y = check_transforms(target_pose_guess, "target_pose_guess")[0]
-    K = np.asarray(K, dtype=float)
-    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ValueError("K must be a finite 3x3 camera matrix with positive focal lengths")
-    if len(image_size) != 2 or min(image_size) <= 0:
-        raise ValueError(f"image_size must be (width, height) in pixels, got {image_size}")
-    dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=float)
-    rng = np.random.default_rng(rng)
-
-    cols, rows = inner_corners
-    grid = board_points(inner_corners, square_size)
+    guess, camera = _checked(guess, camera)
+    rng = np.random.default_rng(options.rng)
+    grid = board.points()
     centre = grid[[0, -1]].mean(axis=0)
     half_extent = grid[-1] - centre
-    outline = _board_outline(cols, rows, square_size)
+    outline = _board_outline(*board.inner_corners, board.square_size)
+    P0, X, Y, setup = guess.start_tcp_pose, guess.hand_eye, guess.target_pose, guess.setup
     roll0 = _start_roll(camera_from_robot(P0, X, Y, setup))
+    lo, hi = options.box()
 
     views: list[np.ndarray] = []
     tcps: list[np.ndarray] = []
@@ -152,21 +174,20 @@ def plan_stations(n: int, *, start_tcp_pose: np.ndarray, target_pose_guess: np.n
         in_view = 0
         for _ in range(_ATTEMPTS_PER_STATION):
             azimuth = 2.0 * np.pi * (k + rng.uniform()) / n
-            tilt = np.deg2rad(max_tilt_deg) * np.sqrt(rng.uniform(0.1, 1.0))
-            roll = roll0 + np.deg2rad(max_roll_deg) * rng.uniform(-1.0, 1.0)
+            tilt = np.deg2rad(options.max_tilt_deg) * np.sqrt(rng.uniform(0.1, 1.0))
+            roll = roll0 + np.deg2rad(options.max_roll_deg) * rng.uniform(-1.0, 1.0)
             look_at = centre + _LOOK_AT_JITTER * half_extent * rng.uniform(-1.0, 1.0, 3)
-            C = look_at_view(look_at, tilt, azimuth, roll, rng.uniform(near, far))
-            if not _board_in_view(C, outline, K, dist, image_size, margin_frac):
+            C = look_at_view(look_at, tilt, azimuth, roll, rng.uniform(*options.distance_band))
+            if not _board_in_view(C, outline, camera, options):
                 continue
             in_view += 1
             P = robot_from_camera(C, X, Y, setup)
-            if not ((P[:3, 3] >= lo).all() and (P[:3, 3] <= hi).all()):
-                continue
-            views.append(C)
-            tcps.append(P)
-            break
+            if (P[:3, 3] >= lo).all() and (P[:3, 3] <= hi).all():
+                views.append(C)
+                tcps.append(P)
+                break
         else:
-            raise ValueError(_infeasible_message(k, n, in_view > 0, (near, far), lo, hi))
+            raise ValueError(_infeasible_message(k, n, in_view > 0, options))
 
     P_all, C_all = np.array(tcps), np.array(views)
     try:
@@ -180,10 +201,23 @@ def plan_stations(n: int, *, start_tcp_pose: np.ndarray, target_pose_guess: np.n
                 travel=path_length(P0, P_all[order]))
 
 
-def rough_target_from_image(corners: np.ndarray, K: np.ndarray, inner_corners: tuple[int, int],
-                            square_size: float, start_tcp_pose: np.ndarray,
-                            hand_eye_guess: np.ndarray, *, setup: str = "eye_in_hand",
-                            dist: ArrayLike | None = None) -> np.ndarray:
+def _checked(guess: CellGuess, camera: Pinhole) -> tuple[CellGuess, Pinhole]:
+    """The guess and camera validated and as float arrays (``ValueError`` naming the problem)."""
+    check_setup(guess.setup)
+    if guess.target_pose is None:
+        raise ValueError("target_pose_guess is required: see rough_target_from_image")
+    K = np.asarray(camera.K, dtype=float)
+    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError("K must be a finite 3x3 camera matrix with positive focal lengths")
+    dist = np.zeros(5) if camera.dist is None else np.asarray(camera.dist, dtype=float)
+    return CellGuess(start_tcp_pose=check_transforms(guess.start_tcp_pose, "start_tcp_pose")[0],
+                     hand_eye=check_transforms(guess.hand_eye, "hand_eye_guess")[0],
+                     target_pose=check_transforms(guess.target_pose, "target_pose_guess")[0],
+                     setup=guess.setup), Pinhole(K, dist)
+
+
+def rough_target_from_image(corners: np.ndarray, camera: Pinhole, board: Board,
+                            guess: CellGuess) -> np.ndarray:
     """Rough target pose from one detection at the start pose, for :func:`plan_stations`.
 
     ``solvePnP`` of the nominal board gives T_cam_target, closed through the chain:
@@ -195,29 +229,29 @@ def rough_target_from_image(corners: np.ndarray, K: np.ndarray, inner_corners: t
     Parameters
     ----------
     corners : shape (cols * rows, 2), detected corners in the order of ``board_points``.
-    K : shape (3, 3); ``dist`` OpenCV coefficients, default none.
-    inner_corners : (cols, rows); ``square_size`` nominal, metres.
-    start_tcp_pose : shape (4, 4), T_base_tcp when the image was taken.
-    hand_eye_guess : shape (4, 4), T_tcp_cam (eye-in-hand) or T_base_cam (eye-to-hand).
+    camera : approximate intrinsics (distortion may be zero or None).
+    board : inner corners (cols, rows) and nominal square size (m).
+    guess : the start pose T_base_tcp when the image was taken, and the hand-eye guess
+        T_tcp_cam (eye-in-hand) or T_base_cam (eye-to-hand); its target pose is not used.
 
     Returns
     -------
     target_pose : shape (4, 4), T_base_target (eye-in-hand) or T_tcp_target (eye-to-hand).
     """
-    check_setup(setup)
-    obj = board_points(inner_corners, square_size)
+    check_setup(guess.setup)
+    obj = board.points()
     img = np.asarray(corners, dtype=float).reshape(-1, 2)
     if img.shape[0] != obj.shape[0]:
-        raise ValueError(f"got {img.shape[0]} corners for a {inner_corners[0]}x"
-                         f"{inner_corners[1]} board ({obj.shape[0]} expected)")
-    P = check_transforms(start_tcp_pose, "start_tcp_pose")[0]
-    X = check_transforms(hand_eye_guess, "hand_eye_guess")[0]
+        raise ValueError(f"got {img.shape[0]} corners for a {board.inner_corners[0]}x"
+                         f"{board.inner_corners[1]} board ({obj.shape[0]} expected)")
+    P = check_transforms(guess.start_tcp_pose, "start_tcp_pose")[0]
+    X = check_transforms(guess.hand_eye, "hand_eye_guess")[0]
     try:
-        C, _ = solve_pnp(obj, img, K, None if dist is None else np.asarray(dist, dtype=float))
+        C, _ = solve_pnp(obj, img, camera.K, camera.dist)
     except ValueError:
         raise ValueError("solvePnP failed on the detected corners: check K and inner_corners"
                          ) from None
-    return target_from_station(P, X, C, setup)
+    return target_from_station(P, X, C, guess.setup)
 
 
 def look_at_view(look_at: np.ndarray, tilt: float, azimuth: float, roll: float,
@@ -285,22 +319,22 @@ def _board_outline(cols: int, rows: int, square_size: float, per_side: int = 8) 
     return np.stack([xs, ys, np.zeros_like(xs)], axis=1)
 
 
-def _board_in_view(C: np.ndarray, outline: np.ndarray, K: np.ndarray, dist: np.ndarray,
-                   image_size: tuple[int, int], margin_frac: float) -> bool:
+def _board_in_view(C: np.ndarray, outline: np.ndarray, camera: Pinhole,
+                   options: PlanOptions) -> bool:
     """Whether the outline projects in front of the camera and inside the image margin."""
-    if ((outline @ C[:3, :3].T)[:, 2] + C[2, 3] <= 0.0).any():
+    in_cam = outline @ C[:3, :3].T + C[:3, 3]
+    if (in_cam[:, 2] <= 0.0).any():
         return False
-    uv, _ = cv2.projectPoints(outline, cv2.Rodrigues(C[:3, :3])[0], C[:3, 3], K, dist)
-    uv = uv.reshape(-1, 2)
-    w, h = image_size
-    m = margin_frac * min(w, h)
+    uv = camera.project(in_cam)
+    w, h = options.image_size
+    m = options.margin_frac * min(w, h)
     return bool((uv >= m).all() and (uv <= [w - m, h - m]).all())
 
 
-def _infeasible_message(k: int, n: int, views_fit: bool, band: tuple[float, float],
-                        lo: np.ndarray, hi: np.ndarray) -> str:
+def _infeasible_message(k: int, n: int, views_fit: bool, options: PlanOptions) -> str:
     """Why station ``k`` could not be placed (``views_fit``: some views showed the board but
     their tcp poses left the workspace), and what to change."""
+    band, (lo, hi) = options.distance_band, options.box()
     head = f"could place only {k} of {n} stations"
     if views_fit:
         box = " x ".join(f"[{a:.3f}, {b:.3f}]" for a, b in zip(lo, hi, strict=True))

@@ -3,17 +3,20 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from calib.camera import Pinhole
 from calib.chain import camera_from_robot, robot_from_camera
 from calib.geometry import invert, make_transform, perturb, rotation_angle
 from calib.handeye import calibrate_hand_eye
 from calib.planning import (
+    CellGuess,
+    PlanOptions,
     look_at_view,
     order_for_travel,
     path_length,
     plan_stations,
     rough_target_from_image,
 )
-from calib.target import board_points
+from calib.target import Board, board_points
 from mocks.scene import default_scene
 from tests.helpers import assert_pose_close
 
@@ -41,12 +44,14 @@ def cell(setup):
     return robot_from_camera(C0, X, Y, setup), X, Y
 
 
-def plan(setup="eye_in_hand", n=15, **kw):
+def plan(setup="eye_in_hand", n=15, *, hand_eye_guess=None, target_pose_guess=None, K=K,
+         **options):
     P0, X, Y = cell(setup)
-    args = dict(start_tcp_pose=P0, target_pose_guess=Y, hand_eye_guess=X, K=K, image_size=SIZE,
-                inner_corners=CORNERS, square_size=SQUARE, distance_band=BAND, workspace=BOX,
-                setup=setup, dist=DIST, rng=3)
-    return plan_stations(n, **{**args, **kw})
+    guess = CellGuess(P0, X if hand_eye_guess is None else hand_eye_guess,
+                      Y if target_pose_guess is None else target_pose_guess, setup)
+    options = dict(image_size=SIZE, distance_band=BAND, workspace=BOX, rng=3) | options
+    return plan_stations(n, guess, Pinhole(K, DIST), Board(CORNERS, SQUARE),
+                         PlanOptions(**options))
 
 
 @pytest.mark.parametrize("setup", ["eye_in_hand", "eye_to_hand"])
@@ -184,16 +189,17 @@ def test_rough_target_from_image_closes_the_chain(setup):
     C = camera_from_robot(P0, X, Y, setup)
     uv = cv2.projectPoints(board_points(CORNERS, SQUARE), cv2.Rodrigues(C[:3, :3])[0],
                            C[:3, 3], K, DIST)[0].reshape(-1, 2)
-    Y_est = rough_target_from_image(uv, K, CORNERS, SQUARE, P0, X, setup=setup, dist=DIST)
+    board, guess = Board(CORNERS, SQUARE), CellGuess(P0, X, setup=setup)
+    Y_est = rough_target_from_image(uv, Pinhole(K, DIST), board, guess)
     assert_pose_close(Y_est, Y, rot=1e-6, trans=1e-6)
     # approximate intrinsics (focal length 3 % off) still give a usable guess
     K_rough = K * [[1.03], [1.03], [1.0]]
-    Y_rough = rough_target_from_image(uv, K_rough, CORNERS, SQUARE, P0, X, setup=setup,
-                                      dist=DIST)
+    Y_rough = rough_target_from_image(uv, Pinhole(K_rough, DIST), board, guess)
     assert rotation_angle(invert(Y_rough)[:3, :3] @ Y[:3, :3]) < np.deg2rad(3.0)
     assert np.linalg.norm(Y_rough[:3, 3] - Y[:3, 3]) < 0.05 * D0
 
 
 def test_rough_target_needs_every_corner():
     with pytest.raises(ValueError, match="got 10 corners for a 11x8 board"):
-        rough_target_from_image(np.zeros((10, 2)), K, CORNERS, SQUARE, np.eye(4), np.eye(4))
+        rough_target_from_image(np.zeros((10, 2)), Pinhole(K, None), Board(CORNERS, SQUARE),
+                                CellGuess(np.eye(4), np.eye(4)))
