@@ -181,7 +181,7 @@ def main() -> None:
         print(f"{k:<18} {v * 1e3:8.3f} ms")
     print(f"SM core / OpenCV Park core = {sp['sm core'] / sp['opencv park core']:.2f} "
           f"(target <= 3); via API {sp['sm via API'] / sp['park via API']:.2f}")
-    _plot(levels, fig2, counts, fig3, scenes, fig_methods)
+    _plot((levels, fig2), (counts, fig3), scenes, fig_methods)
 
 
 def _table(label, xs, results, methods):
@@ -191,7 +191,10 @@ def _table(label, xs, results, methods):
         print(f"{'':>8} " + " ".join(f"{et[m]:11.5f}" for m in methods))
 
 
-def _plot(levels, fig2, counts, fig3, scenes, methods):
+def _plot(noise_sweep, count_sweep, scenes, methods):
+    """Fig. 2 (``noise_sweep`` = levels, results) and Fig. 3 (``count_sweep`` = motion counts,
+    results) reproductions and the realistic ``scenes``, one PNG."""
+    (levels, fig2), (counts, fig3) = noise_sweep, count_sweep
     OUT.mkdir(exist_ok=True)
     fig, ax = plt.subplots(2, 3, figsize=(16, 9))
     for col, (xs, res, xl) in enumerate([(levels[1:], fig2[1:], "noise level"),

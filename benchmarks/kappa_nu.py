@@ -35,6 +35,7 @@ from calib import (
     CellParameters,
     JointOptions,
     RobotNoise,
+    StationInputs,
     board_points,
     calibrate_hand_eye,
     calibrate_stations,
@@ -154,8 +155,9 @@ def comparison(seeds: int, stations: int = 15) -> dict[str, np.ndarray]:
             for d, C in zip(dets, C_true, strict=True) if d.ok])
         sigma_px = float(np.sqrt(np.mean(err ** 2)))
 
-        ours = calibrate_stations(dets, ur_pose_from_matrix(P), inner_corners=t.inner_corners,
-                                  square_size=t.square_size_m, image_size=cam.image_size)
+        ours = calibrate_stations(
+            StationInputs(dets, ur_pose_from_matrix(P), image_size=cam.image_size),
+            Board(tuple(t.inner_corners), t.square_size_m))
         _, _, _, rv, tv = cv2.calibrateCamera(
             [grid_nominal] * len(ok), [d.corners.astype(np.float32) for d in ok],
             tuple(cam.image_size), None, None)

@@ -110,12 +110,24 @@ class Poll:
     captured: int
 
 
-def poll_run(client: httpx.Client, run_id: str, t_post: float, hz: float, max_polls: int,
-             stop: threading.Event, out: list[Poll]) -> None:
+@dataclass(frozen=True)
+class PollPlan:
+    """Which run to poll: its id, when POST /runs was sent (perf-counter s), at ``hz`` polls a
+    second, at most ``max_polls`` times."""
+
+    run_id: str
+    t_post: float
+    hz: float
+    max_polls: int
+
+
+def poll_run(client: httpx.Client, plan: PollPlan, stop: threading.Event,
+             out: list[Poll]) -> None:
     """GET /runs/{id} every 1/hz s until the run ends, ``stop`` is set or ``max_polls``."""
-    period = 1.0 / hz
+    run_id, t_post = plan.run_id, plan.t_post
+    period = 1.0 / plan.hz
     start = time.perf_counter()
-    for k in range(max_polls):
+    for k in range(plan.max_polls):
         delay = start + k * period - time.perf_counter()
         if delay > 0 and stop.wait(delay):
             return
@@ -182,7 +194,7 @@ def run_http(poses: list[list[float]], warmup: list[list[float]], hz: float,
         r.raise_for_status()
         run_id = r.json()["id"]
         thread = threading.Thread(target=poll_run, name="poller", args=(
-            poller, run_id, t_perf, hz, int(hz * timeout), stop, polls))
+            poller, PollPlan(run_id, t_perf, hz, int(hz * timeout)), stop, polls))
         thread.start()
         try:
             thread.join(timeout + 5.0)

@@ -57,10 +57,17 @@ from calib.joint import (
 )
 from calib.nu import NuSearch, nu_from_extrinsics
 from calib.peers import OPENCV_HAND_EYE_METHODS, OPENCV_ROBOT_WORLD_METHODS
-from calib.pipeline import METHODS, CalibrationResult, StationReport, calibrate_stations
+from calib.pipeline import (
+    METHODS,
+    CalibrationOptions,
+    CalibrationResult,
+    StationReport,
+    calibrate_stations,
+)
 from calib.planning import CellGuess, Plan, PlanOptions, plan_stations, rough_target_from_image
 from calib.refine import RefineOptions
 from calib.screw import solve_sm
+from calib.stations import StationInputs
 from calib.target import (
     MIN_CONTRAST,
     Board,
@@ -80,6 +87,7 @@ __all__ = [
     "POSE_METHODS",
     "SETUPS",
     "Board",
+    "CalibrationOptions",
     "CalibrationResult",
     "CellGuess",
     "CellParameters",
@@ -97,6 +105,7 @@ __all__ = [
     "PlanOptions",
     "RefineOptions",
     "RobotNoise",
+    "StationInputs",
     "StationReport",
     "board_points",
     "calibrate_hand_eye",

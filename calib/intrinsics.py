@@ -27,6 +27,7 @@ from scipy.sparse import csr_matrix
 from calib import so3
 from calib.camera import Pinhole
 from calib.geometry import make_transform
+from calib.lsq import CachedProblem
 from calib.target import Board, board_points
 
 #: Order of the camera parameters in :attr:`IntrinsicsResult.covariance`.
@@ -246,7 +247,7 @@ def calibrate_intrinsics(image_points: Sequence[np.ndarray], board: Board,
     return problem.result(sol.x, (width, height), int(sol.nfev), sol.status > 0)
 
 
-class IntrinsicsProblem:
+class IntrinsicsProblem(CachedProblem):
     """Residuals and sparse Jacobian of eq. (5) over the free camera parameters and N poses.
 
     Observations are concatenated image by image; ``x = [free camera params, N x (rvec, tvec)]``.
@@ -270,7 +271,6 @@ class IntrinsicsProblem:
         self.indices = np.repeat(cols, 2, axis=0).ravel()
         self.indptr = np.arange(2 * len(obj) + 1) * nnz_row
         self.shape = (2 * len(obj), self.n_free + 6 * len(counts))
-        self._cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def pack(self, cam: np.ndarray, poses: np.ndarray) -> np.ndarray:
         return np.concatenate([cam[self.free], poses.ravel()])
@@ -280,10 +280,8 @@ class IntrinsicsProblem:
         cam[self.free] = x[:self.n_free]
         return cam, x[self.n_free:].reshape(-1, 6)
 
-    def _evaluate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _compute(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predicted-minus-observed residuals (2M,) and dense blocks (M, 2, n_free + 6)."""
-        if self._cache is not None and np.array_equal(self._cache[0], x):
-            return self._cache[1], self._cache[2]
         cam, poses = self.unpack(x)
         K = np.array([[cam[0], 0.0, cam[2]], [0.0, cam[1], cam[3]], [0.0, 0.0, 1.0]])
         pts = np.column_stack([self.obj[:, 0] * cam[_NU], self.obj[:, 1], np.zeros(len(self.obj))])
@@ -293,19 +291,15 @@ class IntrinsicsProblem:
         d_cam = np.concatenate([J.intrinsics, J.dist, d_nu], axis=2)[:, :, self.free]
         blocks = np.concatenate([d_cam, J.rvec, J.tvec], axis=2)
         r = (uv - self.img).ravel()
-        self._cache = (x.copy(), r, blocks)
         return r, blocks
 
-    def residuals(self, x: np.ndarray) -> np.ndarray:
-        return self._evaluate(x)[0]
-
     def jacobian(self, x: np.ndarray) -> csr_matrix:
-        blocks = self._evaluate(x)[1]
+        blocks = self.evaluate(x)[1]
         return csr_matrix((blocks.ravel(), self.indices, self.indptr), shape=self.shape)
 
     def result(self, x: np.ndarray, image_size: tuple[int, int], nfev: int,
                converged: bool) -> IntrinsicsResult:
-        r, blocks = self._evaluate(x)
+        r, blocks = self.evaluate(x)
         cam, poses = self.unpack(x)
         m, n = self.shape
         sigma2 = float(r @ r) / max(m - n, 1)

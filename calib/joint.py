@@ -48,6 +48,7 @@ from calib.camera import Pinhole
 from calib.chain import RobotNoise, check_setup, robot_chain
 from calib.geometry import check_transforms, invert
 from calib.handeye import MIN_STATIONS
+from calib.lsq import CachedProblem
 from calib.target import Board
 
 #: Camera and board parameters, in the order of :attr:`JointResult.covariance`.
@@ -231,7 +232,7 @@ def solve_joint(stations: CornerStations, start: CellParameters,
     return problem.result(sol, np.array(keep), tuple(rejected))
 
 
-class JointProblem:
+class JointProblem(CachedProblem):
     """Residuals and sparse Jacobian of the joint problem for a fixed set of stations.
 
     ``x = [free global parameters, n x δ_i]``; the global rotations and translations of X and Y
@@ -273,7 +274,6 @@ class JointProblem:
                                       2 * m * (nf + 6) + np.arange(1, 6 * n + 1)])
         self.shape = (2 * m + 6 * n, nf + 6 * n)
         self.n_free_global = nf
-        self._cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def x0(self) -> np.ndarray:
         g = np.concatenate([self.cam0, np.zeros(12)])
@@ -296,10 +296,8 @@ class JointProblem:
         return CellParameters(K=_camera_matrix(cam), dist=cam[4:9].copy(), nu=float(cam[_NU]),
                               kappa=float(cam[_KAPPA]), hand_eye=X, target_pose=Y), delta
 
-    def _evaluate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _compute(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Normalised residuals (2m + 6n,) and corner blocks (m, 2, n_free + 6)."""
-        if self._cache is not None and np.array_equal(self._cache[0], x):
-            return self._cache[1], self._cache[2]
         cam, X, Y, delta = self._unpack(x)
         _, xy, _ = self._globals(x)
         s = self.station
@@ -349,14 +347,10 @@ class JointProblem:
         corner = np.concatenate([d_glob, *blocks["E"]], axis=2) / self.sigma_px
         r = np.concatenate([((uv - self.img) / self.sigma_px).ravel(),
                             (delta / self.prior_sigma).ravel()])
-        self._cache = (x.copy(), r, corner)
         return r, corner
 
-    def residuals(self, x: np.ndarray) -> np.ndarray:
-        return self._evaluate(x)[0]
-
     def jacobian(self, x: np.ndarray) -> csr_matrix:
-        corner = self._evaluate(x)[1]
+        corner = self.evaluate(x)[1]
         prior = np.tile(1.0 / self.prior_sigma, self.n_stations)
         return csr_matrix((np.concatenate([corner.ravel(), prior]), self.indices, self.indptr),
                           shape=self.shape)
@@ -383,7 +377,7 @@ class JointProblem:
     def result(self, sol: OptimizeResult, stations: np.ndarray,
                rejected: tuple[tuple[int, str], ...]) -> JointResult:
         x = sol.x
-        r, _ = self._evaluate(x)
+        r, _ = self.evaluate(x)
         est, delta = self.unpack(x)
         m, n = self.shape
         variance_factor = float(r @ r) / max(m - n, 1)

@@ -19,37 +19,42 @@ the per-image camera poses of the intrinsic stage (κ = 1, no joint stage).
 
 from __future__ import annotations
 
-import os
-from collections import deque
 from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from calib.camera import Pinhole, solve_pnp
+from calib.camera import Pinhole
 from calib.chain import (
-    DEFAULT_ROBOT_NOISE_ROT_RAD,
-    DEFAULT_ROBOT_NOISE_TRANS_M,
     RobotNoise,
     camera_from_robot,
     check_setup,
     robot_chain,
 )
-from calib.geometry import check_ur_poses, invert, make_transform, rotation_angle
+from calib.geometry import check_ur_poses
 from calib.handeye import POSE_METHODS, calibrate_hand_eye
-from calib.intrinsics import MIN_IMAGES, IntrinsicsOptions, calibrate_intrinsics
+from calib.intrinsics import IntrinsicsOptions, calibrate_intrinsics
 from calib.joint import (
     OUTLIER_SIGMA,
     CellParameters,
     CornerStations,
     JointOptions,
+    JointResult,
     solve_joint,
 )
 from calib.nu import NuSearch, nu_from_extrinsics
 from calib.refine import RefineOptions, scale_translations
-from calib.target import Board, Detection, board_points, detect_checkerboard
+from calib.stations import (
+    Observation,
+    StationInputs,
+    check_intrinsics,
+    detect_all,
+    poses_from_known_intrinsics,
+    resolve_symmetric_origin,
+    usable_stations,
+)
+from calib.target import Board
 from calib.validation import (
     leave_one_out,
     motion_residuals,
@@ -63,9 +68,6 @@ METHODS = (*POSE_METHODS, "joint")
 NU_METHODS = ("images", "extrinsics")
 #: Leave-one-out validation holds out at most this many stations (evenly spread).
 MAX_HELD_OUT = 15
-
-Observation = np.ndarray | Detection
-
 
 @dataclass(frozen=True)
 class StationReport:
@@ -127,46 +129,74 @@ class CalibrationResult:
     variance_factor: float | None = None
 
 
-def calibrate_stations(observations: Iterable[Observation],
-                       tcp_poses: Sequence[Sequence[float] | None] | None = None, *,
-                       inner_corners: Sequence[int], square_size: float,
-                       setup: str = "eye_in_hand", station_ids: Sequence[str] | None = None,
-                       image_size: Sequence[int] | None = None,
-                       intrinsics: tuple[np.ndarray, np.ndarray] | None = None,
-                       method: str = "joint", estimate_nu: bool = True,
-                       estimate_kappa: bool = True, nu_method: str = "images",
-                       robot_noise_rot: float = DEFAULT_ROBOT_NOISE_ROT_RAD,
-                       robot_noise_trans: float = DEFAULT_ROBOT_NOISE_TRANS_M,
-                       outlier_sigma: float | None = OUTLIER_SIGMA,
+@dataclass(frozen=True)
+class CalibrationOptions:
+    """How :func:`calibrate_stations` calibrates; checked on construction.
+
+    ``method``: a name of ``METHODS``: ``joint`` (default), ``refine``, ``sm`` or an OpenCV
+    solver. ``estimate_nu``, ``estimate_kappa``: False holds ν (κ) at 1, the traditional
+    nominal-size calibration. ``nu_method``: ``images`` (Method #1) or ``extrinsics`` (Method
+    #2; ``joint`` only), then ν is held at the Method #2 value in the joint stage. ``noise``:
+    the robot reading noise, the joint prior. ``outlier_sigma``: joint stage: drop stations
+    whose robot correction lies beyond this many σ (Mahalanobis); None keeps all.
+    """
+
+    setup: str = "eye_in_hand"
+    method: str = "joint"
+    estimate_nu: bool = True
+    estimate_kappa: bool = True
+    nu_method: str = "images"
+    noise: RobotNoise = field(default_factory=RobotNoise)
+    outlier_sigma: float | None = OUTLIER_SIGMA
+
+    def __post_init__(self) -> None:
+        check_setup(self.setup)
+        if self.method not in METHODS:
+            raise ValueError(f"unknown method '{self.method}': choose one of "
+                             f"{', '.join(METHODS)}")
+        if self.nu_method not in NU_METHODS:
+            raise ValueError(f"unknown nu_method '{self.nu_method}': choose one of "
+                             f"{NU_METHODS}")
+        if self.nu_method == "extrinsics" and (self.method != "joint" or not self.estimate_nu):
+            raise ValueError("nu_method 'extrinsics' (Method #2) needs method 'joint' and "
+                             "estimate_nu")
+
+    def record(self, known_intrinsics: bool) -> dict[str, Any]:
+        """The options as the result document lists them."""
+        return dict(method=self.method, estimate_nu=self.estimate_nu,
+                    estimate_kappa=self.estimate_kappa, nu_method=self.nu_method,
+                    robot_noise_rot_rad=self.noise.rot_rad,
+                    robot_noise_trans_m=self.noise.trans_m, outlier_sigma=self.outlier_sigma,
+                    known_intrinsics=known_intrinsics)
+
+
+@dataclass
+class _Stage:
+    """The estimate as the stages refine it; ``C`` (n, 4, 4) are the per-image camera poses
+    at nominal scale, ``rms_img`` (n,) their reprojection RMS, ``keep`` the stations kept."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    nu: float
+    C: np.ndarray
+    sigma_px: float
+    rms_img: np.ndarray
+    sigmas: dict[str, float | np.ndarray]
+    kappa: float = 1.0
+    hand_eye: np.ndarray | None = None
+    target_pose: np.ndarray | None = None
+    keep: np.ndarray | None = None
+    joint: JointResult | None = None
+
+
+def calibrate_stations(stations: StationInputs, board: Board,
+                       options: CalibrationOptions | None = None, *,
                        progress: Callable[[Iterable[Observation]], Iterable[Observation]]
                        | None = None) -> CalibrationResult:
     """Calibrate a station set: camera, board κ and ν, hand-eye and target pose, validation.
 
-    Parameters
-    ----------
-    observations : iterable of n items, one per station
-        A grey or BGR uint8 image (corners are detected), a :class:`calib.target.Detection`
-        (e.g. ``ok=False`` with the reason a file could not be read), or detected corners,
-        float shape (cols * rows, 2) in the order of ``board_points``. Consumed once, so a
-        generator keeps only one image in memory.
-    tcp_poses : n UR pose vectors T_base_tcp ``[x, y, z, rx, ry, rz]`` (m, rad) or None
-        None (or no pose at all) gives an intrinsics-only calibration.
-    inner_corners : (cols, rows)
-    square_size : nominal square size, metres.
-    setup : ``eye_in_hand`` or ``eye_to_hand``.
-    station_ids : n names for reports (default ``000``, ``001``, ...).
-    image_size : (width, height); required when no observation is an image.
-    intrinsics : (K (3, 3), dist (5,)), optional
-        Known camera: the intrinsic stage is skipped and K, dist are held in the joint stage.
-    method : a name of ``METHODS``: ``joint`` (default), ``refine``, ``sm`` or an OpenCV solver.
-    estimate_nu, estimate_kappa : bool
-        False holds ν (κ) at 1: the traditional nominal-size calibration.
-    nu_method : ``images`` (Method #1) or ``extrinsics`` (Method #2; ``joint`` only), then ν
-        is held at the Method #2 value in the joint stage.
-    robot_noise_rot, robot_noise_trans : robot reading noise (rad, m), the joint prior.
-    outlier_sigma : joint stage: drop stations whose robot correction lies beyond this many σ
-        (Mahalanobis); None keeps all.
-    progress : wraps the observation iterable, e.g. a progress bar.
+    ``board`` holds the inner corners (cols, rows) and the nominal square size (m);
+    ``progress`` wraps the observation iterable, e.g. a progress bar.
 
     Raises
     ------
@@ -174,140 +204,129 @@ def calibrate_stations(observations: Iterable[Observation],
         Bad arguments, too few usable stations (with the rejection reasons), or stations
         that cannot determine the calibration.
     """
-    cols, rows = (int(v) for v in inner_corners)
-    grid = board_points((cols, rows), square_size)
-    check_setup(setup)
-    if method not in METHODS:
-        raise ValueError(f"unknown method '{method}': choose one of {', '.join(METHODS)}")
-    if nu_method not in NU_METHODS:
-        raise ValueError(f"unknown nu_method '{nu_method}': choose one of {NU_METHODS}")
-    if nu_method == "extrinsics" and (method != "joint" or not estimate_nu):
-        raise ValueError("nu_method 'extrinsics' (Method #2) needs method 'joint' and "
-                         "estimate_nu")
-    options = dict(method=method, estimate_nu=estimate_nu, estimate_kappa=estimate_kappa,
-                   nu_method=nu_method, robot_noise_rot_rad=robot_noise_rot,
-                   robot_noise_trans_m=robot_noise_trans, outlier_sigma=outlier_sigma,
-                   known_intrinsics=intrinsics is not None)
-
-    items = observations if progress is None else progress(observations)
-    detections = _detect_all(items, (cols, rows))
-    n = len(detections)
-    ids = [f"{k:03d}" for k in range(n)] if station_ids is None else [str(s) for s in
-                                                                        station_ids]
-    if len(ids) != n or (tcp_poses is not None and len(tcp_poses) != n):
-        raise ValueError(f"{n} observations but {len(ids)} station ids and "
-                         f"{'no' if tcp_poses is None else len(tcp_poses)} robot poses")
-    rejected: list[tuple[str, str]] = []
-    size = None if image_size is None else (int(image_size[0]), int(image_size[1]))
-    usable: list[int] = []
-    for k, (det, shape) in enumerate(detections):
-        if shape is not None:
-            size = size or shape
-            if shape != size:
-                det = Detection(ok=False, reason=(
-                    f"image is {shape[0]}x{shape[1]}, the others {size[0]}x{size[1]}"))
-        if det.ok:
-            usable.append(k)
-        else:
-            rejected.append((ids[k], det.reason or "rejected"))
-    hand_eye_mode = tcp_poses is not None and any(p is not None for p in tcp_poses)
-    if hand_eye_mode:
-        for k in [k for k in usable if tcp_poses[k] is None]:
-            rejected.append((ids[k], "no tcp_pose, while the other stations have one"))
-            usable.remove(k)
-    if len(usable) < MIN_IMAGES:
-        why = "; ".join(f"{i}: {r}" for i, r in rejected[:3])
-        raise ValueError(f"only {len(usable)} of {n} stations usable, need at least "
-                         f"{MIN_IMAGES}" + (f" ({why}{'; ...' if len(rejected) > 3 else ''})"
-                                            if why else ""))
-    if size is None:
-        raise ValueError("image_size is required when no observation is an image")
+    options = CalibrationOptions() if options is None else options
+    board = Board(tuple(int(v) for v in board.inner_corners), board.square_size)
+    items = stations.observations if progress is None else progress(stations.observations)
+    detections = detect_all(items, board.inner_corners)
+    ids, usable, rejected, size = usable_stations(detections, stations)
     corners = [detections[k][0].corners for k in usable]
-
-    if intrinsics is None:
-        intr = calibrate_intrinsics(corners, Board((cols, rows), square_size), size,
-                                    IntrinsicsOptions(estimate_nu=estimate_nu))
-        K, dist, nu, C = intr.K, intr.dist, intr.nu, intr.T_cam_target
-        sigma_px, rms_img = intr.sigma_px, intr.rms_px_per_image
-        sigmas: dict[str, float | np.ndarray] = {**intr.sigmas, "kappa": 0.0}
-    else:
-        K, dist = _check_intrinsics(*intrinsics)
-        nu = 1.0
-        C, sigma_px, rms_img = _poses_from_known_intrinsics(corners, grid, K, dist)
-        sigmas = {}
-    common = dict(setup=setup, image_size=size, K=K, dist=dist, options=options,
-                  sigma_px=sigma_px)
-    if not hand_eye_mode:
-        res = _view_residuals(corners, C, board_points((cols, rows), square_size, nu=nu), K,
-                              dist)
+    stage = _camera_stage(corners, board, size, stations.intrinsics, options)
+    common = dict(setup=options.setup, image_size=size, options=options.record(
+        stations.intrinsics is not None))
+    if stations.tcp_poses is None or all(p is None for p in stations.tcp_poses):
+        res = _view_residuals(corners, stage.C, board.points(nu=stage.nu), stage.K, stage.dist)
         return CalibrationResult(
-            method="intrinsics", rms_px=float(np.sqrt(np.mean(rms_img ** 2))), nu=nu,
-            kappa=1.0, hand_eye=None, target_pose=None, sigmas=sigmas,
-            stations=tuple(StationReport(ids[k], len(corners[i]), float(rms_img[i]),
+            method="intrinsics", K=stage.K, dist=stage.dist, sigma_px=stage.sigma_px,
+            rms_px=float(np.sqrt(np.mean(stage.rms_img ** 2))), nu=stage.nu, kappa=1.0,
+            hand_eye=None, target_pose=None, sigmas=stage.sigmas,
+            stations=tuple(StationReport(ids[k], len(corners[i]), float(stage.rms_img[i]),
                                          corners_px=corners[i], residuals_px=res[i])
                            for i, k in enumerate(usable)),
             rejected=tuple(rejected), validation={}, **common)
 
-    T_base_tcp = check_ur_poses([tcp_poses[k] for k in usable], "tcp_pose")
+    T_base_tcp = check_ur_poses([stations.tcp_poses[k] for k in usable], "tcp_pose")
     if any(d.ambiguous for d, _ in (detections[k] for k in usable)):
-        C, corners = _resolve_symmetric_origin(robot_chain(T_base_tcp, setup), C, corners,
-                                               grid, nu)
-    noise = RobotNoise(robot_noise_rot, robot_noise_trans)
-    pose_method = "refine" if method == "joint" else method
-    fit = calibrate_hand_eye(T_base_tcp, C, setup=setup, method=pose_method, options=RefineOptions(
-        noise=noise, estimate_kappa=pose_method == "refine" and estimate_kappa))
-    X, Y, kappa = fit.hand_eye, fit.target_pose, fit.kappa
-    if method == "refine":
-        sigmas.update(fit.sigmas)
-    keep = np.arange(len(usable))
-    joint = None
-    if method == "joint":
-        fix = ("kappa",) * (not estimate_kappa) + ("nu",) * (not estimate_nu)
-        if intrinsics is not None:
-            fix += ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
-        stations = CornerStations(corners, T_base_tcp, Board((cols, rows), square_size))
-        if nu_method == "extrinsics":
-            nu, sigma_nu = nu_from_extrinsics(stations, size, nu,
-                                              NuSearch(setup=setup, noise=noise))
-            fix += ("nu",)
-        joint = solve_joint(stations, CellParameters(K, dist, nu, kappa, X, Y), JointOptions(
-            sigma_px=sigma_px, setup=setup, noise=noise, fix=fix, outlier_sigma=outlier_sigma))
-        K, dist, nu, kappa = joint.K, joint.dist, joint.nu, joint.kappa
-        X, Y, keep = joint.hand_eye, joint.target_pose, joint.stations
-        rejected += [(ids[usable[i]], reason) for i, reason in joint.rejected]
-        sigmas = dict(joint.sigmas)
-        if nu_method == "extrinsics":
-            sigmas["nu"] = sigma_nu
-        common.update(K=K, dist=dist)
+        stage.C, corners = resolve_symmetric_origin(robot_chain(T_base_tcp, options.setup),
+                                                     stage.C, corners, board.points(), stage.nu)
+    _hand_eye_stage(stage, CornerStations(corners, T_base_tcp, board), size, options,
+                    stations.intrinsics is not None)
+    if stage.joint is not None:
+        rejected += [(ids[usable[i]], reason) for i, reason in stage.joint.rejected]
+    reports, validation = _validate(stage, CornerStations(corners, T_base_tcp, board),
+                                    [ids[k] for k in usable], options.setup)
+    joint = stage.joint
+    rms = (joint.rms_px if joint is not None
+           else float(np.sqrt(np.mean(stage.rms_img[stage.keep] ** 2))))
+    return CalibrationResult(
+        method=options.method, K=stage.K, dist=stage.dist, sigma_px=stage.sigma_px, rms_px=rms,
+        nu=stage.nu, kappa=stage.kappa, hand_eye=stage.hand_eye, target_pose=stage.target_pose,
+        sigmas=stage.sigmas, stations=tuple(reports), rejected=tuple(rejected),
+        validation=validation, variance_factor=None if joint is None
+        else joint.variance_factor, **common)
 
-    # Validation on the kept stations, camera poses at true scale.
-    P, Ck = T_base_tcp[keep], scale_translations(C[keep], kappa)
-    true_grid = board_points((cols, rows), square_size, kappa=kappa, nu=nu)
-    pts = [corners[i] for i in keep]
-    chain = reprojection_rms(pts, [true_grid] * len(keep), K, dist,
+
+def _camera_stage(corners: list[np.ndarray], board: Board, size: tuple[int, int],
+                  intrinsics: tuple[np.ndarray, np.ndarray] | None,
+                  options: CalibrationOptions) -> _Stage:
+    """Intrinsics with ν (Method #1), or the known camera and per-image PnP poses."""
+    if intrinsics is None:
+        intr = calibrate_intrinsics(corners, board, size,
+                                    IntrinsicsOptions(estimate_nu=options.estimate_nu))
+        return _Stage(K=intr.K, dist=intr.dist, nu=intr.nu, C=intr.T_cam_target,
+                      sigma_px=intr.sigma_px, rms_img=intr.rms_px_per_image,
+                      sigmas={**intr.sigmas, "kappa": 0.0})
+    K, dist = check_intrinsics(*intrinsics)
+    C, sigma_px, rms_img = poses_from_known_intrinsics(corners, board.points(), K, dist)
+    return _Stage(K=K, dist=dist, nu=1.0, C=C, sigma_px=sigma_px, rms_img=rms_img, sigmas={})
+
+
+def _hand_eye_stage(stage: _Stage, stations: CornerStations, size: tuple[int, int],
+                    options: CalibrationOptions, known_intrinsics: bool) -> None:
+    """Hand-eye by the pose-level method, then (``joint``) the joint ML; updates ``stage``."""
+    method, noise = options.method, options.noise
+    pose_method = "refine" if method == "joint" else method
+    fit = calibrate_hand_eye(stations.T_base_tcp, stage.C, setup=options.setup,
+                             method=pose_method, options=RefineOptions(
+                                 noise=noise,
+                                 estimate_kappa=pose_method == "refine" and options.estimate_kappa))
+    stage.hand_eye, stage.target_pose, stage.kappa = fit.hand_eye, fit.target_pose, fit.kappa
+    stage.keep = np.arange(len(stations.image_points))
+    if method == "refine":
+        stage.sigmas.update(fit.sigmas)
+    if method != "joint":
+        return
+    fix = ("kappa",) * (not options.estimate_kappa) + ("nu",) * (not options.estimate_nu)
+    if known_intrinsics:
+        fix += ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+    if options.nu_method == "extrinsics":
+        stage.nu, sigma_nu = nu_from_extrinsics(stations, size, stage.nu,
+                                                NuSearch(setup=options.setup, noise=noise))
+        fix += ("nu",)
+    joint = solve_joint(stations, CellParameters(stage.K, stage.dist, stage.nu, stage.kappa,
+                                                 stage.hand_eye, stage.target_pose),
+                        JointOptions(sigma_px=stage.sigma_px, setup=options.setup, noise=noise,
+                                     fix=fix, outlier_sigma=options.outlier_sigma))
+    stage.K, stage.dist, stage.nu, stage.kappa = joint.K, joint.dist, joint.nu, joint.kappa
+    stage.hand_eye, stage.target_pose, stage.keep = joint.hand_eye, joint.target_pose, \
+        joint.stations
+    stage.sigmas = dict(joint.sigmas)
+    if options.nu_method == "extrinsics":
+        stage.sigmas["nu"] = sigma_nu
+    stage.joint = joint
+
+
+def _validate(stage: _Stage, stations: CornerStations, ids: list[str], setup: str
+              ) -> tuple[list[StationReport], dict[str, Any]]:
+    """Reports of the kept stations and the validation figures, camera poses at true scale."""
+    keep, joint, X, Y = stage.keep, stage.joint, stage.hand_eye, stage.target_pose
+    P, Ck = stations.T_base_tcp[keep], scale_translations(stage.C[keep], stage.kappa)
+    pts = [stations.image_points[i] for i in keep]
+    true_grid = stations.board.points(kappa=stage.kappa, nu=stage.nu)
+    chain = reprojection_rms(pts, [true_grid] * len(keep), stage.K, stage.dist,
                              camera_from_robot(P, X, Y, setup))
     held = np.unique(np.linspace(0, len(keep) - 1, min(len(keep), MAX_HELD_OUT)).astype(int))
     loo = leave_one_out(P, Ck, setup=setup, held_out=held)
     motion = motion_residuals(P, Ck, X, setup=setup)
     loo_rot, loo_trans = np.full(len(keep), np.nan), np.full(len(keep), np.nan)
     loo_rot[loo.stations], loo_trans[loo.stations] = loo.rot_rad, loo.trans_m
-    fit_rms = joint.rms_px_per_station if joint is not None else rms_img[keep]
     if joint is not None:
+        fit_rms = joint.rms_px_per_station
         fit_res = np.split(joint.residuals_px, np.cumsum([len(m) for m in pts])[:-1])
     else:
-        fit_res = _view_residuals(pts, C[keep], board_points((cols, rows), square_size, nu=nu),
-                                  K, dist)
+        fit_rms = stage.rms_img[keep]
+        fit_res = _view_residuals(pts, stage.C[keep], stations.board.points(nu=stage.nu),
+                                  stage.K, stage.dist)
     reports = []
     for j, i in enumerate(keep):
         extra = {} if joint is None else dict(
             correction_rot_rad=float(np.linalg.norm(joint.corrections[j, :3])),
             correction_trans_m=float(np.linalg.norm(joint.corrections[j, 3:])),
             mahalanobis=float(joint.mahalanobis[j]))
-        reports.append(StationReport(ids[usable[i]], len(corners[i]), float(fit_rms[j]),
+        reports.append(StationReport(ids[i], len(pts[j]), float(fit_rms[j]),
                                      chain_rms_px=float(chain[j]),
                                      loo_rot_rad=float(loo_rot[j]),
                                      loo_trans_m=float(loo_trans[j]),
-                                     corners_px=corners[i], residuals_px=fit_res[j], **extra))
+                                     corners_px=pts[j], residuals_px=fit_res[j], **extra))
     validation = {
         "E_R": motion.E_R, "E_t": motion.E_t, "n_motions": motion.n_motions,
         "loo_rot_rad_mean": float(np.nanmean(loo.rot_rad)),
@@ -317,77 +336,7 @@ def calibrate_stations(observations: Iterable[Observation],
         "loo_solver": "sm", "loo_stations": len(loo.stations),
         "chain_rms_px": float(np.sqrt(np.mean(chain ** 2))),
     }
-    rms = joint.rms_px if joint is not None else float(np.sqrt(np.mean(rms_img[keep] ** 2)))
-    return CalibrationResult(
-        method=method, rms_px=rms, nu=nu, kappa=kappa, hand_eye=X, target_pose=Y,
-        sigmas=sigmas, stations=tuple(reports), rejected=tuple(rejected),
-        validation=validation, variance_factor=None if joint is None
-        else joint.variance_factor, **common)
-
-
-def _detect_all(items: Iterable[Observation], inner_corners: tuple[int, int], *,
-                workers: int | None = None) -> list[tuple[Detection, tuple[int, int] | None]]:
-    """``_detect`` over all observations on a few threads, in order.
-
-    OpenCV's detector releases the GIL, so threads use every core. At most ``2 x workers``
-    observations are in flight, so a generator of images still holds only a few in memory.
-    """
-    workers = workers or min(4, os.cpu_count() or 1)
-    out: list[tuple[Detection, tuple[int, int] | None]] = []
-    with ThreadPoolExecutor(workers) as pool:
-        pending: deque[Future] = deque()
-        for obs in items:
-            pending.append(pool.submit(_detect, obs, inner_corners))
-            if len(pending) >= 2 * workers:
-                out.append(pending.popleft().result())
-        out.extend(f.result() for f in pending)
-    return out
-
-
-def _detect(obs: Observation, inner_corners: tuple[int, int]
-            ) -> tuple[Detection, tuple[int, int] | None]:
-    """Detection of one observation and the image size (w, h) if it was an image."""
-    if isinstance(obs, Detection):
-        return obs, None
-    arr = np.asarray(obs)
-    if arr.ndim == 2 and arr.shape[1] == 2 and np.issubdtype(arr.dtype, np.floating):
-        n_grid = inner_corners[0] * inner_corners[1]
-        if len(arr) != n_grid or not np.isfinite(arr).all():
-            return Detection(ok=False, reason=(
-                f"{len(arr)} corners given, the {inner_corners[0]}x{inner_corners[1]} board "
-                f"has {n_grid} (or some are not finite)")), None
-        return Detection(ok=True, corners=arr.astype(float)), None
-    shape = (arr.shape[1], arr.shape[0]) if arr.ndim >= 2 else None
-    return detect_checkerboard(arr, inner_corners), shape
-
-
-def _check_intrinsics(K: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Known intrinsics as K (3, 3) and dist (5,); more than 5 non-zero terms are refused."""
-    K, dist = np.asarray(K, dtype=float), np.asarray(dist, dtype=float).ravel()
-    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ValueError("intrinsics: K must be a finite 3x3 matrix with positive fx, fy")
-    if len(dist) < 4 or not np.isfinite(dist).all() or np.any(dist[5:] != 0):
-        raise ValueError("intrinsics: dist must be [k1, k2, p1, p2(, k3)]; terms beyond k3 "
-                         "are not supported")
-    return K, np.concatenate([dist, np.zeros(5)])[:5]
-
-
-def _poses_from_known_intrinsics(corners: list[np.ndarray], grid: np.ndarray, K: np.ndarray,
-                                 dist: np.ndarray
-                                 ) -> tuple[np.ndarray, float, np.ndarray]:
-    """Per-image T_cam_target (nominal board) by PnP, σ_px and per-image RMS (n,)."""
-    poses, sq = [], []
-    for m in corners:
-        try:
-            C, residuals = solve_pnp(grid, m, K, dist)
-        except ValueError:
-            raise ValueError("PnP failed with the given intrinsics: are K and dist right?"
-                             ) from None
-        sq.append(np.sum(residuals ** 2, axis=1))
-        poses.append(C)
-    total = np.concatenate(sq)
-    sigma_px = float(np.sqrt(total.sum() / max(total.size * 2 - 6 * len(corners), 1)))
-    return np.array(poses), sigma_px, np.sqrt(np.array([s.mean() for s in sq]))
+    return reports, validation
 
 
 def _view_residuals(corners: Sequence[np.ndarray], T_cam_target: np.ndarray, grid: np.ndarray,
@@ -398,26 +347,3 @@ def _view_residuals(corners: Sequence[np.ndarray], T_cam_target: np.ndarray, gri
     """
     return [Pinhole(K, dist).project(grid @ T[:3, :3].T + T[:3, 3]) - m
             for m, T in zip(corners, T_cam_target, strict=True)]
-
-
-def _resolve_symmetric_origin(P: np.ndarray, C: np.ndarray, corners: list[np.ndarray],
-                              grid: np.ndarray, nu: float
-                              ) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Put a 180°-symmetric board's origin at the same physical corner in every image.
-
-    A camera motion rotates by the same angle as the robot motion (``A X = X B`` is a
-    similarity). For each station the detected frame and the frame turned by 180° about the
-    board centre are tried against the first station; the one whose motion angle agrees
-    with the robot's wins. Turning the frame reverses the corner order.
-    """
-    centre = np.array([grid[-1, 0] * nu, grid[-1, 1], 0.0])  # far corner, nominal scale
-    F = make_transform(np.diag([-1.0, -1.0, 1.0]), centre)  # T_old_new
-    C, corners = C.copy(), list(corners)
-    angle_A = rotation_angle((invert(P[0]) @ P[1:])[:, :3, :3])
-    for k in range(1, len(C)):
-        keep_err = abs(rotation_angle(C[0][:3, :3] @ C[k][:3, :3].T) - angle_A[k - 1])
-        flip_err = abs(rotation_angle(C[0][:3, :3] @ (C[k] @ F)[:3, :3].T) - angle_A[k - 1])
-        if flip_err < keep_err:
-            C[k] = C[k] @ F
-            corners[k] = corners[k][::-1].copy()
-    return C, corners

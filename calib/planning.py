@@ -62,15 +62,10 @@ _MIN_START_FACING = 0.2
 class Plan:
     """Stations in visiting order.
 
-    Attributes
-    ----------
-    tcp_poses : shape (n, 4, 4)
-        T_base_tcp to command, visiting order.
-    views : shape (n, 4, 4)
-        T_cam_target expected at each station under the guesses.
-    travel : float
-        Path length from the start through all stations: metres plus
-        ``ROTATION_WEIGHT_M_PER_RAD`` times radians (:func:`path_length`).
+    ``tcp_poses`` (n, 4, 4) are the T_base_tcp to command, ``views`` (n, 4, 4) the
+    T_cam_target expected at each station under the guesses, ``travel`` the path length from
+    the start through all stations: metres plus ``ROTATION_WEIGHT_M_PER_RAD`` times radians
+    (:func:`path_length`).
     """
 
     tcp_poses: np.ndarray

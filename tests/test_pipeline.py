@@ -9,8 +9,8 @@ import pytest
 
 from calib.camera import Pinhole
 from calib.geometry import perturb, pose_error, ur_pose_from_matrix
-from calib.pipeline import calibrate_stations
-from calib.target import Detection, board_points, detect_checkerboard
+from calib.pipeline import CalibrationOptions, StationInputs, calibrate_stations
+from calib.target import Board, Detection, board_points, detect_checkerboard
 from mocks.posesim import default_cell, robot_poses, sample_camera_poses
 from mocks.render import render_board
 from mocks.scene import Noise, camera_pose_for_tcp, default_scene, sample_station_poses
@@ -40,9 +40,16 @@ def detections(n: int = 15, seed: int = 5) -> list[Detection]:
     return [detect_checkerboard(im, BOARD) for im in rendered_stations(n, seed)[0]]
 
 
+def calibrate_set(observations, poses, *, inner_corners=BOARD, square_size=SQUARE,
+                  station_ids=None, image_size=None, intrinsics=None, **options):
+    """``calibrate_stations`` with the inputs, board and options as plain arguments."""
+    inputs = StationInputs(observations, poses, station_ids, image_size, intrinsics)
+    return calibrate_stations(inputs, Board(inner_corners, square_size),
+                              CalibrationOptions(**options))
+
+
 def calibrate(observations, poses, **options):
-    return calibrate_stations(observations, poses, inner_corners=BOARD, square_size=SQUARE,
-                              image_size=SIZE, **options)
+    return calibrate_set(observations, poses, image_size=SIZE, **options)
 
 
 def test_joint_recovers_nu_and_kappa_and_beats_the_nominal_pipeline():
@@ -76,7 +83,7 @@ def test_images_are_detected_and_unusable_ones_rejected_with_reasons():
     unread = Detection(ok=False, reason="cannot read image file 'x.png'")
     obs = [*images[:10], blank, clutter, unread]
     ids = [f"s{k}" for k in range(len(obs))]
-    res = calibrate_stations(obs, [*poses[:10], *poses[10:13]], inner_corners=BOARD,
+    res = calibrate_set(obs, [*poses[:10], *poses[10:13]], inner_corners=BOARD,
                              square_size=SQUARE, station_ids=ids)
     reasons = dict(res.rejected)
     assert list(reasons) == ["s10", "s11", "s12"]
@@ -90,14 +97,14 @@ def test_all_images_rejected_is_a_clear_error():
     blank = np.full(SIZE[::-1], 110, np.uint8)
     with pytest.raises(ValueError, match=r"only 0 of 3 stations usable, need at least 3 "
                                          r"\(000: image is blank"):
-        calibrate_stations([blank] * 3, None, inner_corners=BOARD, square_size=SQUARE)
+        calibrate_set([blank] * 3, None, inner_corners=BOARD, square_size=SQUARE)
 
 
 def test_wrong_inner_corners_says_what_is_visible():
     images, poses = rendered_stations()
     with pytest.raises(ValueError, match=r"only 0 of 3 stations usable.*a 11x8 grid is "
                                          r"visible: check inner_corners"):
-        calibrate_stations(images[:3], poses[:3], inner_corners=(10, 8), square_size=SQUARE)
+        calibrate_set(images[:3], poses[:3], inner_corners=(10, 8), square_size=SQUARE)
 
 
 def test_corrupted_robot_pose_is_rejected_with_its_reason():
@@ -159,7 +166,7 @@ def test_symmetric_board_origin_is_made_consistent():
             + rng.normal(0.0, 0.1, (len(pts), 2))
         obs.append(Detection(ok=True, corners=uv[::-1] if k % 2 else uv, ambiguous=True))
     P = perturb(robot_poses(cell, C), np.deg2rad(0.05), 0.25e-3, rng)
-    res = calibrate_stations(obs, ur_pose_from_matrix(P).tolist(), inner_corners=(8, 6),
+    res = calibrate_set(obs, ur_pose_from_matrix(P).tolist(), inner_corners=(8, 6),
                              square_size=0.03, image_size=(1280, 1024))
     assert res.rejected == ()
     rot, trans = pose_error(res.hand_eye, cell.hand_eye)
@@ -175,7 +182,7 @@ def test_bad_options_are_named():
     with pytest.raises(ValueError, match="3 observations but 3 station ids and 2 robot poses"):
         calibrate(obs, rendered_stations()[1][:2])
     with pytest.raises(ValueError, match="image_size is required"):
-        calibrate_stations([d.corners for d in obs], None, inner_corners=BOARD,
+        calibrate_set([d.corners for d in obs], None, inner_corners=BOARD,
                            square_size=SQUARE)
     with pytest.raises(ValueError, match="terms beyond k3 are not supported"):
         calibrate(obs, None, intrinsics=(SCENE.camera.k_matrix, [0, 0, 0, 0, 0, 0.1]))

@@ -1,0 +1,173 @@
+"""A station set on its way in: detection, which stations are usable, known-camera poses.
+
+The first steps of ``calib.pipeline``: every observation is detected (a bad image becomes a
+rejected station with its reason, never an abort), the usable stations are chosen, and the
+per-image camera poses come from PnP when the camera is known. A 180°-symmetric board's origin
+is made the same physical corner in every image from the robot motions.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+from collections.abc import Iterable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib.camera import solve_pnp
+from calib.geometry import invert, make_transform, rotation_angle
+from calib.intrinsics import MIN_IMAGES
+from calib.target import Detection, detect_checkerboard
+
+Observation = np.ndarray | Detection
+
+
+@dataclass(frozen=True)
+class StationInputs:
+    """What a station set holds.
+
+    ``observations``: n items, one per station: a grey or BGR uint8 image (corners are
+    detected), a :class:`calib.target.Detection` (e.g. ``ok=False`` with the reason a file could
+    not be read), or detected corners, float shape (cols * rows, 2) in the order of
+    ``board_points``. Consumed once, so a generator keeps only one image in memory.
+    ``tcp_poses``: n UR pose vectors T_base_tcp ``[x, y, z, rx, ry, rz]`` (m, rad) or None;
+    None (or no pose at all) gives an intrinsics-only calibration. ``ids``: n names for reports
+    (default ``000``, ``001``, ...). ``image_size``: (width, height), required when no
+    observation is an image. ``intrinsics``: a known camera (K (3, 3), dist (5,)); the
+    intrinsic stage is skipped and K, dist are held in the joint stage.
+    """
+
+    observations: Iterable[Observation]
+    tcp_poses: Sequence[Sequence[float] | None] | None = None
+    ids: Sequence[str] | None = None
+    image_size: Sequence[int] | None = None
+    intrinsics: tuple[np.ndarray, np.ndarray] | None = None
+
+
+def usable_stations(detections: list[tuple[Detection, tuple[int, int] | None]],
+                     stations: StationInputs
+                     ) -> tuple[list[str], list[int], list[tuple[str, str]], tuple[int, int]]:
+    """Station ids, the indices of usable stations, the rejected (id, reason) and the image
+    size (width, height); ``ValueError`` when too few are usable."""
+    n, tcp_poses = len(detections), stations.tcp_poses
+    ids = ([f"{k:03d}" for k in range(n)] if stations.ids is None
+           else [str(s) for s in stations.ids])
+    if len(ids) != n or (tcp_poses is not None and len(tcp_poses) != n):
+        raise ValueError(f"{n} observations but {len(ids)} station ids and "
+                         f"{'no' if tcp_poses is None else len(tcp_poses)} robot poses")
+    rejected: list[tuple[str, str]] = []
+    size = None if stations.image_size is None else (int(stations.image_size[0]),
+                                                     int(stations.image_size[1]))
+    usable: list[int] = []
+    for k, (det, shape) in enumerate(detections):
+        if shape is not None:
+            size = size or shape
+            if shape != size:
+                det = Detection(ok=False, reason=(
+                    f"image is {shape[0]}x{shape[1]}, the others {size[0]}x{size[1]}"))
+        if det.ok:
+            usable.append(k)
+        else:
+            rejected.append((ids[k], det.reason or "rejected"))
+    if tcp_poses is not None and any(p is not None for p in tcp_poses):
+        for k in [k for k in usable if tcp_poses[k] is None]:
+            rejected.append((ids[k], "no tcp_pose, while the other stations have one"))
+            usable.remove(k)
+    if len(usable) < MIN_IMAGES:
+        why = "; ".join(f"{i}: {r}" for i, r in rejected[:3])
+        raise ValueError(f"only {len(usable)} of {n} stations usable, need at least "
+                         f"{MIN_IMAGES}" + (f" ({why}{'; ...' if len(rejected) > 3 else ''})"
+                                            if why else ""))
+    if size is None:
+        raise ValueError("image_size is required when no observation is an image")
+    return ids, usable, rejected, size
+
+
+def detect_all(items: Iterable[Observation], inner_corners: tuple[int, int], *,
+                workers: int | None = None) -> list[tuple[Detection, tuple[int, int] | None]]:
+    """``_detect`` over all observations on a few threads, in order.
+
+    OpenCV's detector releases the GIL, so threads use every core. At most ``2 x workers``
+    observations are in flight, so a generator of images still holds only a few in memory.
+    """
+    workers = workers or min(4, os.cpu_count() or 1)
+    out: list[tuple[Detection, tuple[int, int] | None]] = []
+    with ThreadPoolExecutor(workers) as pool:
+        pending: deque[Future] = deque()
+        for obs in items:
+            pending.append(pool.submit(_detect, obs, inner_corners))
+            if len(pending) >= 2 * workers:
+                out.append(pending.popleft().result())
+        out.extend(f.result() for f in pending)
+    return out
+
+
+def _detect(obs: Observation, inner_corners: tuple[int, int]
+            ) -> tuple[Detection, tuple[int, int] | None]:
+    """Detection of one observation and the image size (w, h) if it was an image."""
+    if isinstance(obs, Detection):
+        return obs, None
+    arr = np.asarray(obs)
+    if arr.ndim == 2 and arr.shape[1] == 2 and np.issubdtype(arr.dtype, np.floating):
+        n_grid = inner_corners[0] * inner_corners[1]
+        if len(arr) != n_grid or not np.isfinite(arr).all():
+            return Detection(ok=False, reason=(
+                f"{len(arr)} corners given, the {inner_corners[0]}x{inner_corners[1]} board "
+                f"has {n_grid} (or some are not finite)")), None
+        return Detection(ok=True, corners=arr.astype(float)), None
+    shape = (arr.shape[1], arr.shape[0]) if arr.ndim >= 2 else None
+    return detect_checkerboard(arr, inner_corners), shape
+
+
+def check_intrinsics(K: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Known intrinsics as K (3, 3) and dist (5,); more than 5 non-zero terms are refused."""
+    K, dist = np.asarray(K, dtype=float), np.asarray(dist, dtype=float).ravel()
+    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError("intrinsics: K must be a finite 3x3 matrix with positive fx, fy")
+    if len(dist) < 4 or not np.isfinite(dist).all() or np.any(dist[5:] != 0):
+        raise ValueError("intrinsics: dist must be [k1, k2, p1, p2(, k3)]; terms beyond k3 "
+                         "are not supported")
+    return K, np.concatenate([dist, np.zeros(5)])[:5]
+
+
+def poses_from_known_intrinsics(corners: list[np.ndarray], grid: np.ndarray, K: np.ndarray,
+                                 dist: np.ndarray
+                                 ) -> tuple[np.ndarray, float, np.ndarray]:
+    """Per-image T_cam_target (nominal board) by PnP, σ_px and per-image RMS (n,)."""
+    poses, sq = [], []
+    for m in corners:
+        try:
+            C, residuals = solve_pnp(grid, m, K, dist)
+        except ValueError:
+            raise ValueError("PnP failed with the given intrinsics: are K and dist right?"
+                             ) from None
+        sq.append(np.sum(residuals ** 2, axis=1))
+        poses.append(C)
+    total = np.concatenate(sq)
+    sigma_px = float(np.sqrt(total.sum() / max(total.size * 2 - 6 * len(corners), 1)))
+    return np.array(poses), sigma_px, np.sqrt(np.array([s.mean() for s in sq]))
+
+
+def resolve_symmetric_origin(P: np.ndarray, C: np.ndarray, corners: list[np.ndarray],
+                              grid: np.ndarray, nu: float
+                              ) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Put a 180°-symmetric board's origin at the same physical corner in every image.
+
+    A camera motion rotates by the same angle as the robot motion (``A X = X B`` is a
+    similarity). For each station the detected frame and the frame turned by 180° about the
+    board centre are tried against the first station; the one whose motion angle agrees
+    with the robot's wins. Turning the frame reverses the corner order.
+    """
+    centre = np.array([grid[-1, 0] * nu, grid[-1, 1], 0.0])  # far corner, nominal scale
+    F = make_transform(np.diag([-1.0, -1.0, 1.0]), centre)  # T_old_new
+    C, corners = C.copy(), list(corners)
+    angle_A = rotation_angle((invert(P[0]) @ P[1:])[:, :3, :3])
+    for k in range(1, len(C)):
+        keep_err = abs(rotation_angle(C[0][:3, :3] @ C[k][:3, :3].T) - angle_A[k - 1])
+        flip_err = abs(rotation_angle(C[0][:3, :3] @ (C[k] @ F)[:3, :3].T) - angle_A[k - 1])
+        if flip_err < keep_err:
+            C[k] = C[k] @ F
+            corners[k] = corners[k][::-1].copy()
+    return C, corners
