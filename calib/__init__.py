@@ -59,8 +59,8 @@ from calib.nu import NuSearch, nu_from_extrinsics
 from calib.peers import OPENCV_HAND_EYE_METHODS, OPENCV_ROBOT_WORLD_METHODS
 from calib.pipeline import (
     METHODS,
-    CalibrationOptions,
     CalibrationResult,
+    PipelineOptions,
     StationReport,
     calibrate_stations,
 )
@@ -87,7 +87,6 @@ __all__ = [
     "POSE_METHODS",
     "SETUPS",
     "Board",
-    "CalibrationOptions",
     "CalibrationResult",
     "CellGuess",
     "CellParameters",
@@ -101,6 +100,7 @@ __all__ = [
     "Motions",
     "NuSearch",
     "Pinhole",
+    "PipelineOptions",
     "Plan",
     "PlanOptions",
     "RefineOptions",

@@ -130,7 +130,7 @@ class CalibrationResult:
 
 
 @dataclass(frozen=True)
-class CalibrationOptions:
+class PipelineOptions:
     """How :func:`calibrate_stations` calibrates; checked on construction.
 
     ``method``: a name of ``METHODS``: ``joint`` (default), ``refine``, ``sm`` or an OpenCV
@@ -190,7 +190,7 @@ class _Stage:
 
 
 def calibrate_stations(stations: StationInputs, board: Board,
-                       options: CalibrationOptions | None = None, *,
+                       options: PipelineOptions | None = None, *,
                        progress: Callable[[Iterable[Observation]], Iterable[Observation]]
                        | None = None) -> CalibrationResult:
     """Calibrate a station set: camera, board κ and ν, hand-eye and target pose, validation.
@@ -204,7 +204,7 @@ def calibrate_stations(stations: StationInputs, board: Board,
         Bad arguments, too few usable stations (with the rejection reasons), or stations
         that cannot determine the calibration.
     """
-    options = CalibrationOptions() if options is None else options
+    options = PipelineOptions() if options is None else options
     board = Board(tuple(int(v) for v in board.inner_corners), board.square_size)
     items = stations.observations if progress is None else progress(stations.observations)
     detections = detect_all(items, board.inner_corners)
@@ -247,7 +247,7 @@ def calibrate_stations(stations: StationInputs, board: Board,
 
 def _camera_stage(corners: list[np.ndarray], board: Board, size: tuple[int, int],
                   intrinsics: tuple[np.ndarray, np.ndarray] | None,
-                  options: CalibrationOptions) -> _Stage:
+                  options: PipelineOptions) -> _Stage:
     """Intrinsics with ν (Method #1), or the known camera and per-image PnP poses."""
     if intrinsics is None:
         intr = calibrate_intrinsics(corners, board, size,
@@ -261,7 +261,7 @@ def _camera_stage(corners: list[np.ndarray], board: Board, size: tuple[int, int]
 
 
 def _hand_eye_stage(stage: _Stage, stations: CornerStations, size: tuple[int, int],
-                    options: CalibrationOptions, known_intrinsics: bool) -> None:
+                    options: PipelineOptions, known_intrinsics: bool) -> None:
     """Hand-eye by the pose-level method, then (``joint``) the joint ML; updates ``stage``."""
     method, noise = options.method, options.noise
     pose_method = "refine" if method == "joint" else method

@@ -15,8 +15,15 @@ from typing import Any
 
 import numpy as np
 
-from calib.intrinsics import MIN_IMAGES
-from calib.target import Detection
+from calib import (
+    MIN_IMAGES,
+    Board,
+    Detection,
+    PipelineOptions,
+    RobotNoise,
+    StationInputs,
+    calibrate_stations,
+)
 from service import store
 from service.db import Database
 from service.errors import ConflictError, UnprocessableError
@@ -107,22 +114,24 @@ def solve_calibration(payload: dict[str, Any]) -> dict[str, Any]:
 
     Top level (picklable) and self-contained: it imports the pipeline in the worker.
     """
-    from calib.pipeline import calibrate_stations
     from service.results import calibration_result_json
 
     opts = payload["options"]
     observations = [Detection(ok=True, corners=np.asarray(c, dtype=float), ambiguous=a)
                     for c, a in zip(payload["corners"], payload["ambiguous"], strict=True)]
-    noise: dict[str, float] = {}
-    if opts["robot_noise_rot_deg"] is not None:
-        noise["robot_noise_rot"] = float(np.deg2rad(opts["robot_noise_rot_deg"]))
-    if opts["robot_noise_trans_mm"] is not None:
-        noise["robot_noise_trans"] = opts["robot_noise_trans_mm"] * 1e-3
+    default = RobotNoise()
+    noise = RobotNoise(
+        default.rot_rad if opts["robot_noise_rot_deg"] is None
+        else float(np.deg2rad(opts["robot_noise_rot_deg"])),
+        default.trans_m if opts["robot_noise_trans_mm"] is None
+        else opts["robot_noise_trans_mm"] * 1e-3)
+    target = payload["target"]
     result = calibrate_stations(
-        observations, payload["tcp_poses"], inner_corners=payload["target"]["inner_corners"],
-        square_size=payload["target"]["square_size_m"], setup=payload["setup"],
-        station_ids=payload["ids"], image_size=payload["image_size"], method=opts["method"],
-        estimate_nu=opts["estimate_nu"], estimate_kappa=opts["estimate_kappa"],
-        nu_method=opts["nu_method"], **noise)
+        StationInputs(observations, payload["tcp_poses"], ids=payload["ids"],
+                      image_size=payload["image_size"]),
+        Board(tuple(target["inner_corners"]), target["square_size_m"]),
+        PipelineOptions(setup=payload["setup"], method=opts["method"],
+                        estimate_nu=opts["estimate_nu"], estimate_kappa=opts["estimate_kappa"],
+                        nu_method=opts["nu_method"], noise=noise))
     return calibration_result_json(
         result, command=f"POST /runs/{payload['run_id']}/calibrations")

@@ -11,17 +11,19 @@ import logging
 from dataclasses import dataclass
 from typing import Any
 
-import cv2
 import numpy as np
 
-from calib.geometry import (
+from calib import (
+    Detection,
+    board_points,
     check_ur_poses,
-    make_transform,
+    detect_checkerboard,
     matrix_from_ur_pose,
     rotation_angle,
+    solve_pnp,
+    target_from_station,
     ur_pose_from_matrix,
 )
-from calib.target import Detection, board_points, detect_checkerboard
 from drivers.base import Robot
 from drivers.errors import DeviceError, RobotConnectionError
 from service import store
@@ -148,15 +150,14 @@ class DotHitPlan:
         assert det.corners is not None
         best: tuple[float, np.ndarray, np.ndarray] | None = None
         for corners in ([det.corners, det.corners[::-1]] if det.ambiguous else [det.corners]):
-            ok, rvec, tvec = cv2.solvePnP(grid, corners, self.K, self.dist)
-            if not ok:
+            try:
+                C, residuals = solve_pnp(grid, corners, self.K, self.dist)
+            except ValueError:
                 continue
-            C = make_transform(cv2.Rodrigues(rvec)[0], tvec.ravel())
-            board = T_base_tcp @ self.hand_eye @ C
+            board = target_from_station(T_base_tcp, self.hand_eye, C, self.setup)
             miss = float(rotation_angle(board[:3, :3].T @ self.target_pose[:3, :3]))
             if best is None or miss < best[0]:
-                uv = cv2.projectPoints(grid, rvec, tvec, self.K, self.dist)[0].reshape(-1, 2)
-                best = (miss, C, uv - corners)
+                best = (miss, C, residuals)
         if best is None:
             raise UnprocessableError("PnP failed on the board seen at the robot's current "
                                      "pose.", code="board_not_visible")

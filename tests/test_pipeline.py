@@ -9,7 +9,7 @@ import pytest
 
 from calib.camera import Pinhole
 from calib.geometry import perturb, pose_error, ur_pose_from_matrix
-from calib.pipeline import CalibrationOptions, StationInputs, calibrate_stations
+from calib.pipeline import PipelineOptions, StationInputs, calibrate_stations
 from calib.target import Board, Detection, board_points, detect_checkerboard
 from mocks.posesim import default_cell, robot_poses, sample_camera_poses
 from mocks.render import render_board
@@ -45,7 +45,7 @@ def calibrate_set(observations, poses, *, inner_corners=BOARD, square_size=SQUAR
     """``calibrate_stations`` with the inputs, board and options as plain arguments."""
     inputs = StationInputs(observations, poses, station_ids, image_size, intrinsics)
     return calibrate_stations(inputs, Board(inner_corners, square_size),
-                              CalibrationOptions(**options))
+                              PipelineOptions(**options))
 
 
 def calibrate(observations, poses, **options):

@@ -9,7 +9,15 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from calib.handeye import METHODS, calibrate_hand_eye
+from calib import (
+    METHODS,
+    Board,
+    PipelineOptions,
+    RefineOptions,
+    StationInputs,
+    calibrate_hand_eye,
+    calibrate_stations,
+)
 from service.image_files import DEFAULT_MAX_PIXELS, read_station_image
 from service.stationset import DEFAULT_MAX_STATIONS, StationSet, load_station_set
 
@@ -23,14 +31,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "the board scale kappa, and by default ('joint') a maximum-likelihood "
                     "estimate over all corners and robot poses with standard deviations; "
                     "images that cannot be used are listed with the reason. Pose-only sets "
-                    "(stations with target_pose): SM, then a weighted least-squares "
-                    "refinement over all stations.")
+                    "(stations with target_pose): by default ('refine') SM, then a weighted "
+                    "least-squares refinement over all stations.")
     cal.add_argument("station_dir", help="directory holding stations.json")
     cal.add_argument("--out", help="result JSON path (default: stdout)")
-    cal.add_argument("--method", default="joint", choices=METHODS,
-                     help="solver (default: joint)")
+    cal.add_argument("--method", choices=METHODS,
+                     help="solver (default: joint with images, refine for pose-only sets)")
     cal.add_argument("--estimate-kappa", action="store_true",
-                     help="pose-only sets: also estimate the board scale kappa (joint only; "
+                     help="pose-only sets: also estimate the board scale kappa (refine only; "
                           "always estimated from images)")
     cal.add_argument("--nu-method", default="images", choices=("images", "extrinsics"),
                      help="images: board aspect ratio nu from the corner residuals (Method #1, "
@@ -54,8 +62,14 @@ def _calibrate(args: argparse.Namespace) -> int:
         from service.results import hand_eye_result_json
 
         P, C = stations.pose_arrays()
+        method = args.method or "refine"
+        if method == "joint":
+            raise ValueError("method 'joint' (maximum likelihood over the corners) needs images; "
+                             "pose-only station sets use 'refine' (the default) or another "
+                             "pose solver")
         options = {"estimate_kappa": args.estimate_kappa}
-        result = calibrate_hand_eye(P, C, setup=stations.setup, method=args.method, **options)
+        result = calibrate_hand_eye(P, C, setup=stations.setup, method=method,
+                                    options=RefineOptions(estimate_kappa=args.estimate_kappa))
         doc = hand_eye_result_json(result, [s.id for s in stations.stations], options=options,
                                    command=command)
     else:
@@ -74,7 +88,6 @@ def _calibrate_images(args: argparse.Namespace, stations: StationSet,
     """Result document of a station set with images (``calib.pipeline``)."""
     from tqdm import tqdm
 
-    from calib.pipeline import calibrate_stations
     from service.results import calibration_result_json
 
     posed = [s.id for s in stations.stations if s.target_pose is not None]
@@ -93,9 +106,10 @@ def _calibrate_images(args: argparse.Namespace, stations: StationSet,
 
     intrinsics = None if stations.intrinsics is None else (
         stations.intrinsics.K, stations.intrinsics.dist)
+    inputs = StationInputs(images, [s.tcp_pose for s in stations.stations],
+                           ids=[s.id for s in stations.stations], intrinsics=intrinsics)
     result = calibrate_stations(
-        images, [s.tcp_pose for s in stations.stations], inner_corners=target.inner_corners,
-        square_size=target.square_size_m, setup=stations.setup,
-        station_ids=[s.id for s in stations.stations], intrinsics=intrinsics,
-        method=args.method, nu_method=args.nu_method, progress=progress)
+        inputs, Board(tuple(target.inner_corners), target.square_size_m),
+        PipelineOptions(setup=stations.setup, method=args.method or "joint",
+                           nu_method=args.nu_method), progress=progress)
     return calibration_result_json(result, command=command)

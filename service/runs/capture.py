@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 from sqlalchemy.exc import IntegrityError
 
-from calib.target import Detection, detect_checkerboard
+from calib import Detection, detect_checkerboard
 from drivers.capture import capture_station
 from drivers.errors import (
     CameraError,

@@ -7,9 +7,19 @@ from typing import Any
 
 import numpy as np
 
-from calib.geometry import check_ur_poses, matrix_from_ur_pose, ur_pose_from_matrix
-from calib.planning import camera_view, plan_stations, rough_target_from_image
-from calib.target import detect_checkerboard
+from calib import (
+    Board,
+    CellGuess,
+    Pinhole,
+    PlanOptions,
+    camera_from_robot,
+    check_ur_poses,
+    detect_checkerboard,
+    matrix_from_ur_pose,
+    plan_stations,
+    rough_target_from_image,
+    ur_pose_from_matrix,
+)
 from service.errors import UnprocessableError
 from service.motion import Motion
 
@@ -50,14 +60,12 @@ def plan_poses(motion: Motion, *, n: int, target: dict[str, Any],
             f"({det.reason}). Move the robot so the camera sees the whole board.",
             code="planning_failed")
     try:
-        Y = rough_target_from_image(det.corners, K, corners, target["square_size_m"], P0,
-                                    X, setup=setup, dist=dist)
-        d0 = float(np.linalg.norm(camera_view(P0, X, Y, setup)[:3, 3]))
-        plan = plan_stations(
-            n, start_tcp_pose=P0, target_pose_guess=Y, hand_eye_guess=X, K=K,
-            image_size=(w, h), inner_corners=corners, square_size=target["square_size_m"],
-            distance_band=(0.8 * d0, 1.3 * d0), setup=setup, dist=dist,
-            workspace=(settings.workspace_min, settings.workspace_max))
+        pinhole, board = Pinhole(K, dist), Board(corners, target["square_size_m"])
+        Y = rough_target_from_image(det.corners, pinhole, board, CellGuess(P0, X, setup=setup))
+        d0 = float(np.linalg.norm(camera_from_robot(P0, X, Y, setup)[:3, 3]))
+        plan = plan_stations(n, CellGuess(P0, X, Y, setup), pinhole, board, PlanOptions(
+            image_size=(w, h), distance_band=(0.8 * d0, 1.3 * d0),
+            workspace=(settings.workspace_min, settings.workspace_max)))
     except ValueError as exc:
         raise UnprocessableError(f"Cannot plan {n} stations: {exc}.",
                                  code="planning_failed") from None
