@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from calib.handeye import SETUPS
+from calib import SETUPS
 from service.exports import camera, transforms
 from service.exports.common import ExportNames
 

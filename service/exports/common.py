@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from calib.geometry import check_transforms
+from calib import check_transforms
 
 #: What ``hand_eye`` / ``target_pose`` mean in each setup (``docs/conventions.md``).
 FRAMES = {"eye_in_hand": ("tcp_T_cam", "base_T_target"),

@@ -16,7 +16,7 @@ from typing import Any
 
 from scipy.spatial.transform import Rotation
 
-from calib.geometry import ur_pose_from_matrix
+from calib import ur_pose_from_matrix
 from service.exports.common import FRAMES, ExportNames, matrix, num
 
 #: What the default parent frame must stand for, per setup.
