@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow lint bench clean
+.PHONY: demo test test-under-load test-slow lint bench clean
 
 $(STAMP): pyproject.toml
 	python3 -m venv $(VENV)
@@ -14,8 +14,14 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/cellcal demo
 
+# Two workers (pytest-xdist), each test file on one worker in file order.
 test: $(STAMP)
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -m "not slow" -n 2 --dist loadfile
+
+# `make test` RUNS times in a row while two CPU-bound processes run (tools/test-under-load).
+RUNS ?= 1
+test-under-load: $(STAMP)
+	tools/test-under-load $(RUNS)
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow

@@ -10,11 +10,11 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
 import struct
 import subprocess
 import sys
 import tempfile
-import time
 import zlib
 from pathlib import Path
 
@@ -29,28 +29,42 @@ MEMORY_LIMIT = 500e6
 HANG_TIMEOUT_S = 120
 
 
+#: Runs ``argv`` in its own child and writes that child's peak RSS (kB) to the file ``argv[1]``.
+#: Linux keeps the high-water RSS of a process across ``exec``, so a child started from this
+#: test process would report at least the test process's own RSS (hundreds of MB after other
+#: tests ran in it); a child of this small launcher starts afresh.
+_PEAK_RSS_LAUNCHER = """
+import os, subprocess, sys
+child = subprocess.Popen(sys.argv[2:])
+_, status, usage = os.wait4(child.pid, 0)
+with open(sys.argv[1], "w") as f:
+    f.write(str(usage.ru_maxrss))
+sys.exit(os.waitstatus_to_exitcode(status))
+"""
+
+
 def run_cli(*args: str) -> tuple[int, str, str, float]:
     """Run ``cellcal`` in a child process: exit code, stdout, stderr, its peak RSS in bytes.
 
-    The child is reaped with ``wait4``, whose rusage is that child's own (``RUSAGE_CHILDREN``
-    would be the maximum over every child this test process ever had).
+    The peak is ``cellcal``'s own ``ru_maxrss`` (from ``wait4`` in ``_PEAK_RSS_LAUNCHER``).
     """
-    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
-        proc = subprocess.Popen([sys.executable, "-m", "service.cli", *args],
-                                stdin=subprocess.DEVNULL, stdout=out, stderr=err)
-        deadline = time.monotonic() + HANG_TIMEOUT_S
-        while not (reaped := os.wait4(proc.pid, os.WNOHANG))[0]:
-            if time.monotonic() > deadline:
-                proc.kill()
-                os.wait4(proc.pid, 0)
-                pytest.fail(f"cellcal {' '.join(args)} still running after {HANG_TIMEOUT_S} s")
-            time.sleep(0.05)
-        _, status, usage = reaped
-        proc.returncode = os.waitstatus_to_exitcode(status)  # reaped: Popen must not wait
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, \
+            tempfile.TemporaryDirectory() as scratch:
+        peak_file = Path(scratch) / "peak_kb"
+        proc = subprocess.Popen([sys.executable, "-c", _PEAK_RSS_LAUNCHER, str(peak_file),
+                                 sys.executable, "-m", "service.cli", *args],
+                                stdin=subprocess.DEVNULL, stdout=out, stderr=err,
+                                start_new_session=True)
+        try:
+            proc.wait(HANG_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)  # the launcher and cellcal
+            proc.wait()
+            pytest.fail(f"cellcal {' '.join(args)} still running after {HANG_TIMEOUT_S} s")
         out.seek(0)
         err.seek(0)
         return (proc.returncode, out.read().decode(), err.read().decode(),
-                usage.ru_maxrss * 1024.0)  # kB on Linux
+                float(peak_file.read_text()) * 1024.0)  # kB on Linux
 
 
 def zero_png(path: Path, width: int, height: int, *, colour: bool = True) -> Path:

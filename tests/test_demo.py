@@ -36,10 +36,17 @@ def reaped() -> Iterator[list[subprocess.Popen[str]]]:
                 proc.wait()
 
 
+def _ctrl_c_reaches_it() -> None:
+    """Default SIGINT in the demo, as in a terminal: a shell that runs the test suite in the
+    background starts it with SIGINT ignored, and the demo would inherit that."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def start(reaped: list[subprocess.Popen[str]], *args: str) -> subprocess.Popen[str]:
     proc = subprocess.Popen([*DEMO, *args], cwd=REPO, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env={**os.environ,
-                                                                    "COLUMNS": "100"})
+                            stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "COLUMNS": "100"},
+                            preexec_fn=_ctrl_c_reaches_it)
     reaped.append(proc)
     return proc
 
