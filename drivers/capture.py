@@ -51,6 +51,31 @@ def capture_station(robot: Robot, camera: Camera, tcp_target: np.ndarray, *,
     robot.move_linear(target, speed=speed, acceleration=acceleration)
     robot.wait_settled(timeout=settle_timeout)
     settled_at = time.time()
+    still = grab_at_rest(robot, camera, grab_timeout=grab_timeout, max_drift=max_drift)
+    return CapturedStation(image=still.image, tcp_pose=still.tcp_pose, target_tcp_pose=target,
+                           moved_at=moved_at, settled_at=settled_at,
+                           grabbed_at=still.grabbed_at, pose_read_at=still.pose_read_at)
+
+
+@dataclass(frozen=True)
+class Still:
+    """A frame of a robot at rest and the pose read after it (``grab_at_rest``)."""
+
+    image: np.ndarray  # shape (H, W) or (H, W, 3), uint8
+    tcp_pose: np.ndarray  # shape (6,), base_T_tcp read after the grab
+    grabbed_at: float  # frame returned by the camera, time.time()
+    pose_read_at: float  # tcp_pose read, time.time()
+
+
+def grab_at_rest(robot: Robot, camera: Camera, *, grab_timeout: float = 2.0,
+                 max_drift: tuple[float, float] = (1e-4, 1e-3)) -> Still:
+    """Grab a frame where the robot stands and read its pose, refusing a robot in motion.
+
+    The pose is read after the grab and compared with a reading taken just before it; if they
+    differ by more than ``max_drift`` (metres, radians) the robot moved while the image was
+    taken and ``RobotError`` (code ``moved_during_grab``) is raised rather than pairing an
+    image with the wrong pose.
+    """
     before = robot.tcp_pose()
     image = camera.grab(timeout=grab_timeout)
     grabbed_at = time.time()
@@ -62,7 +87,5 @@ def capture_station(robot: Robot, camera: Camera, tcp_target: np.ndarray, *,
             f"The robot moved by {dist * 1e3:.2f} mm / {np.rad2deg(angle):.3f} deg while the "
             "image was taken; it had not settled. Increase the settle time and retry.",
             code="moved_during_grab")
-    return CapturedStation(image=image, tcp_pose=np.asarray(after, dtype=float),
-                           target_tcp_pose=target,
-                           moved_at=moved_at, settled_at=settled_at, grabbed_at=grabbed_at,
-                           pose_read_at=pose_read_at)
+    return Still(image=image, tcp_pose=np.asarray(after, dtype=float), grabbed_at=grabbed_at,
+                 pose_read_at=pose_read_at)

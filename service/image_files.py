@@ -65,6 +65,13 @@ def read_station_image(directory: str | Path, name: str, *,
         return Detection(ok=False, reason=str(exc))
 
 
+def decode_image_bytes(data: bytes, name: str, *,
+                       max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarray:
+    """Grey uint8 image from PNG or JPEG bytes (e.g. an upload) with the checks of
+    ``read_station_image``; ``ImageFileError`` says why not."""
+    return _decode(data, name, max_pixels)
+
+
 def _read_regular_file(directory: Path, name: str, *, max_bytes: int) -> bytes:
     """Bytes of ``directory/name`` if it is a regular file inside ``directory``, else refuse."""
     root = directory.resolve()

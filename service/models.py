@@ -69,7 +69,8 @@ class Base(DeclarativeBase):
 
 
 class Run(Base):
-    """A capture run: planned TCP poses visited in order, one station per pose."""
+    """A capture run: planned TCP poses visited in order, one station per pose; or, in
+    ``external`` mode, the stations a cell controller posts."""
 
     __tablename__ = "runs"
     __table_args__ = (
@@ -80,6 +81,8 @@ class Run(Base):
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
     robot: Mapped[str] = mapped_column(String(255))
     state: Mapped[str] = mapped_column(String(16))
+    #: ``robot``: the service moves the robot; ``external``: a cell controller posts stations.
+    mode: Mapped[str] = mapped_column(String(16), default="robot", server_default="robot")
     setup: Mapped[str] = mapped_column(String(16))
     target: Mapped[dict[str, Any]]
     poses: Mapped[list[Any]]
@@ -106,6 +109,8 @@ class Station(Base):
     state: Mapped[str] = mapped_column(String(16))
     target_pose: Mapped[list[Any]]
     tcp_pose: Mapped[list[Any] | None]
+    #: Joint positions (rad) at the image, when known.
+    joint_positions: Mapped[list[Any] | None]
     image_path: Mapped[str | None] = mapped_column(String(512))
     image_size: Mapped[list[Any] | None]
     #: ``ok``, ``reason``, quality metrics, ``ambiguous`` and ``corners`` (N, 2) pixels.

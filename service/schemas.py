@@ -36,8 +36,13 @@ class TargetIn(_Input):
 
 
 class RunCreate(_Input):
-    """Either ``stations`` (automatic planning) or explicit ``poses``; ``target`` optional."""
+    """Either ``stations`` (automatic planning) or explicit ``poses``; ``target`` optional.
+    In ``external`` mode neither: a cell controller posts the stations."""
 
+    mode: Literal["robot", "external"] = Field(
+        "robot", description="robot: the service moves the robot through the stations; "
+                             "external: a cell controller moves it and posts each station "
+                             "(POST /runs/{id}/stations), then finishes the run")
     stations: Annotated[int, Field(ge=3, le=500)] | None = Field(
         None, description="number of stations to plan automatically")
     poses: Annotated[list[Pose], Field(min_length=1)] | None = Field(
@@ -46,7 +51,11 @@ class RunCreate(_Input):
 
     @model_validator(mode="after")
     def _one_plan(self) -> RunCreate:
-        if (self.stations is None) == (self.poses is None):
+        if self.mode == "external":
+            if self.stations is not None or self.poses is not None:
+                raise ValueError("an 'external' run takes its stations from POST "
+                                 "/runs/{id}/stations: give neither 'stations' nor 'poses'")
+        elif (self.stations is None) == (self.poses is None):
             raise ValueError("give either 'stations' (a number to plan) or 'poses' "
                              "(a list of [x, y, z, rx, ry, rz]), not both or neither")
         return self
@@ -70,6 +79,7 @@ class StationError(BaseModel):
 class RunPublic(BaseModel):
     id: str
     state: RunState
+    mode: Literal["robot", "external"]
     robot: str
     setup: str
     target: dict[str, Any]
@@ -99,6 +109,7 @@ class StationPublic(BaseModel):
     state: Literal["captured", "skipped"]
     target_pose: list[float] = Field(description="commanded TCP pose")
     tcp_pose: list[float] | None = Field(description="TCP pose read after the grab")
+    joint_positions: list[float] | None = Field(None, description="rad, when known")
     detection: DetectionPublic | None
     image_url: str | None
     image_size: list[int] | None

@@ -81,6 +81,12 @@ def captured_stations(s: Session, *, run_id: str) -> list[Station]:
     return [st for st in list_stations(s, run_id=run_id) if st.state == "captured"]
 
 
+def next_station_index(s: Session, *, run_id: str) -> int:
+    """The index after the run's highest stored one (0 for none)."""
+    return s.scalar(select(func.coalesce(func.max(Station.index) + 1, 0))
+                    .where(Station.run_id == run_id)) or 0
+
+
 def stored_indices(s: Session, *, run_id: str) -> set[int]:
     """Indices of the run's stored stations (captured or skipped)."""
     return set(s.scalars(select(Station.index).where(Station.run_id == run_id)))

@@ -27,7 +27,8 @@ def run_public(session: SessionDep, run: Run) -> RunPublic:
     """The public view of a run; station counts and errors come from small SQL queries, never
     from loading every station (with its corners), so polling stays fast on long runs."""
     return RunPublic(
-        id=run.id, state=run.state, robot=run.robot, setup=run.setup, target=run.target,
+        id=run.id, state=run.state, mode=run.mode, robot=run.robot, setup=run.setup,
+        target=run.target,
         **store.run_counts(session, run=run),
         error=None if run.error is None else ErrorInfo(code=run.error_code or "error",
                                                        detail=run.error),
@@ -75,6 +76,14 @@ def resume_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
 def cancel_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
     """Stop for good (idempotent); stored stations stay available."""
     runs.cancel(run_id)
+    return run_public(session, store.get_run(session, run_id=run_id))
+
+
+@router.post("/{run_id}/finish", responses={
+    409: {"description": "a robot-mode run, or a run that is cancelled or failed"}})
+def finish_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
+    """End an external run (idempotent): no more stations; calibrate it next."""
+    runs.finish(run_id)
     return run_public(session, store.get_run(session, run_id=run_id))
 
 

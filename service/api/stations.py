@@ -1,15 +1,21 @@
-"""Stations of a run: robot pose, detection, and the captured image (PNG)."""
+"""Stations of a run: robot pose, detection, and the captured image (PNG); stations posted
+by a cell controller to an external run."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+import json
+from typing import Annotated, Any
+
+from fastapi import APIRouter, File, Form, UploadFile, status
 from fastapi.responses import FileResponse
+from pydantic import TypeAdapter, ValidationError
 
 from service import store
-from service.api.deps import SessionDep, SettingsDep
-from service.errors import NotFoundError
+from service.api.deps import RunsDep, SessionDep, SettingsDep
+from service.errors import NotFoundError, UnprocessableError
 from service.models import Station
-from service.schemas import DetectionPublic, ErrorInfo, StationPublic
+from service.runs.external import PostedStation
+from service.schemas import DetectionPublic, ErrorInfo, FiniteFloat, StationPublic
 
 router = APIRouter(prefix="/runs/{run_id}/stations", tags=["stations"])
 
@@ -21,7 +27,8 @@ def station_public(station: Station, *, corners: bool) -> StationPublic:
                                  "corners": station.detection["corners"] if corners else None})
     return StationPublic(
         index=station.index, state=station.state, target_pose=station.target_pose,
-        tcp_pose=station.tcp_pose, detection=det, image_size=station.image_size,
+        tcp_pose=station.tcp_pose, joint_positions=station.joint_positions, detection=det,
+        image_size=station.image_size,
         image_url=None if station.image_path is None
         else f"/runs/{station.run_id}/stations/{station.index}/image",
         error=None if station.error is None else ErrorInfo(code=station.error_code or "error",
@@ -33,6 +40,46 @@ def station_public(station: Station, *, corners: bool) -> StationPublic:
 def list_stations(run_id: str, session: SessionDep) -> list[StationPublic]:
     """Stored stations in index order (corner lists left out)."""
     return [station_public(s, corners=False) for s in store.list_stations(session, run_id=run_id)]
+
+
+@router.post("", status_code=status.HTTP_201_CREATED, responses={
+    409: {"description": "not an external run, or it does not accept stations now"},
+    413: {"description": "the upload is larger than CELLCAL_MAX_BODY_BYTES"},
+    422: {"description": "malformed pose or joints, or an image without its pose"},
+    503: {"description": "the camera or robot the service had to read failed"}})
+def post_station(
+        run_id: str, runs: RunsDep,
+        pose: Annotated[str | None, Form(
+            description="JSON [x, y, z, rx, ry, rz] (m, rad), base_T_tcp at the image; "
+                        "without it the service reads the pose from its robot")] = None,
+        joints: Annotated[str | None, Form(
+            description="JSON six joint positions (rad), if known")] = None,
+        image: Annotated[UploadFile | None, File(
+            description="PNG or JPEG; without it the service grabs from its camera")] = None,
+) -> StationPublic:
+    """Add a station to an external run; the answer says whether the board was found and
+    why not (``state``, ``detection.reason``, ``error``). A station whose image cannot be
+    read is stored as skipped with the reason."""
+    posted = PostedStation(pose=_vector(pose, "pose"), joints=_vector(joints, "joints"),
+                           image=None if image is None else image.file.read())
+    station = runs.external.add(run_id, posted)
+    return station_public(station, corners=False)
+
+
+_VECTOR = TypeAdapter(list[FiniteFloat])
+
+
+def _vector(text: str | None, name: str) -> list[float] | None:
+    """A form field holding a JSON list of numbers (422 ``invalid_pose`` if it is not)."""
+    if text is None:
+        return None
+    try:
+        value: Any = json.loads(text)
+        return _VECTOR.validate_python(value, strict=False)
+    except (json.JSONDecodeError, ValidationError):
+        raise UnprocessableError(f"{name}: expected a JSON list of numbers like "
+                                 "[0.4, -0.1, 0.5, 3.14, 0.0, 0.0], got "
+                                 f"{text[:80]!r}", code="invalid_pose") from None
 
 
 @router.get("/{index}")

@@ -81,6 +81,7 @@ class _Shot:
     image: np.ndarray | None
     error: str | None = None
     error_code: str | None = None
+    joints: list[float] | None = None
 
 
 def _detection_json(det: Detection) -> dict[str, Any]:
@@ -247,6 +248,20 @@ class Capture:
                          taken.image)
         return shot
 
+    # ---- stations a cell controller posts (service.runs.external) -------------------------
+
+    def develop_posted(self, index: int, pose: list[float], image: np.ndarray | None, *,
+                       joints: list[float] | None = None,
+                       problem: tuple[str, str] | None = None) -> bool:
+        """Detect and store a posted station as station ``index`` exactly as the worker does
+        a captured one (``_develop``), without the retry: the controller took the image.
+        ``problem`` (detail, code) says why there is no usable image. True if stored."""
+        with self.db.session() as s:
+            self.inner = tuple(store.get_run(s, run_id=self.run_id).target["inner_corners"])
+        detail, code = problem or (None, None)
+        return self._develop(_Shot(index, pose, ATTEMPTS, pose, image, detail, code,
+                                   joints)) == _STORED
+
     # ---- the worker's part -----------------------------------------------------------------
 
     def _develop(self, shot: _Shot) -> str:
@@ -290,6 +305,7 @@ class Capture:
             else:
                 s.add(Station(run_id=self.run_id, index=shot.index, state=visit.state,
                               target_pose=shot.pose, tcp_pose=visit.tcp_pose,
+                              joint_positions=shot.joints,
                               image_path=None if rel is None else rel.as_posix(),
                               image_size=size, detection=visit.detection, error=visit.error,
                               error_code=visit.error_code, attempts=visit.attempts))

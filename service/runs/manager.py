@@ -1,5 +1,6 @@
 """Capture runs: create (plan, claim the robot, start the capture thread), pause, cancel,
-resume, and the run's ``state`` event."""
+resume, and the run's ``state`` event; external runs (no capture thread: a cell controller
+posts the stations, ``service.runs.external``) are finished by their controller."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from service.events import EventBus, state_event
 from service.models import Run, new_id
 from service.motion import Motion
 from service.runs.capture import Capture
+from service.runs.external import ExternalStations
 from service.runs.planning import check_poses, plan_poses
 from service.schemas import RunCreate
 
@@ -25,13 +27,17 @@ class RunManager:
         self.events = events
         self.settings = motion.settings
         self.db = motion.db
+        #: Stations posted to external runs.
+        self.external = ExternalStations(motion, events)
 
     def create(self, body: RunCreate) -> Run:
         """Validate the plan, store the run and start capturing; 409 if the robot is busy."""
         target = (body.target.model_dump() if body.target is not None
                   else self.settings.target())
         setup = self.settings.calibration_setup()
-        if body.poses is not None:
+        if body.mode == "external":
+            poses: list[list[float]] = []
+        elif body.poses is not None:
             poses = check_poses(self.motion, body.poses)
         else:
             assert body.stations is not None
@@ -40,7 +46,7 @@ class RunManager:
                                                         target=target, setup=setup))
         token = new_id()
         run = Run(robot=self.settings.robot, state="capturing", owner=token, setup=setup,
-                  target=target, poses=poses)
+                  target=target, poses=poses, mode=body.mode)
         with self.motion.claim(), self.db.session() as s:
             s.add(run)
             try:
@@ -48,7 +54,8 @@ class RunManager:
             except IntegrityError:
                 s.rollback()
                 raise self.motion.busy() from None
-        self._start_capture(run.id, token)
+        if run.mode == "robot":
+            self._start_capture(run.id, token)
         return run
 
     def pause(self, run_id: str) -> None:
@@ -85,7 +92,19 @@ class RunManager:
             raise ConflictError(f"Run {run_id} changed state meanwhile; read it and retry.",
                                 code="invalid_state")
         self._publish_state(run_id)
-        self._start_capture(run_id, token)
+        if run.mode == "robot":
+            self._start_capture(run_id, token)
+
+    def finish(self, run_id: str) -> None:
+        """End an external run: it takes no more stations and can be calibrated; idempotent
+        on a finished run. A robot run finishes by itself after its last station."""
+        with self.db.session() as s:
+            if store.get_run(s, run_id=run_id).mode != "external":
+                raise ConflictError(f"Run {run_id} is driven by the service; it is done after "
+                                    "its last station (pause or cancel it to stop it).",
+                                    code="invalid_mode")
+        self._transition(run_id, ("capturing", "paused", "interrupted"), "done",
+                         same_ok="done")
 
     def state_event(self, run_id: str) -> dict[str, Any]:
         """The run's state and counts as a ``state`` event (404 for an unknown run)."""

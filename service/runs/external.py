@@ -1,0 +1,117 @@
+"""Stations fed by a cell controller whose robot program moves the robot itself (runs in
+``"mode": "external"``, ``POST /runs/{id}/stations``).
+
+A posted station brings the robot pose (and the joint positions, if known) with an image; or
+the pose only, and the service grabs from its camera; or nothing, and the service reads the
+pose from its robot (which must be at rest: the reading before and after the grab must agree)
+and grabs. The board is detected and the station stored by the capture loop's own code
+(``Capture.develop_posted``), so posted stations are stored, streamed and calibrated exactly
+like captured ones; the answer says at once whether the board was found and why not.
+
+An image that cannot be used (not PNG or JPEG, corrupt, truncated, too many pixels) becomes a
+skipped station with the reason, like a failed grab in the capture loop. Stations take the
+next free index; posts to one run are stored one at a time.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib.geometry import check_joint_positions, check_ur_pose
+from drivers.capture import grab_at_rest
+from service import store
+from service.errors import ConflictError, UnprocessableError
+from service.events import EventBus
+from service.image_files import DEFAULT_MAX_PIXELS, ImageFileError, decode_image_bytes
+from service.models import Run, Station
+from service.motion import Motion
+from service.runs.capture import Capture
+
+
+@dataclass(frozen=True)
+class PostedStation:
+    """What a cell controller sent for one station (all optional, see the module doc).
+
+    pose : base_T_tcp ``[x, y, z, rx, ry, rz]`` (m, rad) at the image.
+    joints : the six joint positions (rad) at the image.
+    image : PNG or JPEG bytes, as uploaded.
+    """
+
+    pose: list[float] | None = None
+    joints: list[float] | None = None
+    image: bytes | None = None
+
+
+class ExternalStations:
+    """Adds posted stations to external runs."""
+
+    def __init__(self, motion: Motion, events: EventBus) -> None:
+        self.motion = motion
+        self.events = events
+        self._lock = threading.Lock()
+
+    def add(self, run_id: str, posted: PostedStation) -> Station:
+        """Store one posted station of an external run that accepts stations; the row."""
+        pose, joints = _checked(posted)
+        with self.motion.db.session() as s:
+            run = store.get_run(s, run_id=run_id)
+            _check_accepts(run)
+            token = run.owner
+        image, problem = None, None
+        if posted.image is not None:
+            try:
+                image = decode_image_bytes(posted.image, "image",
+                                           max_pixels=DEFAULT_MAX_PIXELS)
+            except ImageFileError as exc:
+                problem = (f"{exc}.", "image_unreadable")
+        elif pose is not None:
+            _, camera = self.motion.devices.get()
+            image = camera.grab(timeout=self.motion.settings.grab_timeout_s)
+        else:
+            robot, camera = self.motion.devices.get()
+            with self.motion.robot_lock:
+                still = grab_at_rest(robot, camera,
+                                     grab_timeout=self.motion.settings.grab_timeout_s)
+            image, pose = still.image, [float(v) for v in still.tcp_pose]
+            if joints is None:
+                joints = [float(v) for v in robot.joint_positions()]
+        assert pose is not None and token is not None
+        capture = Capture(self.motion, self.events, run_id=run_id, token=token)
+        with self._lock:
+            with self.motion.db.session() as s:
+                index = store.next_station_index(s, run_id=run_id)
+            stored = capture.develop_posted(index, pose, image, joints=joints, problem=problem)
+        if not stored:
+            raise ConflictError(f"Run {run_id} stopped accepting stations meanwhile; the "
+                                "station was not stored.", code="invalid_state")
+        with self.motion.db.session() as s:  # a new session sees the new row
+            return store.get_station(s, run_id=run_id, index=index)
+
+
+def _checked(posted: PostedStation) -> tuple[list[float] | None, list[float] | None]:
+    """The posted pose and joints as floats, checked (422 ``invalid_pose``)."""
+    if posted.image is not None and posted.pose is None:
+        raise UnprocessableError("An image needs the robot pose it was taken at: send 'pose' "
+                                 "with it.", code="invalid_pose")
+    try:
+        if posted.pose is not None:
+            check_ur_pose(np.asarray(posted.pose, dtype=float), "pose")
+        if posted.joints is not None:
+            check_joint_positions(np.asarray(posted.joints, dtype=float), "joints")
+    except ValueError as exc:
+        raise UnprocessableError(str(exc), code="invalid_pose") from None
+    return (None if posted.pose is None else [float(v) for v in posted.pose],
+            None if posted.joints is None else [float(v) for v in posted.joints])
+
+
+def _check_accepts(run: Run) -> None:
+    """409 unless ``run`` is an external run that accepts stations."""
+    if run.mode != "external":
+        raise ConflictError(f"Run {run.id} is driven by the service ('robot' mode); only runs "
+                            "in 'external' mode take posted stations.", code="invalid_mode")
+    if run.state != "capturing":
+        raise ConflictError(f"Run {run.id} is {run.state}; resume it to post stations.",
+                            code="invalid_state")
