@@ -25,6 +25,7 @@ from service.api import (
     calibrations,
     devices,
     health,
+    metrics,
     registry,
     runs,
     stations,
@@ -87,7 +88,7 @@ def create_app(settings: Settings | None = None, *,
     app.state.settings = settings
     app.include_router(health.router)
     # registry before calibrations: /calibrations/active is not a calibration id
-    for module in (runs, stations, registry, calibrations, validations, devices):
+    for module in (runs, stations, registry, calibrations, validations, devices, metrics):
         app.include_router(module.router, dependencies=[Depends(require_api_key)])
     for exc_type in (ServiceError, DeviceError):
         app.add_exception_handler(exc_type, _domain_error)

@@ -138,6 +138,21 @@ class Calibration(Base):
     finished_at: Mapped[dt.datetime | None]
 
 
+class RunEvent(Base):
+    """An event of a run as streamed (``GET /runs/{id}/events``); the row id is the stream's
+    event id, so a listener resumes after it with ``Last-Event-ID``."""
+
+    __tablename__ = "run_events"
+    #: AUTOINCREMENT: SQLite never reuses an id, so ids only grow.
+    __table_args__ = {"sqlite_autoincrement": True}  # noqa: RUF012
+
+    id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
+    run_id: Mapped[str] = mapped_column(ForeignKey("runs.id", ondelete="CASCADE"), index=True)
+    type: Mapped[str] = mapped_column(String(16))
+    data: Mapped[dict[str, Any]]
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+
+
 class Activation(Base):
     """A calibration made the robot cell's current one at ``activated_at``; it stays current
     until the robot's next activation, so the rows are the history of what was active when."""

@@ -39,7 +39,7 @@ class Runtime:
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         db = Database(settings.database)
         devices = Devices(open_devices or settings_opener(settings))
-        events = EventBus()
+        events = EventBus(db)
         motion = Motion(settings, db, devices)
         with db.session() as s:
             runs, cals, vals = store.recover(s)

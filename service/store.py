@@ -8,6 +8,7 @@ managers call these instead of writing SQL.
 
 from __future__ import annotations
 
+import datetime as dt
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,6 +21,7 @@ from service.models import (
     Activation,
     Calibration,
     Run,
+    RunEvent,
     Station,
     Validation,
     utcnow,
@@ -255,3 +257,78 @@ def recover(s: Session) -> tuple[int, int, int]:
                 error="The service stopped during the validation; start it again.")).rowcount
     s.commit()
     return runs, cals, vals
+
+
+# ---- run events ----------------------------------------------------------------------------
+
+
+def add_event(s: Session, *, run_id: str, event: dict[str, Any]) -> int:
+    """Store a run event; its id, which increases along the run."""
+    row = RunEvent(run_id=run_id, type=event["type"], data=event)
+    s.add(row)
+    s.commit()
+    return row.id
+
+
+def events_after(s: Session, *, run_id: str, after: int) -> list[dict[str, Any]]:
+    """The run's stored events with an id above ``after``, in order, each with its ``id``."""
+    rows = s.execute(select(RunEvent.id, RunEvent.data).where(
+        RunEvent.run_id == run_id, RunEvent.id > after).order_by(RunEvent.id)).all()
+    return [{**data, "id": event_id} for event_id, data in rows]
+
+
+def last_event_id(s: Session, *, run_id: str) -> int:
+    """The id of the run's newest stored event (0 for none)."""
+    return s.scalar(select(func.max(RunEvent.id)).where(RunEvent.run_id == run_id)) or 0
+
+
+# ---- figures for GET /metrics --------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LatestCalibration:
+    """The newest finished calibration of a setup, as ``GET /metrics`` reports it."""
+
+    setup: str
+    finished_at: dt.datetime
+    rms_px: float | None
+    cv_rms_px: float | None
+    verdict: str | None
+
+
+@dataclass(frozen=True)
+class ServiceFigures:
+    """Counts and figures over the whole database (``service.metrics``)."""
+
+    runs: dict[tuple[str, str], int]
+    stations: dict[str, int]
+    calibrations: dict[str, int]
+    durations_s: list[float]
+    latest: list[LatestCalibration]
+
+
+def service_figures(s: Session) -> ServiceFigures:
+    """Runs by (state, mode), stations and calibrations by state, the durations of finished
+    calibrations and the newest finished calibration per setup (result fields read in SQL)."""
+    runs = {(state, mode): n for state, mode, n in s.execute(
+        select(Run.state, Run.mode, func.count()).group_by(Run.state, Run.mode)).all()}
+    stations = dict(s.execute(select(Station.state, func.count())
+                              .group_by(Station.state)).all())
+    calibrations = dict(s.execute(select(Calibration.state, func.count())
+                                  .group_by(Calibration.state)).all())
+    done = (Calibration.state == "done", Calibration.finished_at.is_not(None))
+    durations = [(end - start).total_seconds() for start, end in s.execute(
+        select(Calibration.created_at, Calibration.finished_at).where(*done)).all()]
+    newest = select(Run.setup, func.max(Calibration.finished_at).label("at")) \
+        .join(Run, Run.id == Calibration.run_id).where(*done).group_by(Run.setup).subquery()
+    rows = s.execute(
+        select(Run.setup, Calibration.finished_at,
+               Calibration.result[("camera", "rms_px")].as_float(),
+               Calibration.result[("cross_validation", "rms_px")].as_float(),
+               Calibration.result[("quality", "verdict")].as_string())
+        .join(Run, Run.id == Calibration.run_id)
+        .join(newest, (newest.c.setup == Run.setup) & (newest.c.at == Calibration.finished_at))
+        .where(*done).order_by(Run.setup)).all()
+    latest = {row[0]: LatestCalibration(*row) for row in rows}  # one per setup on ties
+    return ServiceFigures(runs=runs, stations=stations, calibrations=calibrations,
+                          durations_s=durations, latest=list(latest.values()))

@@ -368,7 +368,8 @@ def test_events_of_a_finished_run_end_with_its_state(client: TestClient) -> None
     with client.stream("GET", f"/runs/{run_id}/events") as r:
         assert r.headers["content-type"].startswith("text/event-stream")
         text = r.read().decode()
-    assert text.startswith("id: 1\nevent: state\ndata: {")
+    # the run's state as of its newest stored event: 3 stations, then the final state
+    assert text.startswith("id: 4\nevent: state\ndata: {")
     assert '"state": "done"' in text and '"stations_captured": 3' in text
 
 

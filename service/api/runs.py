@@ -7,14 +7,14 @@ import json
 from collections.abc import AsyncIterator
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Query, status
+from fastapi import APIRouter, Header, Query, status
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 
 from service import store
 from service.api.deps import RunsDep, SessionDep
-from service.models import FINAL_RUN_STATES, Run
-from service.runs import RunManager
+from service.events import EventBus, ends_stream
+from service.models import Run
 from service.schemas import Created, ErrorInfo, RunCreate, RunPublic, StationError
 
 router = APIRouter(prefix="/runs", tags=["runs"])
@@ -91,25 +91,44 @@ def finish_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
     200: {"content": {"text/event-stream": {}},
           "description": "server-sent events: `state` (first, then on every change) and "
                          "`station` (captured or skipped); the stream ends when the run does"}})
-async def run_events(run_id: str, runs: RunsDep) -> StreamingResponse:
-    """Progress of a run as server-sent events."""
+async def run_events(
+        run_id: str, runs: RunsDep,
+        last_event_id: Annotated[str | None, Header(
+            description="resume after this event id: the stored events after it come first")]
+        = None) -> StreamingResponse:
+    """Progress of a run as server-sent events; ids are stable, so a client that reconnects
+    with ``Last-Event-ID`` (browsers do) misses none and sees none twice."""
     await run_in_threadpool(runs.state_event, run_id)  # 404 before the stream starts
-    return StreamingResponse(_event_stream(runs, run_id), media_type="text/event-stream",
+    after = int(last_event_id) if last_event_id and last_event_id.isdigit() else None
+    return StreamingResponse(_event_stream(runs.events, run_id, after),
+                             media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
 
-async def _event_stream(runs: RunManager, run_id: str) -> AsyncIterator[str]:
-    with runs.events.listen(run_id) as queue:
-        event: dict[str, Any] = await run_in_threadpool(runs.state_event, run_id)
-        seq = 0
-        while True:
-            seq += 1
-            yield f"id: {seq}\nevent: {event['type']}\ndata: {json.dumps(event)}\n\n"
-            if event["type"] == "state" and event["state"] in FINAL_RUN_STATES:
+async def _event_stream(events: EventBus, run_id: str, after: int | None) -> AsyncIterator[str]:
+    """The backlog (``EventBus.backlog``), then live events newer than what was sent."""
+    with events.listen(run_id) as queue:
+        backlog = await run_in_threadpool(events.backlog, run_id, after)
+        last = after or 0
+        for event in backlog:
+            yield _sse(event)
+            if ends_stream(event):
                 return
-            while True:
-                try:
-                    event = await asyncio.wait_for(queue.get(), KEEPALIVE_S)
-                    break
-                except TimeoutError:
-                    yield ": keep-alive\n\n"
+            last = max(last, event["id"])
+        while True:
+            try:
+                event = await asyncio.wait_for(queue.get(), KEEPALIVE_S)
+            except TimeoutError:
+                yield ": keep-alive\n\n"
+                continue
+            if event["id"] <= last:  # already sent in the backlog
+                continue
+            last = event["id"]
+            yield _sse(event)
+            if ends_stream(event):
+                return
+
+
+def _sse(event: dict[str, Any]) -> str:
+    data = {k: v for k, v in event.items() if k != "id"}
+    return f"id: {event['id']}\nevent: {event['type']}\ndata: {json.dumps(data)}\n\n"

@@ -1,0 +1,195 @@
+"""Run events with stable ids (``Last-Event-ID`` resumes without loss or repeats) and
+``GET /metrics`` in the Prometheus text format, read back with ``prometheus_client``'s parser.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from prometheus_client.parser import text_string_to_metric_families
+
+from drivers.base import Camera, Robot
+from service.app import create_app
+from service.devices import DeviceOpener, settings_opener
+from service.metrics import CONTENT_TYPE_LATEST
+from service.models import Calibration, Run, Station
+from tests.test_exports import full_result
+from tests.test_service_api import AUTH, GatedCamera, finished, settings, start_run, wait_run
+
+Event = tuple[int, str, dict[str, Any]]
+
+
+@pytest.fixture
+def client(tmp_path: Path) -> Iterator[TestClient]:
+    with TestClient(create_app(settings(tmp_path))) as c:
+        c.headers.update(AUTH)
+        yield c
+
+
+def read_events(client: TestClient, run_id: str, *, last_event_id: str | None = None,
+                until: Callable[[list[Event]], bool] = lambda events: False) -> list[Event]:
+    """Events ``(id, type, data)`` of the run's stream until it ends or ``until(events)``,
+    then disconnect."""
+    headers = {} if last_event_id is None else {"Last-Event-ID": last_event_id}
+    events: list[Event] = []
+    fields: dict[str, str] = {}
+    with client.stream("GET", f"/runs/{run_id}/events", headers=headers) as r:
+        assert r.status_code == 200
+        for line in r.iter_lines():
+            if line.startswith(":"):
+                continue
+            if line:
+                key, _, value = line.partition(": ")
+                fields[key] = value
+                continue
+            events.append((int(fields["id"]), fields["event"], json.loads(fields["data"])))
+            fields = {}
+            if until(events):
+                break
+    return events
+
+
+def stations_of(events: list[Event]) -> list[int]:
+    return [data["index"] for _, kind, data in events if kind == "station"]
+
+
+@pytest.mark.timeout(60)
+def test_reconnect_with_last_event_id_misses_and_repeats_nothing(tmp_path: Path) -> None:
+    gate = threading.Event()
+    mocks = settings_opener(settings(tmp_path))
+
+    def gated() -> tuple[Robot, Camera]:
+        robot, camera = mocks()
+        return robot, GatedCamera(camera, 0, gate)  # type: ignore[return-value]
+
+    opener: DeviceOpener = gated
+    with TestClient(create_app(settings(tmp_path), open_devices=opener)) as client:
+        client.headers.update(AUTH)
+        run_id = start_run(client, 6)  # held at its first grab until the gate opens
+
+        def two_stations(events: list[Event]) -> bool:
+            if len(events) == 1:  # the state snapshot has arrived: let the run go
+                gate.set()
+            return len(stations_of(events)) == 2
+
+        first = read_events(client, run_id, until=two_stations)
+        assert first[0][1] == "state" and first[0][2]["stations_captured"] == 0
+        run = wait_run(client, run_id, finished)  # captured on while nobody listened
+        assert (run["state"], run["stations_captured"]) == ("done", 6)
+        second = read_events(client, run_id, last_event_id=str(first[-1][0]))
+    ids = [event_id for event_id, _, _ in first[1:] + second]
+    assert ids == sorted(set(ids)), "ids repeat or go backwards"
+    assert stations_of(first) + stations_of(second) == [0, 1, 2, 3, 4, 5]
+    assert second[-1][1] == "state" and second[-1][2]["state"] == "done"
+    assert [kind for _, kind, _ in second].count("state") == 1
+
+
+@pytest.mark.timeout(60)
+def test_ids_survive_a_restart_and_bad_ids_start_afresh(tmp_path: Path) -> None:
+    with TestClient(create_app(settings(tmp_path))) as client:
+        client.headers.update(AUTH)
+        run_id = start_run(client, 4)
+        wait_run(client, run_id, finished)
+        everything = read_events(client, run_id, last_event_id="0")
+    assert [kind for _, kind, _ in everything] == ["station"] * 4 + ["state"]
+    with TestClient(create_app(settings(tmp_path))) as client:  # a new service, same database
+        client.headers.update(AUTH)
+        after_two = read_events(client, run_id, last_event_id=str(everything[1][0]))
+        assert after_two == everything[2:]
+        for header in ("not-a-number", "-3", ""):
+            fresh = read_events(client, run_id, last_event_id=header)
+            assert [(i, kind) for i, kind, _ in fresh] == [(everything[-1][0], "state")]
+            assert fresh[0][2]["stations_captured"] == 4
+
+
+# ---- GET /metrics ---------------------------------------------------------------------------
+
+T0 = dt.datetime(2026, 3, 2, 9, 0, tzinfo=dt.UTC)
+
+
+def evidence_result(setup: str, *, cv_rms_px: float, verdict: str) -> dict[str, Any]:
+    """A result document with the evidence fields ``GET /metrics`` reports."""
+    return full_result(setup) | {"cross_validation": {"kind": "kfold", "rms_px": cv_rms_px},
+                                 "quality": {"verdict": verdict, "findings": []}}
+
+
+def add_rows(client: TestClient) -> None:
+    """Two runs with stations and five calibrations with known durations and results."""
+    with client.app.state.db.session() as s:
+        hand = Run(robot="mock://", state="done", setup="eye_in_hand", mode="robot",
+                   target={}, poses=[])
+        fixed = Run(robot="mock://", state="capturing", setup="eye_to_hand", mode="external",
+                    target={}, poses=[])
+        s.add_all([hand, fixed])
+        s.flush()
+        s.add_all([Station(run_id=hand.id, index=k, state="captured" if k < 3 else "skipped",
+                           target_pose=[0.0] * 6, tcp_pose=None) for k in range(4)])
+        for run, minutes, seconds, state, result in [
+                (hand, 0, 10.0, "done", evidence_result("eye_in_hand", cv_rms_px=0.31,
+                                                        verdict="pass")),
+                (hand, 5, 20.0, "done", evidence_result("eye_in_hand", cv_rms_px=0.42,
+                                                        verdict="warn")),
+                (fixed, 1, 30.0, "done", evidence_result("eye_to_hand", cv_rms_px=0.55,
+                                                         verdict="fail")),
+                (hand, 9, 1.0, "failed", None),
+                (hand, 10, None, "running", None)]:
+            start = T0 + dt.timedelta(minutes=minutes)
+            s.add(Calibration(run_id=run.id, state=state, options={}, result=result,
+                              created_at=start, finished_at=None if seconds is None
+                              else start + dt.timedelta(seconds=seconds)))
+        s.commit()
+
+
+def scrape(client: TestClient) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    r = client.get("/metrics")
+    assert r.status_code == 200
+    assert r.headers["content-type"] == CONTENT_TYPE_LATEST  # text/plain; version=...
+    return {(sample.name, tuple(sorted(sample.labels.items()))): sample.value
+            for family in text_string_to_metric_families(r.text) for sample in family.samples}
+
+
+@pytest.mark.timeout(30)
+def test_metrics_in_the_prometheus_text_format(client: TestClient) -> None:
+    add_rows(client)
+    m = scrape(client)
+    assert m[("cellcal_runs", (("mode", "robot"), ("state", "done")))] == 1
+    assert m[("cellcal_runs", (("mode", "external"), ("state", "capturing")))] == 1
+    assert m[("cellcal_stations_total", (("state", "captured"),))] == 3
+    assert m[("cellcal_stations_total", (("state", "skipped"),))] == 1
+    for state, n in (("done", 3), ("failed", 1), ("running", 1)):
+        assert m[("cellcal_calibrations_total", (("state", state),))] == n
+    assert m[("cellcal_calibration_duration_seconds_count", ())] == 3  # finished and done
+    assert m[("cellcal_calibration_duration_seconds_sum", ())] == pytest.approx(60.0)
+    hand, fixed = (("setup", "eye_in_hand"),), (("setup", "eye_to_hand"),)
+    assert m[("cellcal_last_calibration_cv_rms_px", hand)] == pytest.approx(0.42)
+    assert m[("cellcal_last_calibration_cv_rms_px", fixed)] == pytest.approx(0.55)
+    assert m[("cellcal_last_calibration_rms_px", hand)] == pytest.approx(0.05)
+    assert m[("cellcal_last_calibration_timestamp_seconds", hand)] == \
+        (T0 + dt.timedelta(minutes=5, seconds=20)).timestamp()
+    verdicts = {labels: v for (name, labels), v in m.items()
+                if name == "cellcal_last_calibration_verdict"}
+    assert verdicts == {(("setup", "eye_in_hand"), ("verdict", "warn")): 1.0,
+                        (("setup", "eye_to_hand"), ("verdict", "fail")): 1.0}
+
+
+@pytest.mark.timeout(30)
+def test_metrics_of_an_empty_service_and_after_a_run(client: TestClient) -> None:
+    m = scrape(client)
+    assert m[("cellcal_calibration_duration_seconds_count", ())] == 0
+    assert not any(name.startswith("cellcal_last_") for name, _ in m)
+    run_id = start_run(client, 3)
+    wait_run(client, run_id, finished)
+    m = scrape(client)
+    assert m[("cellcal_stations_total", (("state", "captured"),))] == 3
+    assert m[("cellcal_runs", (("mode", "robot"), ("state", "done")))] == 1
+
+
+def test_metrics_need_the_key(client: TestClient) -> None:
+    assert client.get("/metrics", headers={"Authorization": ""}).status_code == 401
