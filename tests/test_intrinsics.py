@@ -207,8 +207,8 @@ def test_partial_detections_and_fix() -> None:
     rng = np.random.default_rng(4)
     views, _ = synthetic_views(rng, 12)
     ids = [np.sort(rng.choice(88, size=rng.integers(40, 88), replace=False)) for _ in views]
-    res = calibrate([v[i] for v, i in zip(views, ids, strict=True)], BOARD, SQUARE,
-                               SIZE, point_ids=ids, fix=("k3",))
+    res = calibrate([v[i] for v, i in zip(views, ids, strict=True)], BOARD, SQUARE, SIZE,
+                    point_ids=ids, fix=("k3",))
     assert res.n_points == sum(len(i) for i in ids)
     assert [len(r) for r in res.residuals] == [len(i) for i in ids]
     assert res.dist[4] == 0.0 and res.sigmas["k3"] == 0.0
@@ -315,8 +315,8 @@ def test_predicted_sigmas_match_monte_carlo() -> None:
     estimates, sigmas = [], []
     for seed in range(50):
         rng = np.random.default_rng(100 + seed)
-        res = calibrate([c + rng.normal(0.0, 0.15, c.shape) for c in clean],
-                                   BOARD, SQUARE, SIZE)
+        res = calibrate([c + rng.normal(0.0, 0.15, c.shape) for c in clean], BOARD, SQUARE,
+                        SIZE)
         estimates.append([res.K[0, 0], res.nu])
         sigmas.append([res.sigmas["fx"], res.sigmas["nu"]])
     ratio = np.std(estimates, axis=0, ddof=1) / np.mean(sigmas, axis=0)

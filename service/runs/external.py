@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.geometry import check_joint_positions, check_ur_pose
+from calib import check_joint_positions, check_ur_pose
 from drivers.capture import grab_at_rest
 from service import store
 from service.errors import ConflictError, UnprocessableError
