@@ -348,7 +348,7 @@ class Stages:
 def stage_breakdown(poses: list[list[float]], warmup: list[list[float]], timeout: float,
                     keep: int) -> Stages:
     """Time the stages of the service's own capture loop, then profile it."""
-    import mocks.devices as devices_mod
+    import mocks.camera as camera_mod
     import service.runs.capture as capture_mod
     from service.runs.capture import Capture
 
@@ -370,7 +370,7 @@ def stage_breakdown(poses: list[list[float]], warmup: list[list[float]], timeout
             samples.append(image)
         return image
 
-    render_board = devices_mod.render_board
+    render_board = camera_mod.render_board
     with tempfile.TemporaryDirectory(prefix="cellcal-bench-") as tmp:
         with in_process_jobs(Path(tmp) / "timed") as jobs:
             capture_in_process(jobs, warmup, timeout)  # warm-up
@@ -379,7 +379,7 @@ def stage_breakdown(poses: list[list[float]], warmup: list[list[float]], timeout
                     mock.patch.object(Capture, "_owns", timed("owns", Capture._owns)), \
                     mock.patch.object(capture_mod, "capture_station",
                                       timed("capture", capture_mod.capture_station)), \
-                    mock.patch.object(devices_mod, "render_board", timed("render", render)), \
+                    mock.patch.object(camera_mod, "render_board", timed("render", render)), \
                     mock.patch.object(capture_mod, "detect_checkerboard",
                                       timed("detect", capture_mod.detect_checkerboard)), \
                     mock.patch.object(capture_mod, "write_png",
@@ -447,7 +447,8 @@ def what_if(poses: list[list[float]], warmup: list[list[float]]) -> WhatIf:
     the previous station meanwhile (at most two stations in flight), as a capture thread with
     a detection/storage worker would.
     """
-    from mocks.devices import MockCamera, MockRobot
+    from mocks.camera import MockCamera
+    from mocks.devices import MockRobot
     from service.runs.capture import write_png
 
     scene = default_scene()

@@ -1,15 +1,21 @@
-"""The two small interfaces every robot and camera backend implements.
+"""The two small interfaces every robot and camera backend implements, and the capabilities a
+backend may offer besides.
 
 Drivers (real devices) and mocks (simulated ones) satisfy the same Protocols, so service code
-never imports a concrete backend: it opens a device from its URL (``drivers.open_robot``).
+never imports a concrete backend: it opens a device from its URL (``drivers.registry``).
 All poses are UR pose vectors ``[x, y, z, rx, ry, rz]`` (metres, rotation vector in radians),
-base_T_tcp; joint positions are radians. See ``docs/conventions.md``.
+T_base_tcp; joint positions are radians. See ``docs/conventions.md``.
+
+Capabilities are Protocols too, checked with ``isinstance`` / ``issubclass``: a backend that
+knows its cell roughly (``DescribesCell``, e.g. a simulator) spares the user the planning
+guesses; one that knows the truth (``GroundTruthSource``) lets a validation report its error
+against it. Code that uses them never asks which backend it has.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, Self, runtime_checkable
+from typing import Any, ClassVar, Protocol, Self, runtime_checkable
 
 import numpy as np
 
@@ -98,8 +104,61 @@ class Camera(Protocol):
         """Request a resolution and/or exposure (seconds); unsupported requests raise."""
 
 
+@dataclass(frozen=True)
+class CellHints:
+    """What is known roughly about a cell before it is calibrated (None: not known).
+
+    ``hand_eye`` is T_tcp_cam (eye-in-hand) or T_base_cam (eye-to-hand), shape (4, 4); ``K``
+    shape (3, 3) and ``dist`` shape (n,) in pixels; the board as ``inner_corners`` (cols,
+    rows) with its nominal ``square_size_m``.
+    """
+
+    setup: str | None = None
+    inner_corners: tuple[int, int] | None = None
+    square_size_m: float | None = None
+    hand_eye: np.ndarray | None = None
+    K: np.ndarray | None = None
+    dist: np.ndarray | None = None
+
+
+@runtime_checkable
+class DescribesCell(Protocol):
+    """Capability of a robot class: it knows its cell roughly before connecting (a simulator
+    knows its scene). ``config`` is the device configuration the registry was given."""
+
+    @classmethod
+    def describe_cell(cls, config: Any) -> CellHints:
+        """The cell's rough description; ``ValueError`` for an unusable ``config``."""
+
+
+@dataclass(frozen=True)
+class BoardTruth:
+    """The true board: T_base_target (4, 4), its true square size (m, along the rows) and
+    aspect ratio ν; ``source`` names where the truth comes from."""
+
+    T_base_target: np.ndarray
+    square_size_m: float
+    nu: float
+    source: str
+
+
+@runtime_checkable
+class GroundTruthSource(Protocol):
+    """Capability of a robot: it knows the cell exactly (a simulated cell does)."""
+
+    def true_tcp_pose(self) -> np.ndarray:
+        """The true T_base_tcp, shape (4, 4), without the reading's noise."""
+
+    def true_board(self) -> BoardTruth:
+        """The board as it really is."""
+
+
 class RobotSession:
-    """Mixin: ``with robot:`` connects on entry and closes on exit."""
+    """Mixin of robot classes: ``with robot:`` connects on entry and closes on exit.
+
+    The registry builds a robot with ``from_url(url, config=...)`` (each class parses its own
+    address; ``config`` is an optional device configuration: a file path or an object).
+    """
 
     def __enter__(self) -> Self:
         self.connect()
@@ -110,7 +169,19 @@ class RobotSession:
 
 
 class CameraSession:
-    """Mixin: ``with camera:`` opens on entry and closes on exit."""
+    """Mixin of camera classes: ``with camera:`` opens on entry and closes on exit.
+
+    The registry builds a camera with ``from_url(url, config=..., robot=...)``. A camera that
+    only works with a particular robot (a simulated camera renders what its robot sees) names
+    that robot's address in ``companion_robot`` and refuses others in ``check_robot``.
+    """
+
+    #: Address of the robot this camera needs opened with it; None for a real camera.
+    companion_robot: ClassVar[str | None] = None
+
+    @classmethod
+    def check_robot(cls, robot_url: str) -> None:
+        """Raise ``ValueError`` if this camera cannot work with the robot at ``robot_url``."""
 
     def __enter__(self) -> Self:
         self.open()

@@ -49,7 +49,7 @@ from urllib.parse import urlsplit
 import cv2
 import numpy as np
 
-from drivers.base import CameraSession
+from drivers.base import CameraSession, Robot
 from drivers.errors import CameraError, CameraTimeoutError
 from drivers.stall import STALL_AFTER, StallCounter
 
@@ -133,6 +133,12 @@ class OpenCVCamera(CameraSession):
     def opened(self) -> bool:
         """True from ``open()`` until ``close()`` or the loss of the device."""
         return self._cap is not None
+
+    @classmethod
+    def from_url(cls, url: str, *, config: Any = None,
+                 robot: Robot | None = None) -> OpenCVCamera:
+        """The camera or recording at ``url`` (``config`` and ``robot`` are unused)."""
+        return cls(url)
 
     def open(self) -> None:
         """Open (again) the device or recording; ``CameraError`` saying what is wrong.

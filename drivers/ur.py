@@ -22,6 +22,8 @@ import struct
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
+from urllib.parse import urlsplit
 
 import numpy as np
 import rtde_control
@@ -104,6 +106,16 @@ class URRobot(RobotSession):
         self._moving = False
         self._stop_requested = False
         self._lost = False  # a connection was abandoned; cleared by connect() / close()
+
+    @classmethod
+    def from_url(cls, url: str, *, config: Any = None) -> URRobot:
+        """The arm at ``ur://HOST`` (the controller's ports are fixed; ``config`` is unused)."""
+        parts = urlsplit(url)
+        if not parts.hostname or parts.port is not None or parts.path.strip("/") \
+                or parts.query or parts.username:
+            raise ValueError(f"{url!r}: a UR address is ur://HOST (an IP address or host name; "
+                             "the controller's ports are fixed)")
+        return cls(parts.hostname)
 
     # ---- connection -------------------------------------------------------------------------
 

@@ -1,10 +1,11 @@
-"""Simulated robot and camera for a mock scene: the ``Robot`` and ``Camera`` Protocols.
+"""Simulated robot for a mock scene: the ``Robot`` Protocol (its camera: ``mocks.camera``).
 
 ``MockRobot`` holds the *true* TCP pose and reports it with the scene's robot noise;
-``MockCamera`` renders the scene's board from the robot's true pose with the scene's image noise
-and blur. Both are instant by default (ophyd-async ``SimMotor(instant=True)``); realistic timing
-is on request. Both fail on purpose: faults are injected with ``inject_fault`` (or the robot's
-``faults`` argument) and surface as the same typed errors the real drivers raise.
+``mocks.camera.MockCamera`` renders the scene's board from the robot's true pose with the
+scene's image noise and blur. Both are instant by default (ophyd-async
+``SimMotor(instant=True)``); realistic timing is on request. Both fail on purpose: faults are
+injected with ``inject_fault`` (or the robot's ``faults`` argument) and surface as the same
+typed errors the real drivers raise.
 
 Noise model. A real controller reading at rest is stable: it differs from the true pose by the
 arm's calibration error for that configuration, not by fresh noise on every read. So the robot
@@ -26,6 +27,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
@@ -36,26 +38,19 @@ from calib import (
     perturb,
     ur_pose_from_matrix,
 )
-from drivers.base import CameraSession, RobotSession, RobotStatus
+from drivers.base import BoardTruth, CellHints, RobotSession, RobotStatus
 from drivers.errors import (
-    CameraError,
-    CameraStalledError,
-    CameraTimeoutError,
     ProtectiveStopError,
     RobotConnectionError,
     RobotError,
     WorkspaceError,
 )
-from drivers.stall import StallCounter
 from mocks import ur_kinematics as kin
-from mocks.render import RenderParams, render_board
-from mocks.scene import MockScene, camera_pose_for_tcp
+from mocks.scene import MockScene, read_scene
 from mocks.ur_emulator import trapezoid_fraction
 
 #: Robot faults: each affects the next move only (``slow`` its settling), see ``inject_fault``.
 ROBOT_FAULTS = ("protective_stop", "disconnect", "unreachable", "slow")
-#: Camera faults, see ``MockCamera.inject_fault``.
-CAMERA_FAULTS = ("timeout", "corrupt", "disconnect", "unplug", "stall")
 
 #: Motion update period (s) of a timed move.
 _TICK = 0.01
@@ -86,7 +81,14 @@ class Workspace:
                              f"{box} mm (base frame); the robot was not moved.")
 
 
-def _parse_fault(spec: str, known: tuple[str, ...]) -> tuple[str, float | None]:
+def check_mock_url(url: str, device: str) -> None:
+    """A mock device is addressed as just ``mock://`` (its cell comes from the scene)."""
+    if url.lower() != "mock://":
+        raise ValueError(f"{url!r}: a mock {device} is addressed as just mock:// "
+                         "(choose its cell with a scene file)")
+
+
+def parse_fault(spec: str, known: tuple[str, ...]) -> tuple[str, float | None]:
     """``NAME`` or ``NAME=VALUE`` -> (name, value or None); ValueError for unknown names."""
     name, _, value = spec.partition("=")
     name = name.strip()
@@ -136,7 +138,34 @@ class MockRobot(RobotSession):
         self._settled_at = 0.0
         self._faults: dict[str, float | None] = {}
         for spec in faults:
-            self.inject_fault(*_parse_fault(spec, ROBOT_FAULTS))
+            self.inject_fault(*parse_fault(spec, ROBOT_FAULTS))
+
+    # ---- construction from the registry, capabilities ---------------------------------------
+
+    @classmethod
+    def from_url(cls, url: str, *, config: Any = None) -> MockRobot:
+        """The robot of ``mock://`` over the scene ``config`` (a scene, a file, None: default)."""
+        check_mock_url(url, "robot")
+        return cls(read_scene(config))
+
+    @classmethod
+    def describe_cell(cls, config: Any) -> CellHints:
+        """``drivers.base.DescribesCell``: the scene's setup, board, hand-eye and camera."""
+        scene = read_scene(config)
+        t = scene.target
+        return CellHints(setup=scene.setup, inner_corners=tuple(t.inner_corners),
+                         square_size_m=t.square_size_m, hand_eye=scene.hand_eye_matrix,
+                         K=scene.camera.k_matrix, dist=scene.camera.dist_coeffs)
+
+    def true_tcp_pose(self) -> np.ndarray:
+        """``drivers.base.GroundTruthSource``: the true T_base_tcp, shape (4, 4)."""
+        return self.true_pose
+
+    def true_board(self) -> BoardTruth:
+        """``drivers.base.GroundTruthSource``: the scene's board through its true κ, ν."""
+        t = self.scene.target
+        return BoardTruth(T_base_target=self.scene.target_pose_matrix,
+                          square_size_m=t.square_size_m * t.kappa, nu=t.nu, source="mock scene")
 
     # ---- simulation controls ----------------------------------------------------------------
 
@@ -155,7 +184,7 @@ class MockRobot(RobotSession):
         is refused (code ``motion_failed``) and the robot stays put. ``slow``: the move takes
         ``value`` s (default 10) longer to settle, so a shorter ``wait_settled`` times out.
         """
-        _parse_fault(name, ROBOT_FAULTS)
+        parse_fault(name, ROBOT_FAULTS)
         with self._lock:
             self._faults[name] = value
 
@@ -342,137 +371,3 @@ class MockRobot(RobotSession):
         raise RobotConnectionError(
             "Lost the connection to the mock robot during a move; the robot may have stopped "
             "anywhere along the path. Reconnect.")
-
-
-class MockCamera(CameraSession):
-    """A simulated camera implementing ``drivers.base.Camera``: renders what the robot sees.
-
-    Each grab renders the scene's true board (``mocks.render.render_board``) from the robot's
-    *true* pose at the time of the call (``camera_pose_for_tcp``), with fresh image noise from
-    a generator seeded by ``seed`` (default: the scene's seed). ``instant=False`` waits one to
-    two frame periods of ``fps``, like a live camera delivering the next full frame. Grab
-    timeouts count towards a stall as on a real camera (``drivers.stall``; ``stall.limit``).
-    """
-
-    def __init__(self, scene: MockScene, robot: MockRobot, *, instant: bool = True,
-                 fps: float = 30.0, seed: int | None = None) -> None:
-        if fps <= 0.0:
-            raise ValueError(f"fps must be positive, got {fps}")
-        self.scene = scene
-        self.robot = robot
-        self.instant = instant
-        self.fps = fps
-        self._params = RenderParams.from_scene(scene)
-        self._rng = np.random.default_rng([scene.seed if seed is None else seed, 2])
-        self._opened = False
-        self._faults: dict[str, int] = {}
-        self._lock = threading.Lock()
-        self.stall = StallCounter()
-
-    def inject_fault(self, name: str, count: int = 1) -> None:
-        """Make grabs fail (``count``: how many, for ``timeout`` and ``corrupt``).
-
-        ``timeout``: no frame arrives (``CameraTimeoutError`` after the grab's timeout).
-        ``corrupt``: the frame is torn, as after a truncated USB transfer: from a random row
-        down it is black. ``disconnect``: the connection drops; grabs raise ``CameraError``
-        (``camera_not_open``) until :meth:`open`. ``unplug``: the camera is pulled out: the
-        next grab raises ``camera_disconnected`` and closes it, and :meth:`open` fails
-        (``camera_not_found``) until :meth:`replug`. ``stall``: no grab gets a frame until
-        :meth:`clear_faults`; the ``stall.limit``-th timeout in a row raises
-        ``CameraStalledError`` and closes the camera.
-        """
-        _parse_fault(name, CAMERA_FAULTS)
-        if count < 1:
-            raise ValueError(f"count must be at least 1, got {count}")
-        with self._lock:
-            self._faults[name] = count
-
-    def replug(self) -> None:
-        """Plug the camera back in after an ``unplug`` fault (it still needs :meth:`open`)."""
-        with self._lock:
-            self._faults.pop("unplug", None)
-
-    def clear_faults(self) -> None:
-        """Remove pending faults (an unplugged camera is plugged back in)."""
-        with self._lock:
-            self._faults.clear()
-
-    @property
-    def opened(self) -> bool:
-        """True from :meth:`open` until :meth:`close`, a ``disconnect``, unplug or stall."""
-        with self._lock:
-            return self._opened and "disconnect" not in self._faults
-
-    def open(self) -> None:
-        """Open the camera, or open it again after a fault; ``camera_not_found`` if unplugged."""
-        with self._lock:
-            if "unplug" in self._faults:
-                self._opened = False
-                raise CameraError("No mock camera is plugged in: plug it back in, then open "
-                                  "it.", code="camera_not_found")
-            self._opened = True
-            self._faults.pop("disconnect", None)
-            self.stall.delivered()
-
-    def close(self) -> None:
-        """Close the camera. Safe to call twice."""
-        with self._lock:
-            self._opened = False
-
-    def grab(self, *, timeout: float = 2.0) -> np.ndarray:
-        """A frame rendered now, shape (H, W) uint8 grey."""
-        fault = self._take_fault()
-        if fault in ("timeout", "stall"):
-            time.sleep(max(timeout, 0.0))
-            error = self.stall.timed_out(CameraTimeoutError(
-                f"The mock camera delivered no frame within {timeout:g} s."), "The mock camera")
-            if isinstance(error, CameraStalledError):
-                self.close()
-            raise error
-        self.stall.delivered()
-        if not self.instant:
-            period = 1.0 / self.fps  # the rest of the current frame, then one full frame
-            time.sleep(min(2.0 * period - time.monotonic() % period, timeout))
-        T_cam_target = camera_pose_for_tcp(self.scene, self.robot.true_pose)
-        with self._lock:
-            image = render_board(self._params, T_cam_target, rng=self._rng)
-            if fault == "corrupt":
-                image[int(self._rng.integers(image.shape[0] // 4, image.shape[0])):] = 0
-        return image
-
-    def _take_fault(self) -> str | None:
-        """The fault this grab suffers (``timeout``, ``stall``, ``corrupt``) or None; raises
-        for a closed, disconnected or unplugged camera."""
-        with self._lock:
-            if "unplug" in self._faults and self._opened:
-                self._opened = False
-                raise CameraError("The mock camera was disconnected (unplugged).",
-                                  code="camera_disconnected")
-            if not self._opened or "disconnect" in self._faults:
-                self._opened = False
-                raise CameraError("The mock camera is not open (unplugged?). Open it first.",
-                                  code="camera_not_open")
-            fault = next((f for f in ("stall", "timeout", "corrupt") if f in self._faults),
-                         None)
-            if fault in ("timeout", "corrupt"):
-                self._faults[fault] -= 1
-                if not self._faults[fault]:
-                    del self._faults[fault]
-        return fault
-
-    @property
-    def resolution(self) -> tuple[int, int]:
-        """(width, height) of the scene's camera."""
-        w, h = self.scene.camera.image_size
-        return int(w), int(h)
-
-    def configure(self, *, resolution: tuple[int, int] | None = None,
-                  exposure: float | None = None) -> None:
-        """Accept the scene's resolution only; accept (and ignore) any positive exposure."""
-        if resolution is not None and tuple(resolution) != self.resolution:
-            w, h = self.resolution
-            raise CameraError(f"The mock camera only delivers {w}x{h}, the scene's image size; "
-                              f"{resolution[0]}x{resolution[1]} is not supported.",
-                              code="camera_unsupported")
-        if exposure is not None and (not np.isfinite(exposure) or exposure <= 0.0):
-            raise ValueError(f"exposure must be a positive time in seconds, got {exposure}")

@@ -18,7 +18,14 @@ from typing import Annotated, Literal
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 from scipy.spatial.transform import Rotation
 
 from calib import (
@@ -30,6 +37,7 @@ from calib import (
     matrix_from_ur_pose,
     robot_from_camera,
 )
+from drivers.config_files import describe_validation_error
 
 #: Fraction of the image the pattern spans (along its tighter axis) at the working distance.
 WORKING_FILL = 0.65
@@ -295,3 +303,19 @@ def load_scene(path: str | Path) -> MockScene:
     """Read and validate a mock scene JSON file (raises pydantic ``ValidationError``)."""
     return MockScene.model_validate(json.loads(Path(path).read_text()))
 
+
+def read_scene(config: MockScene | str | Path | None) -> MockScene:
+    """The scene a mock device is configured with: a scene, a scene file, or None for the
+    default cell. Every failure to read a file is a one-line ``ValueError``."""
+    if config is None:
+        return default_scene()
+    if isinstance(config, MockScene):
+        return config
+    try:
+        return load_scene(config)
+    except OSError as exc:
+        raise ValueError(f"scene {config}: {exc.strerror or exc}") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"scene {config}: not valid JSON ({exc})") from None
+    except ValidationError as exc:
+        raise ValueError(f"scene {config}: {describe_validation_error(exc)}") from None

@@ -18,13 +18,13 @@ DeviceOpener = Callable[[], tuple[Robot, Camera]]
 
 
 def settings_opener(settings: Settings) -> DeviceOpener:
-    """Open the configured robot and camera (``mock://`` ones share the scene)."""
+    """Open the configured robot and camera, both given the configured device file
+    (``scene``)."""
 
     def open_devices() -> tuple[Robot, Camera]:
-        scene = settings.mock_scene() if settings.uses_mock else None
-        robot = open_robot(settings.robot, scene=scene)
+        robot = open_robot(settings.robot, config=settings.scene)
         try:
-            camera = open_camera(settings.camera, robot=robot, scene=scene)
+            camera = open_camera(settings.camera, robot=robot, config=settings.scene)
         except BaseException:
             robot.close()
             raise

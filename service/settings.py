@@ -7,21 +7,20 @@ without an API key all raise a ``pydantic.ValidationError`` naming the setting.
 
 from __future__ import annotations
 
+import dataclasses
 import ipaddress
-import json
 from pathlib import Path
 from typing import Annotated, Literal
-from urllib.parse import urlsplit
 
-from pydantic import Field, SecretStr, ValidationError, field_validator, model_validator
+import numpy as np
+from pydantic import Field, SecretStr, ValidationInfo, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from mocks.scene import MockScene, default_scene, load_scene
-from service.stationset import describe_validation_error
+from calib.geometry import matrix_from_ur_pose
+from drivers import registry
+from drivers.base import CellHints
 
 Vector3 = tuple[float, float, float]
-ROBOT_SCHEMES = ("ur", "mock")
-CAMERA_SCHEMES = ("v4l2", "file", "mock")
 
 
 def is_loopback(host: str) -> bool:
@@ -47,15 +46,17 @@ class Settings(BaseSettings):
                                                         "needs")
     host: str = "127.0.0.1"
     port: Annotated[int, Field(ge=1, le=65535)] = 8000
-    robot: str = Field("mock://", description="robot URL: ur://HOST or mock://")
-    camera: str = Field("mock://", description="camera URL: v4l2:///dev/videoN, file:///path "
-                                               "or mock://")
-    scene: Path | None = Field(None, description="mock scene JSON for mock:// devices "
-                                                 "(default: the built-in cell)")
+    robot: str = Field("mock://", description=f"robot URL: {registry.ROBOT_URLS}")
+    camera: str = Field("mock://", description=f"camera URL: {registry.CAMERA_URLS}")
+    scene: Path | None = Field(None, description="device configuration file handed to the "
+                                                 "backends: the mock scene JSON for mock:// "
+                                                 "devices (default: the built-in cell)")
     setup: Literal["eye_in_hand", "eye_to_hand"] | None = Field(
-        None, description="default: the scene's setup, else eye_in_hand")
+        None, description="default: what the robot's backend knows (a mock scene's setup), "
+                          "else eye_in_hand")
     target_inner_corners: tuple[int, int] | None = Field(
-        None, description="[cols, rows] of the checkerboard; default: the scene's board")
+        None, description="[cols, rows] of the checkerboard; default: what the robot's "
+                          "backend knows (a mock scene's board)")
     target_square_size_m: Annotated[float, Field(gt=0.0, lt=1.0)] | None = None
     workspace_min: Vector3 = Field((-1.5, -1.5, 0.0),
                                    description="lower corner of the TCP box, base frame, m")
@@ -63,9 +64,10 @@ class Settings(BaseSettings):
                                    description="upper corner of the TCP box, base frame, m")
     hand_eye_guess: tuple[float, float, float, float, float, float] | None = Field(
         None, description="rough hand_eye as [x, y, z, rx, ry, rz] (CAD) for automatic "
-                          "planning on a real cell; mock cells use the scene's")
+                          "planning; default: what the robot's backend knows (a mock scene's)")
     focal_px_guess: Annotated[float, Field(gt=0.0)] | None = Field(
-        None, description="rough focal length in pixels for automatic planning on a real cell")
+        None, description="rough focal length in pixels for automatic planning; default: "
+                          "what the robot's backend knows (a mock scene's camera)")
     max_stations: Annotated[int, Field(ge=3, le=10000)] = 500
     max_body_bytes: Annotated[int, Field(ge=1024)] = Field(
         4 * 2**20, description="largest request body, bytes (413 beyond); checked before the "
@@ -78,23 +80,21 @@ class Settings(BaseSettings):
     @field_validator("robot")
     @classmethod
     def _robot_scheme(cls, url: str) -> str:
-        if urlsplit(url).scheme.lower() not in ROBOT_SCHEMES:
-            raise ValueError(f"unknown robot address {url!r}; use ur://HOST or mock://")
+        registry.check_robot_url(url)
         return url
 
     @field_validator("camera")
     @classmethod
     def _camera_scheme(cls, url: str) -> str:
-        if urlsplit(url).scheme.lower() not in CAMERA_SCHEMES:
-            raise ValueError(f"unknown camera address {url!r}; use v4l2:///dev/videoN, "
-                             "file:///path or mock://")
+        registry.check_camera_url(url)
         return url
 
     @field_validator("scene")
     @classmethod
-    def _scene_loads(cls, path: Path | None) -> Path | None:
-        if path is not None:
-            _read_scene(path)
+    def _scene_loads(cls, path: Path | None, info: ValidationInfo) -> Path | None:
+        """The robot's backend reads its configuration file now, so a bad one stops startup."""
+        if path is not None and "robot" in info.data:
+            registry.describe_cell(info.data["robot"], path)
         return path
 
     @model_validator(mode="after")
@@ -107,12 +107,10 @@ class Settings(BaseSettings):
                              "key: set CELLCAL_API_KEY")
         if self.api_key is not None and len(self.api_key.get_secret_value()) < 16:
             raise ValueError("api_key must be at least 16 characters")
-        if urlsplit(self.camera).scheme.lower() == "mock" and not self.uses_mock:
-            raise ValueError("a mock:// camera renders what the mock robot sees: set the robot "
-                             "to mock:// too")
+        registry.check_pair(self.robot, self.camera)
         if (self.target_inner_corners is None) != (self.target_square_size_m is None):
             raise ValueError("give target_inner_corners and target_square_size_m together")
-        if self.target_inner_corners is None and not self.uses_mock:
+        if self.target_inner_corners is None and self.cell_hints().inner_corners is None:
             raise ValueError("a real robot needs the checkerboard: set "
                              "CELLCAL_TARGET_INNER_CORNERS (e.g. [11, 8]) and "
                              "CELLCAL_TARGET_SQUARE_SIZE_M")
@@ -125,37 +123,29 @@ class Settings(BaseSettings):
         """The SQLAlchemy URL in use."""
         return self.database_url or f"sqlite:///{self.data_dir / 'cellcal.db'}"
 
-    @property
-    def uses_mock(self) -> bool:
-        """True when the robot is simulated (a mock camera needs a mock robot)."""
-        return urlsplit(self.robot).scheme.lower() == "mock"
-
-    def mock_scene(self) -> MockScene:
-        """The scene of the mock devices: the ``scene`` file or the built-in cell."""
-        return default_scene() if self.scene is None else _read_scene(self.scene)
+    def cell_hints(self) -> CellHints:
+        """What is known about the cell before calibrating it: the settings, else what the
+        robot's backend knows (``drivers.base.DescribesCell``; a mock scene)."""
+        known = registry.describe_cell(self.robot, self.scene)
+        hints = dataclasses.replace(known, setup=self.setup or known.setup)
+        if self.target_inner_corners is not None:
+            hints = dataclasses.replace(hints, inner_corners=tuple(self.target_inner_corners),
+                                        square_size_m=self.target_square_size_m)
+        if self.hand_eye_guess is not None:
+            hints = dataclasses.replace(
+                hints, hand_eye=matrix_from_ur_pose(np.asarray(self.hand_eye_guess)))
+        if self.focal_px_guess is not None:  # K follows from it and the image size
+            hints = dataclasses.replace(hints, K=None, dist=None)
+        return hints
 
     def target(self) -> dict[str, object]:
         """The checkerboard captured runs look for (``inner_corners``, nominal square size)."""
-        if self.target_inner_corners is not None:
-            return {"inner_corners": list(self.target_inner_corners),
-                    "square_size_m": self.target_square_size_m}
-        t = self.mock_scene().target
-        return {"inner_corners": list(t.inner_corners), "square_size_m": t.square_size_m}
+        hints = self.cell_hints()
+        assert hints.inner_corners is not None  # checked at startup
+        return {"inner_corners": list(hints.inner_corners),
+                "square_size_m": hints.square_size_m}
 
     def calibration_setup(self) -> str:
-        """``eye_in_hand`` or ``eye_to_hand``: the setting, else the scene's, for mocks."""
-        if self.setup is not None:
-            return self.setup
-        return self.mock_scene().setup if self.uses_mock else "eye_in_hand"
-
-
-def _read_scene(path: Path) -> MockScene:
-    """Load a scene file, turning every failure into a one-line ``ValueError``."""
-    try:
-        return load_scene(path)
-    except OSError as exc:
-        raise ValueError(f"scene {path}: {exc.strerror or exc}") from None
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"scene {path}: not valid JSON ({exc})") from None
-    except ValidationError as exc:
-        raise ValueError(f"scene {path}: {describe_validation_error(exc)}") from None
+        """``eye_in_hand`` or ``eye_to_hand``: the setting, else the backend's, else
+        eye-in-hand."""
+        return self.cell_hints().setup or "eye_in_hand"

@@ -28,6 +28,7 @@ from pydantic import (
 
 from calib import check_ur_pose, check_ur_poses
 from drivers.capture import CapturedStation
+from drivers.config_files import describe_validation_error
 
 STATIONS_FILE = "stations.json"
 #: Default largest station count of a set; every stage scales linearly up to it.
@@ -143,18 +144,6 @@ def load_station_set(directory: str | Path, *,
         return StationSet.model_validate(raw)
     except ValidationError as exc:
         raise ValueError(f"{path}: {describe_validation_error(exc)}") from None
-
-
-def describe_validation_error(exc: ValidationError) -> str:
-    """The first pydantic error as ``where: what`` (e.g. ``stations[3].tcp_pose[2]: …``)."""
-    err = exc.errors()[0]
-    cause = err.get("ctx", {}).get("error") if err["type"] == "value_error" else None
-    msg = str(cause) if isinstance(cause, ValueError) else err["msg"]
-    where = ""
-    for part in err["loc"]:
-        where += f"[{part}]" if isinstance(part, int) else (f".{part}" if where else str(part))
-    more = f" (and {exc.error_count() - 1} more problems)" if exc.error_count() > 1 else ""
-    return f"{where or 'file'}: {msg}{more}"
 
 
 def station_record(station: CapturedStation, image_name: str) -> dict[str, Any]:

@@ -24,7 +24,7 @@ from calib import (
     target_from_station,
     ur_pose_from_matrix,
 )
-from drivers.base import Robot
+from drivers.base import GroundTruthSource, Robot
 from drivers.errors import DeviceError, RobotConnectionError
 from service import store
 from service.errors import ConflictError, ServiceError, UnprocessableError
@@ -100,28 +100,30 @@ class Validations:
         truth = self._ground_truth(robot, plan)
         report = run_dot_hit(robot, plan.points, setup=plan.setup, hand_eye=plan.hand_eye,
                              tcp_T_probe=plan.probe, observation=(P, C),
-                             workspace_check=self.motion.check_workspace, ground_truth=truth)
+                             workspace_check=self.motion.check_workspace,
+                             ground_truth=None if truth is None else truth[0])
         return {"kind": "dot_hit", "probe": ur_pose_from_matrix(plan.probe).tolist(),
                 "observation": {"tcp_pose": [float(v) for v in tcp_pose],
                                 "cam_T_target": ur_pose_from_matrix(C).tolist(),
                                 "rms_px": rms_px},
-                "ground_truth": None if truth is None else "mock scene",
+                "ground_truth": None if truth is None else truth[1],
                 **report.to_json()}
 
-    def _ground_truth(self, robot: Robot, plan: DotHitPlan) -> GroundTruth | None:
-        """The mock cell's truth: its board through the true target pose, the robot's true pose.
+    @staticmethod
+    def _ground_truth(robot: Robot, plan: DotHitPlan) -> tuple[GroundTruth, str] | None:
+        """The cell's truth if the robot knows it (``GroundTruthSource``, a simulated cell):
+        the true board and the robot's true pose, and where the truth comes from.
 
         The points are given on the calibration's (κ, ν-scaled) grid; the scale to the true
         grid is folded into ``board_pose`` so each point maps to its true corner.
         """
-        if not self.settings.uses_mock or not hasattr(robot, "true_pose"):
+        if not isinstance(robot, GroundTruthSource):
             return None
-        scene = self.settings.mock_scene()
-        t = scene.target
-        s = t.square_size_m * t.kappa / (plan.square_size * plan.kappa)
-        scale = np.diag([s * t.nu / plan.nu, s, 1.0, 1.0])
-        return GroundTruth(board_pose=scene.target_pose_matrix @ scale,
-                           tcp_pose=lambda: robot.true_pose)  # type: ignore[attr-defined]
+        board = robot.true_board()
+        s = board.square_size_m / (plan.square_size * plan.kappa)
+        scale = np.diag([s * board.nu / plan.nu, s, 1.0, 1.0])
+        return GroundTruth(board_pose=board.T_base_target @ scale,
+                           tcp_pose=robot.true_tcp_pose), board.source
 
 
 @dataclass(frozen=True)

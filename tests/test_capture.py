@@ -17,7 +17,8 @@ from calib.target import board_points, detect_checkerboard
 from drivers.capture import CapturedStation, capture_station
 from drivers.errors import RobotError
 from drivers.registry import open_camera, open_robot
-from mocks.devices import MockCamera, MockRobot
+from mocks.camera import MockCamera
+from mocks.devices import MockRobot
 from mocks.scene import default_scene, sample_station_poses
 from service.cli import main as cli
 from service.stationset import load_station_set, station_record, write_station_set
@@ -30,7 +31,7 @@ TARGET = {"type": "checkerboard", "inner_corners": list(SCENE.target.inner_corne
 
 @pytest.fixture
 def rig() -> tuple[MockRobot, MockCamera]:
-    robot = open_robot("mock://", scene=SCENE)
+    robot = open_robot("mock://", config=SCENE)
     camera = open_camera("mock://", robot=robot)
     assert isinstance(robot, MockRobot) and isinstance(camera, MockCamera)
     return robot, camera
@@ -134,7 +135,7 @@ def pnp_observations(station_dir: Path, nu: float) -> tuple[np.ndarray, np.ndarr
 @pytest.fixture(scope="module")
 def captured_set(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[CapturedStation]]:
     """Ten stations captured through mock:// devices and written as a station set."""
-    robot = open_robot("mock://", scene=SCENE)
+    robot = open_robot("mock://", config=SCENE)
     camera = open_camera("mock://", robot=robot)
     captured = [capture_station(robot, camera, p) for p in station_targets(10, 5)]
     path = write_station_set(tmp_path_factory.mktemp("capture") / "run", SCENE.setup, TARGET,

@@ -23,7 +23,8 @@ from drivers.errors import (
 )
 from drivers.stall import STALL_AFTER
 from mocks import ur_kinematics as kin
-from mocks.devices import MockCamera, MockRobot, Workspace
+from mocks.camera import MockCamera
+from mocks.devices import MockRobot, Workspace
 from mocks.scene import Noise, camera_pose_for_tcp, default_scene
 
 SCENE = default_scene()

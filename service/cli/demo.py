@@ -1,9 +1,21 @@
-"""``cellcal demo``: the service flow on a simulated cell (``service.demo``)."""
+"""``cellcal demo``: the service flow on a simulated cell.
+
+The demo belongs to the simulator (``mocks/demo.py``): it starts ``cellcal serve --mock`` and
+checks the results against the mock scene's truth. The service never imports the mocks, so the
+command names its implementation by an import string, as ``drivers.registry`` names the mock
+devices.
+"""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+from drivers.registry import resolve
+
+#: The demos, as import strings.
+DEMO = "mocks.demo:run_demo"
+POSE_DEMO = "mocks.demo:run_pose_demo"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -27,10 +39,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from service.demo import run_demo, run_pose_demo
-
     if args.poses_only:
-        return run_pose_demo(seed=args.seed, stations=args.stations)
-    return run_demo(stations=args.stations, scene=args.scene, out=args.out)
+        return resolve(POSE_DEMO)(seed=args.seed, stations=args.stations)
+    return resolve(DEMO)(stations=args.stations, scene=args.scene, out=args.out)
 
 

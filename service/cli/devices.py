@@ -15,18 +15,21 @@ from collections.abc import Callable
 
 import cv2
 import numpy as np
-from pydantic import ValidationError
 
 from calib import MIN_CONTRAST, check_ur_pose
 from drivers.base import Camera, Robot
 from drivers.errors import DeviceError
-from drivers.registry import CAMERA_URLS, ROBOT_URLS, open_camera, open_robot
-from mocks.scene import MockScene, load_scene
+from drivers.registry import (
+    CAMERA_URLS,
+    ROBOT_URLS,
+    companion_robot,
+    open_camera,
+    open_robot,
+)
 from service.cli.exit_codes import EXIT_FAILED
-from service.stationset import describe_validation_error
 
-_URLS_HELP = ("Device addresses: ur://HOST or mock:// for robots; v4l2:///dev/videoN, "
-              "file:///path or mock:// for cameras. mock:// simulates the cell of --scene "
+_URLS_HELP = (f"Device addresses: {ROBOT_URLS} for robots; {CAMERA_URLS} for cameras. "
+              "mock:// simulates the cell of --scene "
               "(default: the built-in demo cell).")
 
 
@@ -87,18 +90,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     check.set_defaults(func=_devices_check)
 
 
-def _scene(args: argparse.Namespace) -> MockScene | None:
-    """The ``--scene`` file as a validated scene, or None (the registry's default)."""
-    if args.scene is None:
-        return None
-    try:
-        return load_scene(args.scene)
-    except ValidationError as exc:
-        raise ValueError(f"{args.scene}: {describe_validation_error(exc)}") from None
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{args.scene}: not valid JSON ({exc})") from None
-
-
 def _parse_pose(text: str) -> np.ndarray:
     """``x,y,z,rx,ry,rz`` -> shape (6,), validated (finite, metres)."""
     try:
@@ -122,7 +113,7 @@ def _quiet_opencv() -> None:
 
 
 def _robot_pose(args: argparse.Namespace) -> int:
-    with contextlib.closing(open_robot(args.robot, scene=_scene(args))) as robot:
+    with contextlib.closing(open_robot(args.robot, config=args.scene)) as robot:
         print(_pose_json(robot.tcp_pose()))
     return 0
 
@@ -131,7 +122,7 @@ def _robot_move(args: argparse.Namespace) -> int:
     target = _parse_pose(args.pose)
     if args.speed <= 0 or args.acceleration <= 0:
         raise ValueError("--speed and --acceleration must be positive")
-    with contextlib.closing(open_robot(args.robot, scene=_scene(args))) as robot:
+    with contextlib.closing(open_robot(args.robot, config=args.scene)) as robot:
         robot.move_linear(target, speed=args.speed, acceleration=args.acceleration)
         robot.wait_settled(timeout=args.settle_timeout)
         print(_pose_json(robot.tcp_pose()))
@@ -144,9 +135,9 @@ def _camera_grab(args: argparse.Namespace) -> int:
         raise ValueError(f"--out {args.out}: unknown image format; use .png, .jpg, .bmp or .tif")
     with contextlib.ExitStack() as stack:
         robot = None
-        if args.camera.lower().startswith("mock:"):
+        if (companion := companion_robot(args.camera)) is not None:
             robot = stack.enter_context(contextlib.closing(
-                open_robot("mock://", scene=_scene(args))))
+                open_robot(companion, config=args.scene)))
         camera = stack.enter_context(contextlib.closing(open_camera(args.camera, robot=robot)))
         frame = camera.grab(timeout=args.timeout)
     if not cv2.imwrite(args.out, frame):
@@ -160,7 +151,6 @@ def _devices_check(args: argparse.Namespace) -> int:
     if args.robot is None and args.camera is None:
         raise ValueError("devices check: give --robot URL and/or --camera URL")
     _quiet_opencv()
-    scene = _scene(args)
     failed = False
     with contextlib.ExitStack() as stack:
         robot: Robot | None = None
@@ -168,17 +158,18 @@ def _devices_check(args: argparse.Namespace) -> int:
             def check_robot() -> str:
                 nonlocal robot
                 robot = stack.enter_context(contextlib.closing(open_robot(args.robot,
-                                                                          scene=scene)))
+                                                                          config=args.scene)))
                 return _describe_robot(robot)
 
             failed |= not _report("robot", args.robot, check_robot)
         if args.camera is not None:
             def check_camera() -> str:
-                if args.camera.lower().startswith("mock:") and robot is None:
-                    raise ValueError("a mock:// camera needs a working mock:// robot (--robot "
-                                     "mock://)")
+                companion = companion_robot(args.camera)
+                if companion is not None and robot is None:
+                    raise ValueError(f"a {args.camera} camera needs a working {companion} "
+                                     f"robot (--robot {companion})")
                 camera = stack.enter_context(contextlib.closing(
-                    open_camera(args.camera, robot=robot, scene=scene)))
+                    open_camera(args.camera, robot=robot, config=args.scene)))
                 return _describe_camera(camera)
 
             failed |= not _report("camera", args.camera, check_camera)

@@ -29,21 +29,18 @@ def plan_poses(motion: Motion, *, n: int, target: dict[str, Any],
     """Plan ``n`` stations around the board as seen from the robot's current pose.
 
     The board pose comes from one image at the current pose; the hand-eye and the camera
-    from the mock scene or, on a real cell, from the configured rough guesses. The
-    distance band is 0.8 to 1.3 times the current camera-to-board distance.
+    from the configured rough guesses or, failing those, from what the robot's backend knows
+    (``Settings.cell_hints``: a simulator knows its scene). The distance band is 0.8 to 1.3
+    times the current camera-to-board distance.
     """
     settings = motion.settings
-    if settings.uses_mock:
-        scene = settings.mock_scene()
-        X, K, dist = scene.hand_eye_matrix, scene.camera.k_matrix, scene.camera.dist_coeffs
-    elif settings.hand_eye_guess is None or settings.focal_px_guess is None:
+    hints = settings.cell_hints()
+    if hints.hand_eye is None or (hints.K is None and settings.focal_px_guess is None):
         raise UnprocessableError(
-            "Automatic planning on a real cell needs rough guesses: set "
+            "Automatic planning needs rough guesses of the hand-eye and the focal length: set "
             "CELLCAL_HAND_EYE_GUESS ([x, y, z, rx, ry, rz]) and CELLCAL_FOCAL_PX_GUESS, or "
             "give the stations as 'poses'.", code="planning_unavailable")
-    else:
-        X = matrix_from_ur_pose(np.asarray(settings.hand_eye_guess))
-        K, dist = None, None
+    X, K, dist = hints.hand_eye, hints.K, hints.dist
     robot, camera = motion.devices.get()
     with motion.robot_lock:
         P0 = matrix_from_ur_pose(robot.tcp_pose())
