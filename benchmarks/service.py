@@ -93,10 +93,10 @@ def clean_env(**extra: str) -> dict[str, str]:
 @contextlib.contextmanager
 def serve(data_dir: Path, key: str) -> Iterator[str]:
     """``cellcal serve --mock`` on a free loopback port; yields the base URL, always reaped."""
-    from service.local import local_service
+    from service.local import ServeOptions, local_service
 
-    with local_service(data_dir / "data", key, env=clean_env(),
-                       startup_timeout=STARTUP_TIMEOUT_S) as service:
+    with local_service(data_dir / "data", key,
+                       ServeOptions(env=clean_env(), startup_timeout=STARTUP_TIMEOUT_S)) as service:
         yield service.url
 
 

@@ -46,7 +46,7 @@ class Robot(Protocol):
         """Release the connection. Safe to call twice."""
 
     def tcp_pose(self) -> np.ndarray:
-        """Actual TCP pose, shape (6,), base_T_tcp as a UR pose vector."""
+        """Actual TCP pose, shape (6,), T_base_tcp as a UR pose vector."""
 
     def joint_positions(self) -> np.ndarray:
         """Actual joint angles, shape (6,), radians."""

@@ -24,7 +24,7 @@ class CapturedStation:
     """
 
     image: np.ndarray  # shape (H, W) or (H, W, 3), uint8
-    tcp_pose: np.ndarray  # shape (6,), base_T_tcp read after the grab
+    tcp_pose: np.ndarray  # shape (6,), T_base_tcp read after the grab
     target_tcp_pose: np.ndarray  # shape (6,), the commanded pose
     moved_at: float  # move command sent
     settled_at: float  # robot at rest
@@ -32,26 +32,38 @@ class CapturedStation:
     pose_read_at: float  # tcp_pose read
 
 
-def capture_station(robot: Robot, camera: Camera, tcp_target: np.ndarray, *,
-                    settle_timeout: float = 5.0, grab_timeout: float = 2.0,
-                    speed: float = 0.25, acceleration: float = 1.2,
-                    max_drift: tuple[float, float] = (1e-4, 1e-3)) -> CapturedStation:
+@dataclass(frozen=True)
+class CaptureOptions:
+    """How a station is visited: ``settle_timeout`` and ``grab_timeout`` in seconds, the move's
+    ``speed`` (m/s) and ``acceleration`` (m/s^2), and ``max_drift`` (metres, radians): how far
+    the robot may move while the image is taken (``grab_at_rest``)."""
+
+    settle_timeout: float = 5.0
+    grab_timeout: float = 2.0
+    speed: float = 0.25
+    acceleration: float = 1.2
+    max_drift: tuple[float, float] = (1e-4, 1e-3)
+
+
+def capture_station(robot: Robot, camera: Camera, tcp_target: np.ndarray,
+                    options: CaptureOptions = CaptureOptions()) -> CapturedStation:
     """Move to ``tcp_target`` (UR pose, shape (6,)), settle, grab a fresh frame, read the pose.
 
     The pose is read *after* the grab, and compared with a reading taken just before it. The
     camera returns a frame exposed after the grab call, so the reading after it describes a
-    state no earlier than the exposure; if the two readings differ by more than ``max_drift``
-    (metres, radians) the robot moved while the image was taken (it had not really settled,
-    or was bumped) and the station is refused with ``RobotError`` (code
+    state no earlier than the exposure; if the two readings differ by more than
+    ``options.max_drift`` the robot moved while the image was taken (it had not really
+    settled, or was bumped) and the station is refused with ``RobotError`` (code
     ``moved_during_grab``) rather than pairing an image with the wrong pose.
     """
     check_ur_pose(tcp_target, "tcp_target")
     target = np.asarray(tcp_target, dtype=float)
     moved_at = time.time()
-    robot.move_linear(target, speed=speed, acceleration=acceleration)
-    robot.wait_settled(timeout=settle_timeout)
+    robot.move_linear(target, speed=options.speed, acceleration=options.acceleration)
+    robot.wait_settled(timeout=options.settle_timeout)
     settled_at = time.time()
-    still = grab_at_rest(robot, camera, grab_timeout=grab_timeout, max_drift=max_drift)
+    still = grab_at_rest(robot, camera, grab_timeout=options.grab_timeout,
+                         max_drift=options.max_drift)
     return CapturedStation(image=still.image, tcp_pose=still.tcp_pose, target_tcp_pose=target,
                            moved_at=moved_at, settled_at=settled_at,
                            grabbed_at=still.grabbed_at, pose_read_at=still.pose_read_at)
@@ -62,7 +74,7 @@ class Still:
     """A frame of a robot at rest and the pose read after it (``grab_at_rest``)."""
 
     image: np.ndarray  # shape (H, W) or (H, W, 3), uint8
-    tcp_pose: np.ndarray  # shape (6,), base_T_tcp read after the grab
+    tcp_pose: np.ndarray  # shape (6,), T_base_tcp read after the grab
     grabbed_at: float  # frame returned by the camera, time.time()
     pose_read_at: float  # tcp_pose read, time.time()
 

@@ -6,10 +6,19 @@ The service maps these to HTTP statuses in one place; the CLI prints ``str(err)`
 from __future__ import annotations
 
 
-class DeviceError(Exception):
-    """A device could not do what was asked. ``code`` is stable; the message is for people."""
+class CodedError(Exception):
+    """An error with a stable machine-readable ``code`` and a message for people.
 
-    code = "device_error"
+    Subclasses name their code in the class line (``class X(CodedError, code="x")``); one
+    instance may carry a more specific one (``X("...", code="y")``).
+    """
+
+    code = "error"
+
+    def __init_subclass__(cls, *, code: str | None = None, **kwargs: object) -> None:
+        super().__init_subclass__(**kwargs)
+        if code is not None:
+            cls.code = code
 
     def __init__(self, message: str, *, code: str | None = None) -> None:
         super().__init__(message)
@@ -17,43 +26,39 @@ class DeviceError(Exception):
             self.code = code
 
 
-class RobotError(DeviceError):
-    code = "robot_error"
+class DeviceError(CodedError, code="device_error"):
+    """A device could not do what was asked."""
 
 
-class RobotConnectionError(RobotError):
+class RobotError(DeviceError, code="robot_error"):
+    """The robot refused or failed a command."""
+
+
+class RobotConnectionError(RobotError, code="robot_unreachable"):
     """The controller cannot be reached, or the connection dropped."""
 
-    code = "robot_unreachable"
+
+class ProtectiveStopError(RobotError, code="protective_stop"):
+    """The robot stopped itself (a collision or a safety limit); unlock it, then retry."""
 
 
-class ProtectiveStopError(RobotError):
-    code = "protective_stop"
+class EmergencyStopError(RobotError, code="emergency_stop"):
+    """An emergency stop is pressed."""
 
 
-class EmergencyStopError(RobotError):
-    code = "emergency_stop"
-
-
-class WorkspaceError(RobotError):
+class WorkspaceError(RobotError, code="outside_workspace"):
     """A requested target lies outside the configured workspace limits."""
 
-    code = "outside_workspace"
+
+class CameraError(DeviceError, code="camera_error"):
+    """The camera failed, or is not there."""
 
 
-class CameraError(DeviceError):
-    code = "camera_error"
-
-
-class CameraTimeoutError(CameraError):
+class CameraTimeoutError(CameraError, code="camera_timeout"):
     """One grab got no frame in time; the camera may still deliver the next one."""
 
-    code = "camera_timeout"
 
-
-class CameraStalledError(CameraError):
+class CameraStalledError(CameraError, code="camera_stalled"):
     """Several grabs in a row got no frame (``drivers.stall``): the camera stopped delivering
     and was closed; ``open()`` it again once it is fixed. Not a ``CameraTimeoutError``: retrying
     the grab does not help."""
-
-    code = "camera_stalled"

@@ -1,6 +1,6 @@
 """Universal Robots arms through the ``ur-rtde`` client (``rtde_control`` / ``rtde_receive``).
 
-``URRobot`` implements ``drivers.base.Robot``. Poses are UR pose vectors, base_T_tcp, metres and
+``URRobot`` implements ``drivers.base.Robot``. Poses are UR pose vectors, T_base_tcp, metres and
 radians (``docs/conventions.md``). Every failure reaches the caller as a ``drivers.errors``
 subclass whose message a shop-floor person can act on; no ``RuntimeError`` from ur-rtde escapes.
 
@@ -263,7 +263,7 @@ class URRobot(RobotSession):
             raise self._runtime_error(err) from err
 
     def tcp_pose(self) -> np.ndarray:
-        """Actual TCP pose, shape (6,), base_T_tcp as a UR pose vector."""
+        """Actual TCP pose, shape (6,), T_base_tcp as a UR pose vector."""
         return np.asarray(self._read("getActualTCPPose"), dtype=float)
 
     def joint_positions(self) -> np.ndarray:

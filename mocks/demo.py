@@ -20,6 +20,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
 from typing import Any
@@ -30,9 +31,9 @@ from tqdm import tqdm
 
 from calib import POSE_METHODS, calibrate_hand_eye, pose_error
 from mocks.posesim import default_cell, simulate
-from mocks.scene import MockScene, default_scene, load_scene
+from mocks.scene import MockScene, read_scene
 from service.exports import FORMATS
-from service.local import ServiceStartError, local_service
+from service.local import ServeOptions, ServiceStartError, local_service
 
 #: Seconds to wait for the service to answer /health, and for a calibration or validation.
 JOB_TIMEOUT_S = 90.0
@@ -55,12 +56,12 @@ def run_demo(*, stations: int = 15, scene: Path | None = None, out: Path | None 
     try:
         out.mkdir(parents=True, exist_ok=True)
         with _service(scene) as client:
-            run, result, report, files = _flow(client, stations, out)
-        truth = default_scene() if scene is None else load_scene(scene)
+            outcome = _flow(client, stations, out)
+        truth = read_scene(scene)
     except (DemoError, httpx.HTTPError, OSError) as exc:
         print(f"cellcal: error: demo: {exc}", file=sys.stderr)
         return 1
-    print(_summary(truth, run, result, report, out, files, time.monotonic() - started))
+    print(_summary(truth, outcome, time.monotonic() - started))
     return 0
 
 
@@ -75,8 +76,8 @@ def _service(scene: Path | None) -> Iterator[httpx.Client]:
     data = Path(tempfile.mkdtemp(prefix="cellcal-demo-data-"))
     previous = _raise_on_sigterm()
     try:
-        with local_service(data / "service", secrets.token_urlsafe(24), scene=scene,
-                           log=data / "serve.log") as service, \
+        with local_service(data / "service", secrets.token_urlsafe(24),
+                           ServeOptions(scene=scene, log=data / "serve.log")) as service, \
                 httpx.Client(base_url=service.url, timeout=30.0,
                              headers={"Authorization": f"Bearer {service.key}"}) as client:
             print(f"service: {service.url} (mock cell{'' if scene is None else f' {scene}'}; "
@@ -134,10 +135,20 @@ def _timed(label: str, step: Callable[[], dict[str, Any]]) -> dict[str, Any]:
     return doc
 
 
-def _flow(client: httpx.Client, stations: int, out: Path
-          ) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any] | None, list[str]]:
-    """Capture, calibrate, validate (eye-in-hand), export into ``out``; (run, result,
-    validation report or None, file names written)."""
+@dataclass(frozen=True)
+class _Outcome:
+    """What the flow produced: the run, the result document, the dot-hit report (None
+    eye-to-hand), the files written (the result first) into ``out``."""
+
+    run: dict[str, Any]
+    result: dict[str, Any]
+    report: dict[str, Any] | None
+    files: list[str]
+    out: Path
+
+
+def _flow(client: httpx.Client, stations: int, out: Path) -> _Outcome:
+    """Capture, calibrate, validate (eye-in-hand), export into ``out``."""
     run_id = _call(client, "POST", "/runs", 201, json={"stations": stations}).json()["id"]
     run = _watch_capture(client, run_id, stations)
     cal_id = _call(client, "POST", f"/runs/{run_id}/calibrations", 202, json={}).json()["id"]
@@ -154,7 +165,7 @@ def _flow(client: httpx.Client, stations: int, out: Path
         r = _call(client, "GET", f"/calibrations/{cal_id}/export", 200, params={"format": fmt})
         files.append(r.headers["content-disposition"].split('filename="')[1].rstrip('"'))
         (out / files[-1]).write_bytes(r.content)
-    return run, result, report, files
+    return _Outcome(run=run, result=result, report=report, files=files, out=out)
 
 
 def _watch_capture(client: httpx.Client, run_id: str, stations: int) -> dict[str, Any]:
@@ -184,9 +195,10 @@ def _watch_capture(client: httpx.Client, run_id: str, stations: int) -> dict[str
 
 # ---- the summary -----------------------------------------------------------------------------
 
-def _summary(truth: MockScene, run: dict[str, Any], result: dict[str, Any],
-             report: dict[str, Any] | None, out: Path, files: list[str], wall_s: float) -> str:
+def _summary(truth: MockScene, outcome: _Outcome, wall_s: float) -> str:
     """What a person wants to read: errors against the truth, with the reported σ."""
+    run, result, report = outcome.run, outcome.result, outcome.report
+    out, files = outcome.out, outcome.files
     unc = result["uncertainty"]
     cam, target = result["camera"], result["target"]
     he_r, he_t = pose_error(np.asarray(result["hand_eye"]["matrix"]), truth.hand_eye_matrix)

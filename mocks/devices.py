@@ -100,30 +100,41 @@ def parse_fault(spec: str, known: tuple[str, ...]) -> tuple[str, float | None]:
         raise ValueError(f"fault {name!r}: value {value!r} is not a number") from None
 
 
+@dataclass(frozen=True)
+class MockTiming:
+    """How a mock robot moves in time.
+
+    ``instant``: moves take no time and settle at once; otherwise they follow a trapezoidal
+    velocity profile (as the UR emulator does) and then ring out for ``settle_time`` s.
+    ``speed``: the speed slider, the fraction of the commanded speed and acceleration used.
+    """
+
+    instant: bool = True
+    speed: float = 1.0
+    settle_time: float = 0.2
+
+
 class MockRobot(RobotSession):
     """A simulated arm implementing ``drivers.base.Robot`` over a ``MockScene``.
 
     Parameters
     ----------
     scene : the cell; the robot starts at ``scene.start_pose()``.
-    instant : moves take no time and settle at once; otherwise they follow a trapezoidal
-        velocity profile (as the UR emulator does) and then ring out for ``settle_time`` s.
-    speed : speed slider, the fraction of the commanded speed and acceleration actually used.
+    timing : instant moves (the default) or timed ones, see ``MockTiming``.
     seed : seed of the robot noise draws (default: the scene's seed).
-    settle_time : ringing time (s) after a timed move before ``wait_settled`` returns.
     workspace : limits every move target must respect.
     faults : fault specs ``NAME[=VALUE]`` injected from the start (see :meth:`inject_fault`).
     """
 
-    def __init__(self, scene: MockScene, *, instant: bool = True, speed: float = 1.0,
-                 seed: int | None = None, settle_time: float = 0.2,
-                 workspace: Workspace | None = None, faults: Iterable[str] = ()) -> None:
-        if not 0.0 < speed <= 1.0:
-            raise ValueError(f"speed slider must be in (0, 1], got {speed}")
+    def __init__(self, scene: MockScene, *, timing: MockTiming = MockTiming(),
+                 seed: int | None = None, workspace: Workspace | None = None,
+                 faults: Iterable[str] = ()) -> None:
+        if not 0.0 < timing.speed <= 1.0:
+            raise ValueError(f"speed slider must be in (0, 1], got {timing.speed}")
         self.scene = scene
-        self.instant = instant
-        self.speed = speed
-        self.settle_time = 0.0 if instant else settle_time
+        self.instant = timing.instant
+        self.speed = timing.speed
+        self.settle_time = 0.0 if timing.instant else timing.settle_time
         self.workspace = workspace if workspace is not None else Workspace()
         self._rng = np.random.default_rng([scene.seed if seed is None else seed, 1])
         self._lock = threading.Lock()
@@ -297,6 +308,24 @@ class MockRobot(RobotSession):
             raise RobotConnectionError("Not connected to the mock robot. Connect first.",
                                        code="robot_not_connected")
 
+    def _take_move_faults(self) -> tuple[str | None, float]:
+        """The injected faults a move consumes (call holding the lock): raises for an
+        ``unreachable`` target; the fault that breaks the move midway (or None) and the extra
+        settling time of a ``slow`` one."""
+        if "unreachable" in self._faults:
+            del self._faults["unreachable"]
+            raise RobotError(
+                "The robot did not complete the move: the target may be out of reach or "
+                "outside the safety limits.", code="motion_failed")
+        fault = next((f for f in ("protective_stop", "disconnect") if f in self._faults), None)
+        if fault:
+            del self._faults[fault]
+        extra_settle = 0.0
+        if "slow" in self._faults:
+            value = self._faults.pop("slow")
+            extra_settle = _DEFAULT_SLOW_S if value is None else max(value, 0.0)
+        return fault, extra_settle
+
     def _draw_noise(self) -> np.ndarray:
         """One reading-error transform (4, 4) from the scene's robot noise."""
         n = self.scene.noise
@@ -316,19 +345,7 @@ class MockRobot(RobotSession):
                 raise ProtectiveStopError(
                     "The robot is in a protective stop. Unlock it, then retry.")
             self.workspace.check(target)
-            if "unreachable" in self._faults:
-                del self._faults["unreachable"]
-                raise RobotError(
-                    "The robot did not complete the move: the target may be out of reach or "
-                    "outside the safety limits.", code="motion_failed")
-            fault = next((f for f in ("protective_stop", "disconnect") if f in self._faults),
-                         None)
-            if fault:
-                del self._faults[fault]
-            extra_settle = 0.0
-            if "slow" in self._faults:
-                value = self._faults.pop("slow")
-                extra_settle = _DEFAULT_SLOW_S if value is None else max(value, 0.0)
+            fault, extra_settle = self._take_move_faults()
             self._moving = True
             self._stop.clear()
         v, a = speed * self.speed, acceleration * self.speed

@@ -51,20 +51,38 @@ def default_cell(setup: str = "eye_in_hand", *, inner_corners: tuple[int, int] =
     return Cell(setup=setup, hand_eye=X, target_pose=Y, board_points=board)
 
 
-def sample_camera_poses(cell: Cell, n: int, rng: np.random.Generator, *,
-                        distance: tuple[float, float] = (0.35, 0.6),
-                        max_tilt_deg: float = 35.0, margin_px: float = 20.0) -> np.ndarray:
+@dataclass(frozen=True)
+class ViewSpread:
+    """How :func:`sample_camera_poses` spreads the views: ``distance`` range (m), the tilt from
+    the board normal (up to ``max_tilt_deg``), and ``margin_px`` of image border to spare."""
+
+    distance: tuple[float, float] = (0.35, 0.6)
+    max_tilt_deg: float = 35.0
+    margin_px: float = 20.0
+
+
+@dataclass(frozen=True)
+class StationNoise:
+    """Noise of :func:`simulate`: robot readings (radians, metres) and corners (pixels)."""
+
+    robot_rot_sigma: float = float(np.deg2rad(0.05))
+    robot_trans_sigma: float = 0.25e-3
+    pixel_noise: float = 0.15
+
+
+def sample_camera_poses(cell: Cell, n: int, rng: np.random.Generator,
+                        spread: ViewSpread = ViewSpread()) -> np.ndarray:
     """T_cam_target for ``n`` views that see the whole board, shape (n, 4, 4).
 
-    Each camera looks at a point near the board centre from a distance in ``distance``, with its
-    axis tilted up to ``max_tilt_deg`` from the board normal about a random axis and a random
-    roll, so the motions between views rotate about varied axes.
+    Each camera looks at a point near the board centre from a distance in ``spread.distance``,
+    with its axis tilted up to ``spread.max_tilt_deg`` from the board normal about a random axis
+    and a random roll, so the motions between views rotate about varied axes.
     """
     centre = cell.board_points.mean(axis=0)
     w, h = cell.image_size
     poses: list[np.ndarray] = []
     while len(poses) < n:
-        tilt = np.deg2rad(max_tilt_deg) * np.sqrt(rng.uniform())
+        tilt = np.deg2rad(spread.max_tilt_deg) * np.sqrt(rng.uniform())
         azim = rng.uniform(0.0, 2.0 * np.pi)
         view = np.array([np.sin(tilt) * np.cos(azim), np.sin(tilt) * np.sin(azim), np.cos(tilt)])
         z = view  # camera axis in the target frame, pointing into the board
@@ -74,11 +92,11 @@ def sample_camera_poses(cell: Cell, n: int, rng: np.random.Generator, *,
         roll = Rotation.from_rotvec(z * rng.uniform(-np.pi, np.pi)).as_matrix()
         R_target_cam = roll @ np.stack([x, y, z], axis=1)
         aim = centre + rng.normal(0.0, 0.02, 3) * [1.0, 1.0, 0.0]
-        T_target_cam = make_transform(R_target_cam, aim - rng.uniform(*distance) * z)
+        T_target_cam = make_transform(R_target_cam, aim - rng.uniform(*spread.distance) * z)
         C = invert(T_target_cam)
         uv = project(cell, C, cell.board_points)
-        if (uv.min(axis=0) > margin_px).all() and (uv.max(axis=0) < [w - margin_px,
-                                                                     h - margin_px]).all():
+        m = spread.margin_px
+        if (uv.min(axis=0) > m).all() and (uv.max(axis=0) < [w - m, h - m]).all():
             poses.append(C)
     return np.stack(poses)
 
@@ -112,11 +130,11 @@ def pnp_observations(cell: Cell, C: np.ndarray, pixel_noise: float,
     return out
 
 
-def simulate(cell: Cell, n: int, rng: np.random.Generator, *,
-             robot_rot_sigma: float = np.deg2rad(0.05), robot_trans_sigma: float = 0.25e-3,
-             pixel_noise: float = 0.15) -> tuple[np.ndarray, np.ndarray]:
+def simulate(cell: Cell, n: int, rng: np.random.Generator,
+             noise: StationNoise = StationNoise()) -> tuple[np.ndarray, np.ndarray]:
     """Noisy station data: robot readings T_base_tcp and PnP camera poses, each (n, 4, 4)."""
     C_true = sample_camera_poses(cell, n, rng)
-    P = perturb(robot_poses(cell, C_true), robot_rot_sigma, robot_trans_sigma, rng)
-    C = pnp_observations(cell, C_true, pixel_noise, rng) if pixel_noise > 0 else C_true
+    P = perturb(robot_poses(cell, C_true), noise.robot_rot_sigma, noise.robot_trans_sigma, rng)
+    C = (pnp_observations(cell, C_true, noise.pixel_noise, rng) if noise.pixel_noise > 0
+         else C_true)
     return P, C

@@ -13,6 +13,7 @@ Everything here is noise-free truth; drivers add the scene's noise when they rep
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -200,25 +201,33 @@ def tcp_pose_for_camera(scene: MockScene, T_cam_target: np.ndarray) -> np.ndarra
                              scene.target_pose_matrix, scene.setup)
 
 
-def sample_station_poses(scene: MockScene, n: int, rng: np.random.Generator, *,
-                         max_tilt_deg: float = 35.0,
-                         distance_band: tuple[float, float] = (0.8, 1.3),
-                         margin_frac: float = 0.04) -> np.ndarray:
+@dataclass(frozen=True)
+class StationSpread:
+    """How :func:`sample_station_poses` spreads the stations (see there)."""
+
+    max_tilt_deg: float = 35.0
+    distance_band: tuple[float, float] = (0.8, 1.3)
+    margin_frac: float = 0.04
+
+
+def sample_station_poses(scene: MockScene, n: int, rng: np.random.Generator,
+                         spread: StationSpread = StationSpread()) -> np.ndarray:
     """Varied, realistic calibration stations T_base_tcp, shape (n, 4, 4).
 
     Each station looks at a point near the pattern centre from a view direction tilted up to
-    ``max_tilt_deg`` from the board normal about a random in-plane axis, at a distance drawn
-    from ``distance_band`` times the working distance, rolled by a random angle in ±180° about
-    the optical axis. Views are rejected until the whole board plate outline (pattern plus one
-    square of white margin) projects inside the image with ``margin_frac`` of the smaller
-    image side to spare. Poses are true (noise-free) commands.
+    ``spread.max_tilt_deg`` from the board normal about a random in-plane axis, at a distance
+    drawn from ``spread.distance_band`` times the working distance, rolled by a random angle in
+    ±180° about the optical axis. Views are rejected until the whole board plate outline
+    (pattern plus one square of white margin) projects inside the image with
+    ``spread.margin_frac`` of the smaller image side to spare. Poses are true (noise-free)
+    commands.
     """
     cols, rows = scene.target.inner_corners
     s = scene.target.square_size_m * scene.target.kappa
     sx = s * scene.target.nu
     outline = _rectangle_outline((-2.0 * sx, -2.0 * s), ((cols + 1) * sx, (rows + 1) * s))
     w, h = scene.camera.image_size
-    margin = margin_frac * min(w, h)
+    margin = spread.margin_frac * min(w, h)
     centre = scene.pattern_centre()
     d0 = scene.working_distance()
     half_extent = np.array([(cols - 1) * sx, (rows - 1) * s, 0.0]) / 2
@@ -228,11 +237,11 @@ def sample_station_poses(scene: MockScene, n: int, rng: np.random.Generator, *,
     for _ in range(1000 * n):
         if len(out) == n:
             break
-        tilt = np.deg2rad(max_tilt_deg) * np.sqrt(rng.uniform())
+        tilt = np.deg2rad(spread.max_tilt_deg) * np.sqrt(rng.uniform())
         azimuth = rng.uniform(-np.pi, np.pi)
         roll = rng.uniform(-np.pi, np.pi)
         look_at = centre + half_extent * rng.uniform(-0.2, 0.2, 3) * [1.0, 1.0, 0.0]
-        T = _look_at_pose(look_at, tilt, azimuth, roll, d0 * rng.uniform(*distance_band))
+        T = _look_at_pose(look_at, tilt, azimuth, roll, d0 * rng.uniform(*spread.distance_band))
         uv, _ = cv2.projectPoints(outline, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3],
                                   scene.camera.k_matrix, scene.camera.dist_coeffs)
         uv = uv.reshape(-1, 2)

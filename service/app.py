@@ -84,7 +84,7 @@ def create_app(settings: Settings | None = None, *,
         description="Capture calibration stations with a robot and a camera, compute the "
                     "camera intrinsics and the hand-eye transform. Every call but /health "
                     "needs `Authorization: Bearer <CELLCAL_API_KEY>`. Units: metres and "
-                    "radians; poses are UR vectors [x, y, z, rx, ry, rz] (base_T_tcp).")
+                    "radians; poses are UR vectors [x, y, z, rx, ry, rz] (T_base_tcp).")
     app.state.settings = settings
     app.include_router(health.router)
     # registry before calibrations: /calibrations/active is not a calibration id

@@ -1,35 +1,31 @@
 """The requests the service refuses: one exception family, mapped to HTTP in ``service.app``.
 
 Domain code raises these (never an HTTP exception), so the same rules serve the REST API, the
-background threads and the tests; ``code`` is stable for programs, the message is for people.
+background threads and the tests; ``code`` is stable for programs, the message is for people
+(``drivers.errors.CodedError``).
 """
 
 from __future__ import annotations
 
-
-class ServiceError(Exception):
-    """A request the service refuses; ``code`` is stable, the message is for people."""
-
-    code = "service_error"
-
-    def __init__(self, detail: str, *, code: str | None = None) -> None:
-        super().__init__(detail)
-        self.detail = detail
-        if code is not None:
-            self.code = code
+from drivers.errors import CodedError
 
 
-class NotFoundError(ServiceError):
-    code = "not_found"
+class ServiceError(CodedError, code="service_error"):
+    """A request the service refuses (400 unless a subclass says otherwise)."""
 
 
-class ConflictError(ServiceError):
-    code = "conflict"
+class NotFoundError(ServiceError, code="not_found"):
+    """No such run, station, calibration or validation (404)."""
 
 
-class UnprocessableError(ServiceError):
-    code = "invalid_request"
+class ConflictError(ServiceError, code="conflict"):
+    """The request does not fit the current state: the robot is busy, the run is in the wrong
+    state (409)."""
 
 
-class AuthError(ServiceError):
-    code = "unauthorized"
+class UnprocessableError(ServiceError, code="invalid_request"):
+    """The request is well-formed but cannot be done (422)."""
+
+
+class AuthError(ServiceError, code="unauthorized"):
+    """Missing or wrong API key (401)."""

@@ -38,27 +38,38 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+@dataclass(frozen=True)
+class ServeOptions:
+    """How the child service runs: its mock ``scene`` file, its environment ``env`` before the
+    two settings (default: this process's), its ``log`` file (default: next to the data
+    directory) and how long it may take to answer ``/health`` (s)."""
+
+    scene: Path | None = None
+    env: dict[str, str] | None = None
+    log: Path | None = None
+    startup_timeout: float = STARTUP_TIMEOUT_S
+
+
 @contextlib.contextmanager
-def local_service(data_dir: Path, key: str, *, scene: Path | None = None,
-                  env: dict[str, str] | None = None, log: Path | None = None,
-                  startup_timeout: float = STARTUP_TIMEOUT_S) -> Iterator[LocalService]:
+def local_service(data_dir: Path, key: str,
+                  options: ServeOptions = ServeOptions()) -> Iterator[LocalService]:
     """``cellcal serve --mock`` over ``data_dir`` with API key ``key``; yields it once healthy.
 
     The child gets its own process group, so the calibration worker it spawns stops with it.
-    ``env`` (default: this process's) is the child's environment before the two settings.
     """
     port = free_port()
-    log = log or data_dir.parent / f"serve-{port}.log"
+    log = options.log or data_dir.parent / f"serve-{port}.log"
+    scene = options.scene
     cmd = [sys.executable, "-m", "service.cli", "serve", "--mock", "--host", "127.0.0.1",
            "--port", str(port), *(["--scene", str(scene)] if scene is not None else [])]
-    child_env = {**(os.environ if env is None else env), "CELLCAL_DATA_DIR": str(data_dir),
-                 "CELLCAL_API_KEY": key}
+    child_env = {**(os.environ if options.env is None else options.env),
+                 "CELLCAL_DATA_DIR": str(data_dir), "CELLCAL_API_KEY": key}
     with log.open("wb") as sink:
         proc = subprocess.Popen(cmd, env=child_env, stdout=sink, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, start_new_session=True)
     try:
         service = LocalService(url=f"http://127.0.0.1:{port}", key=key, proc=proc, log=log)
-        _wait_healthy(service, startup_timeout)
+        _wait_healthy(service, options.startup_timeout)
         yield service
     finally:
         stop(proc)

@@ -1,6 +1,6 @@
 """Request and response shapes of the REST API (pydantic): create shapes apart from public ones.
 
-Poses are UR vectors ``[x, y, z, rx, ry, rz]`` (metres, rotation vector in radians), base_T_tcp,
+Poses are UR vectors ``[x, y, z, rx, ry, rz]`` (metres, rotation vector in radians), T_base_tcp,
 as everywhere in cellcal (``docs/conventions.md``).
 """
 
@@ -19,7 +19,7 @@ Pose = Annotated[list[FiniteFloat], Field(min_length=6, max_length=6,
                                           description="[x, y, z, rx, ry, rz], m and rad")]
 RunState = Literal["capturing", "paused", "done", "failed", "cancelled", "interrupted"]
 ExportFormat = Literal[FORMATS]  # type: ignore[valid-type]
-#: tcp_T_probe of the default dot-hit probe: 10 cm along tool z.
+#: T_tcp_probe of the default dot-hit probe: 10 cm along tool z.
 DEFAULT_PROBE = (0.0, 0.0, 0.1, 0.0, 0.0, 0.0)
 
 
@@ -136,6 +136,8 @@ class CalibrationCreate(_Input):
 
 
 class CalibrationPublic(BaseModel):
+    model_config = ConfigDict(from_attributes=True)  # read from the stored row
+
     id: str
     run_id: str
     state: Literal["running", "done", "failed"]
@@ -150,7 +152,7 @@ class ValidationCreate(_Input):
     """A dot-hit run (SM eq. 24): the robot touches board points with a probe."""
 
     probe: Pose = Field(default_factory=lambda: list(DEFAULT_PROBE),
-                        description="tcp_T_probe [x, y, z, rx, ry, rz]: the probe tip in the "
+                        description="T_tcp_probe [x, y, z, rx, ry, rz]: the probe tip in the "
                                     "TCP frame, the probe along its z axis; default a 10 cm "
                                     "probe along tool z")
     points: Annotated[list[str], Field(min_length=1, max_length=100)] | None = Field(
@@ -160,6 +162,8 @@ class ValidationCreate(_Input):
 
 
 class ValidationPublic(BaseModel):
+    model_config = ConfigDict(from_attributes=True)  # read from the stored row
+
     id: str
     calibration_id: str
     kind: Literal["dot_hit"]

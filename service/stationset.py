@@ -1,8 +1,8 @@
 """The station-set file format (``cellcal/stations@1``, product.md): schema and loading.
 
 A station set is a directory with ``stations.json`` and the images it names. Each station carries
-a robot pose (``tcp_pose``, base_T_tcp) and either an ``image`` or a measured ``target_pose``
-(cam_T_target, pose-only hand-eye). Poses are UR vectors in metres and radians.
+a robot pose (``tcp_pose``, T_base_tcp) and either an ``image`` or a measured ``target_pose``
+(T_cam_target, pose-only hand-eye). Poses are UR vectors in metres and radians.
 """
 
 from __future__ import annotations
@@ -105,7 +105,7 @@ class StationSet(BaseModel):
         return all(s.target_pose is not None for s in self.stations)
 
     def pose_arrays(self) -> tuple[np.ndarray, np.ndarray]:
-        """base_T_tcp and cam_T_target, each (n, 4, 4), of a pose-only set; validated."""
+        """T_base_tcp and T_cam_target, each (n, 4, 4), of a pose-only set; validated."""
         missing = [s.id for s in self.stations if s.tcp_pose is None]
         if missing:
             raise ValueError(f"station {missing[0]} has no tcp_pose: hand-eye needs one per "

@@ -216,12 +216,12 @@ def move_run(s: Session, *, run_id: str, from_state: str, **values: Any) -> bool
     return bool(changed)
 
 
-def finish_run(s: Session, *, run_id: str, token: str, state: str, error: str | None,
-               code: str | None) -> bool:
-    """End the run in ``state`` if thread ``token`` still owns it; True if it did."""
+def finish_run(s: Session, *, run_id: str, token: str, **values: Any) -> bool:
+    """End the run (``state``, ``error``, ``error_code``) if thread ``token`` still owns it;
+    True if it did."""
     changed = s.execute(
         update(Run).where(Run.id == run_id, Run.owner == token, Run.state == "capturing")
-        .values(state=state, owner=None, error=error, error_code=code)).rowcount
+        .values(owner=None, **values)).rowcount
     s.commit()
     return bool(changed)
 

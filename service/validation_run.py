@@ -5,11 +5,11 @@ commanded to put its probe tip on each of them, and the reached positions are re
 the truth is known (a simulated cell) the distance between the probe tip and the true point is
 the end-to-end error of the calibration, the number a user of the cell cares about.
 
-Reconstruction (eq. 24, ``D_r = C⁻¹ X D_c`` with ``C⁻¹`` = base_T_tcp). From an observation
+Reconstruction (eq. 24, ``D_r = C⁻¹ X D_c`` with ``C⁻¹`` = T_base_tcp). From an observation
 ``(T_base_tcp, T_cam_target)`` of the board, the board lies at
 
-* eye-in-hand: base_T_target = ``T_base_tcp @ X @ T_cam_target`` (``X`` = tcp_T_cam);
-* eye-to-hand: base_T_target = ``X @ T_cam_target`` (``X`` = base_T_cam), for a board placed
+* eye-in-hand: T_base_target = ``T_base_tcp @ X @ T_cam_target`` (``X`` = T_tcp_cam);
+* eye-to-hand: T_base_target = ``X @ T_cam_target`` (``X`` = T_base_cam), for a board placed
   in the cell for the test (the calibration board rides on the tool, out of the probe's reach).
 
 The observation must be at the true board scale (translation times κ) and the points in the
@@ -17,7 +17,7 @@ true (κ, ν-scaled) target frame. Without an observation, eye-in-hand uses the 
 target pose, which is eq. 24 averaged over the calibration stations; a fresh observation also
 catches a hand-eye that is inconsistent with the target pose.
 
-Probe. ``tcp_T_probe`` puts the probe tip at its origin with the probe pointing along its z
+Probe. ``T_tcp_probe`` puts the probe tip at its origin with the probe pointing along its z
 axis. It touches a point pointing into the board's front (along target +z, which points away
 from a camera looking at the front, ``docs/conventions.md``), rotated as little as possible
 from the robot's orientation at the start, after an approach from ``approach`` metres straight
@@ -56,9 +56,9 @@ class GroundTruth:
     Attributes
     ----------
     board_pose : shape (4, 4)
-        True base_T_target of the probed board; the points' true positions are ``board_pose @ p``.
+        True T_base_target of the probed board; the points' true positions are ``board_pose @ p``.
     tcp_pose : callable returning shape (4, 4), optional
-        True base_T_tcp at rest (e.g. ``lambda: mock_robot.true_pose``); default: the robot's
+        True T_base_tcp at rest (e.g. ``lambda: mock_robot.true_pose``); default: the robot's
         reading.
     """
 
@@ -127,13 +127,13 @@ def probe_points(inner_corners: tuple[int, int], square_size: float, *, kappa: f
 
 def board_in_base(hand_eye: np.ndarray, *, setup: str, target_pose: np.ndarray | None = None,
                   observation: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-    """base_T_target of the probed board reconstructed through the calibration, (4, 4).
+    """T_base_target of the probed board reconstructed through the calibration, (4, 4).
 
     Parameters
     ----------
-    hand_eye : shape (4, 4), tcp_T_cam (eye-in-hand) or base_T_cam (eye-to-hand).
+    hand_eye : shape (4, 4), T_tcp_cam (eye-in-hand) or T_base_cam (eye-to-hand).
     setup : ``eye_in_hand`` or ``eye_to_hand``.
-    target_pose : shape (4, 4), the calibration's base_T_target; eye-in-hand, used when no
+    target_pose : shape (4, 4), the calibration's T_base_target; eye-in-hand, used when no
         observation is given.
     observation : (T_base_tcp, T_cam_target), shapes (4, 4): the robot reading and the camera
         pose of the board (true scale) at one station. Required eye-to-hand.
@@ -153,93 +153,121 @@ def board_in_base(hand_eye: np.ndarray, *, setup: str, target_pose: np.ndarray |
     return hand_eye @ T_cam_target
 
 
-def tcp_pose_for_probe(point: np.ndarray, direction: np.ndarray, tcp_T_probe: np.ndarray,
+def tcp_pose_for_probe(point: np.ndarray, direction: np.ndarray, T_tcp_probe: np.ndarray,
                        reference: np.ndarray) -> np.ndarray:
-    """base_T_tcp putting the probe tip on ``point`` pointing along ``direction``, (4, 4).
+    """T_base_tcp putting the probe tip on ``point`` pointing along ``direction``, (4, 4).
 
     Of all such poses, the one that rotates least from the ``reference`` tcp pose (4, 4): the
     reference probe turned along the shortest arc from its axis to ``direction``, so it does
     not spin about its own axis. ``point`` and ``direction`` shape (3,), base frame.
     """
-    R_ref = (reference @ tcp_T_probe)[:3, :3]
+    R_ref = (reference @ T_tcp_probe)[:3, :3]
     arc, _ = Rotation.align_vectors(np.asarray(direction, dtype=float)[None], R_ref[None, :, 2])
-    base_T_probe = make_transform(arc.as_matrix() @ R_ref, point)
-    return base_T_probe @ invert(tcp_T_probe)
+    T_base_probe = make_transform(arc.as_matrix() @ R_ref, point)
+    return T_base_probe @ invert(T_tcp_probe)
 
 
-def approach_pose(T_base_tcp: np.ndarray, tcp_T_probe: np.ndarray, distance: float) -> np.ndarray:
+def approach_pose(T_base_tcp: np.ndarray, T_tcp_probe: np.ndarray, distance: float) -> np.ndarray:
     """The tcp pose (4, 4) with the probe backed off ``distance`` m along its own axis."""
     back = make_transform(np.eye(3), [0.0, 0.0, -distance])
-    return T_base_tcp @ tcp_T_probe @ back @ invert(tcp_T_probe)
+    return T_base_tcp @ T_tcp_probe @ back @ invert(T_tcp_probe)
 
 
-def run_dot_hit(robot: Robot, points: Mapping[str, ArrayLike], *, setup: str,
-                hand_eye: np.ndarray, tcp_T_probe: np.ndarray,
-                target_pose: np.ndarray | None = None,
-                observation: tuple[np.ndarray, np.ndarray] | None = None,
-                approach: float = DEFAULT_APPROACH_M,
-                workspace_check: Callable[[np.ndarray], None] | None = None,
-                ground_truth: GroundTruth | None = None,
-                speed: float = 0.1, touch_speed: float = 0.02) -> DotHitReport:
+@dataclass(frozen=True)
+class BoardEstimate:
+    """The calibration and the board's observation that place the board, see
+    :func:`board_in_base`."""
+
+    setup: str
+    hand_eye: np.ndarray  # shape (4, 4)
+    target_pose: np.ndarray | None = None  # shape (4, 4)
+    observation: tuple[np.ndarray, np.ndarray] | None = None  # (T_base_tcp, T_cam_target)
+
+
+@dataclass(frozen=True)
+class Probe:
+    """The probe and how it touches: ``T_tcp_probe`` (4, 4), the probe tip in the tcp frame
+    with the probe along its z axis; ``approach`` metres out of the board before and after
+    each touch; ``speed`` and ``touch_speed`` m/s of the travel and of the final approach."""
+
+    T_tcp_probe: np.ndarray
+    approach: float = DEFAULT_APPROACH_M
+    speed: float = 0.1
+    touch_speed: float = 0.02
+
+
+@dataclass(frozen=True)
+class CellChecks:
+    """What the cell adds to a run: ``workspace_check``, called with each commanded UR pose
+    (6,) and raising to refuse it (e.g. ``Workspace.check``); ``ground_truth`` of a simulated
+    cell, for ``error_m``."""
+
+    workspace_check: Callable[[np.ndarray], None] | None = None
+    ground_truth: GroundTruth | None = None
+
+
+def run_dot_hit(robot: Robot, points: Mapping[str, ArrayLike], board: BoardEstimate,
+                probe: Probe, cell: CellChecks = CellChecks()) -> DotHitReport:
     """Touch each point with the probe and report where the probe got to.
 
     Every commanded pose (approach, touch, and the return to the start) is computed and passed
-    to ``workspace_check`` first, so a run that would leave the workspace is refused before
-    the robot moves. Per point: straight to the approach pose, slowly down to the touch, settle,
-    read the TCP pose, back to the approach pose; finally back to where the robot started.
+    to ``cell.workspace_check`` first, so a run that would leave the workspace is refused
+    before the robot moves. Per point: straight to the approach pose, slowly down to the touch,
+    settle, read the TCP pose, back to the approach pose; finally back to where the robot
+    started.
 
     Parameters
     ----------
     robot : a connected ``drivers.base.Robot``.
     points : id -> position, shape (3,), true target frame (e.g. :func:`probe_points`).
-    setup, hand_eye, target_pose, observation : the calibration and the board's
-        observation, see :func:`board_in_base`.
-    tcp_T_probe : shape (4, 4), probe tip in the tcp frame, probe along its z axis.
-    approach : metres out of the board before and after each touch.
-    workspace_check : called with each commanded UR pose (6,); raises to refuse it
-        (e.g. ``Workspace.check``).
-    ground_truth : the truth of a simulated cell, for ``error_m``.
-    speed, touch_speed : m/s of the travel and of the final approach to a point.
+    board, probe, cell : see :class:`BoardEstimate`, :class:`Probe`, :class:`CellChecks`.
     """
-    X = check_transforms(hand_eye, "hand_eye")[0]
-    probe = check_transforms(tcp_T_probe, "tcp_T_probe")[0]
-    if target_pose is not None:
-        target_pose = check_transforms(target_pose, "target_pose")[0]
-    if observation is not None:
-        observation = (check_transforms(observation[0], "observation T_base_tcp")[0],
-                       check_transforms(observation[1], "observation T_cam_target")[0])
+    T_base_target = _checked_board(board)
+    T_tcp_probe = check_transforms(probe.T_tcp_probe, "T_tcp_probe")[0]
     if not points:
         raise ValueError("dot-hit needs at least one point to touch")
-    if approach <= 0.0:
-        raise ValueError(f"approach must be a positive distance in metres, got {approach}")
-    board = board_in_base(X, setup=setup, target_pose=target_pose, observation=observation)
+    if probe.approach <= 0.0:
+        raise ValueError("approach must be a positive distance in metres, got "
+                         f"{probe.approach}")
     ids = list(points)
     p_target = np.array([np.asarray(points[i], dtype=float).reshape(3) for i in ids])
-    commanded = p_target @ board[:3, :3].T + board[:3, 3]
+    commanded = p_target @ T_base_target[:3, :3].T + T_base_target[:3, 3]
 
     start = matrix_from_ur_pose(robot.tcp_pose())
-    touch = [tcp_pose_for_probe(p, board[:3, 2], probe, start) for p in commanded]
-    above = [approach_pose(T, probe, approach) for T in touch]
-    if workspace_check is not None:
+    touch = [tcp_pose_for_probe(p, T_base_target[:3, 2], T_tcp_probe, start) for p in commanded]
+    above = [approach_pose(T, T_tcp_probe, probe.approach) for T in touch]
+    if cell.workspace_check is not None:
         for T in [*touch, *above, start]:
-            workspace_check(ur_pose_from_matrix(T))
+            cell.workspace_check(ur_pose_from_matrix(T))
 
     out = []
     for target_id, p, p_cmd, T_touch, T_above in zip(ids, p_target, commanded, touch, above,
                                                        strict=True):
-        robot.move_linear(ur_pose_from_matrix(T_above), speed=speed)
-        robot.move_linear(ur_pose_from_matrix(T_touch), speed=touch_speed)
+        robot.move_linear(ur_pose_from_matrix(T_above), speed=probe.speed)
+        robot.move_linear(ur_pose_from_matrix(T_touch), speed=probe.touch_speed)
         robot.wait_settled()
         reading = matrix_from_ur_pose(robot.tcp_pose())
-        reached = (reading @ probe)[:3, 3]
+        reached = (reading @ T_tcp_probe)[:3, 3]
         error = None
-        if ground_truth is not None:
-            tcp_true = reading if ground_truth.tcp_pose is None else ground_truth.tcp_pose()
-            truth = ground_truth.board_pose
-            error = float(np.linalg.norm((tcp_true @ probe)[:3, 3]
-                                         - (truth[:3, :3] @ p + truth[:3, 3])))
-        robot.move_linear(ur_pose_from_matrix(T_above), speed=speed)
+        if (truth := cell.ground_truth) is not None:
+            T_base_tcp = reading if truth.tcp_pose is None else truth.tcp_pose()
+            T_true = truth.board_pose
+            error = float(np.linalg.norm((T_base_tcp @ T_tcp_probe)[:3, 3]
+                                         - (T_true[:3, :3] @ p + T_true[:3, 3])))
+        robot.move_linear(ur_pose_from_matrix(T_above), speed=probe.speed)
         out.append(DotHitPoint(target_id=target_id, point_target=p, commanded=p_cmd,
                                reached=reached, error_m=error))
-    robot.move_linear(ur_pose_from_matrix(start), speed=speed)
+    robot.move_linear(ur_pose_from_matrix(start), speed=probe.speed)
     return DotHitReport(points=out)
+
+
+def _checked_board(board: BoardEstimate) -> np.ndarray:
+    """T_base_target (4, 4) of a checked ``BoardEstimate``."""
+    observation = board.observation
+    if observation is not None:
+        observation = (check_transforms(observation[0], "observation T_base_tcp")[0],
+                       check_transforms(observation[1], "observation T_cam_target")[0])
+    target_pose = (None if board.target_pose is None
+                   else check_transforms(board.target_pose, "target_pose")[0])
+    return board_in_base(check_transforms(board.hand_eye, "hand_eye")[0], setup=board.setup,
+                         target_pose=target_pose, observation=observation)

@@ -31,7 +31,14 @@ from service.errors import ConflictError, ServiceError, UnprocessableError
 from service.models import Validation
 from service.motion import Motion
 from service.schemas import ValidationCreate
-from service.validation_run import GroundTruth, probe_points, run_dot_hit
+from service.validation_run import (
+    BoardEstimate,
+    CellChecks,
+    GroundTruth,
+    Probe,
+    probe_points,
+    run_dot_hit,
+)
 
 log = logging.getLogger("cellcal.service")
 
@@ -98,10 +105,10 @@ class Validations:
         P = matrix_from_ur_pose(tcp_pose)
         C, rms_px = plan.observe(det, P)
         truth = self._ground_truth(robot, plan)
-        report = run_dot_hit(robot, plan.points, setup=plan.setup, hand_eye=plan.hand_eye,
-                             tcp_T_probe=plan.probe, observation=(P, C),
-                             workspace_check=self.motion.check_workspace,
-                             ground_truth=None if truth is None else truth[0])
+        report = run_dot_hit(
+            robot, plan.points, BoardEstimate(plan.setup, plan.hand_eye, observation=(P, C)),
+            Probe(plan.probe), CellChecks(workspace_check=self.motion.check_workspace,
+                                          ground_truth=None if truth is None else truth[0]))
         return {"kind": "dot_hit", "probe": ur_pose_from_matrix(plan.probe).tolist(),
                 "observation": {"tcp_pose": [float(v) for v in tcp_pose],
                                 "cam_T_target": ur_pose_from_matrix(C).tolist(),
@@ -139,11 +146,11 @@ class DotHitPlan:
     square_size: float
     kappa: float
     nu: float
-    probe: np.ndarray  # shape (4, 4), tcp_T_probe
+    probe: np.ndarray  # shape (4, 4), T_tcp_probe
     points: dict[str, np.ndarray]  # id -> shape (3,), (κ, ν-scaled) target frame
 
     def observe(self, det: Detection, T_base_tcp: np.ndarray) -> tuple[np.ndarray, float]:
-        """cam_T_target (4, 4) at true scale by PnP on the κ, ν-scaled board, and its RMS (px).
+        """T_cam_target (4, 4) at true scale by PnP on the κ, ν-scaled board, and its RMS (px).
 
         A symmetric board's origin is taken at the end that agrees with the calibration's
         target pose.

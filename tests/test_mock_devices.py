@@ -24,7 +24,7 @@ from drivers.errors import (
 from drivers.stall import STALL_AFTER
 from mocks import ur_kinematics as kin
 from mocks.camera import MockCamera
-from mocks.devices import MockRobot, Workspace
+from mocks.devices import MockRobot, MockTiming, Workspace
 from mocks.scene import Noise, camera_pose_for_tcp, default_scene
 
 SCENE = default_scene()
@@ -104,7 +104,7 @@ def test_noise_free_scene_reports_the_true_pose() -> None:
 
 @pytest.mark.timeout(10)
 def test_timed_motion_and_settling() -> None:
-    robot = connected(EXACT, instant=False, settle_time=0.1)
+    robot = connected(EXACT, timing=MockTiming(instant=False, settle_time=0.1))
     target = shifted(robot.tcp_pose(), -0.05)
     t0 = time.monotonic()
     robot.move_linear(target, speed=0.25, acceleration=2.5)  # 0.05 m: 0.3 s trapezoid
@@ -119,7 +119,7 @@ def test_timed_motion_and_settling() -> None:
 
 @pytest.mark.timeout(10)
 def test_wait_settled_from_another_thread_waits_for_the_move() -> None:
-    robot = connected(EXACT, instant=False, settle_time=0.1)
+    robot = connected(EXACT, timing=MockTiming(instant=False, settle_time=0.1))
     target = shifted(robot.tcp_pose(), -0.05)
     mover = threading.Thread(target=robot.move_linear, args=(target,),
                              kwargs={"speed": 0.25, "acceleration": 2.5})
@@ -138,7 +138,7 @@ def test_wait_settled_from_another_thread_waits_for_the_move() -> None:
 
 @pytest.mark.timeout(10)
 def test_speed_slider_scales_motion_time() -> None:
-    robot = connected(EXACT, instant=False, speed=0.5, settle_time=0.0)
+    robot = connected(EXACT, timing=MockTiming(instant=False, speed=0.5, settle_time=0.0))
     t0 = time.monotonic()
     robot.move_linear(shifted(robot.tcp_pose(), -0.05), speed=0.25, acceleration=2.5)
     assert time.monotonic() - t0 > 0.45  # 0.05 m at 0.125 m/s, 1.25 m/s^2
@@ -146,7 +146,7 @@ def test_speed_slider_scales_motion_time() -> None:
 
 @pytest.mark.timeout(10)
 def test_stop_interrupts_a_move() -> None:
-    robot = connected(EXACT, instant=False)
+    robot = connected(EXACT, timing=MockTiming(instant=False))
     start = robot.tcp_pose()
 
     def stop_once_moving() -> None:

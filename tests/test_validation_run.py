@@ -15,7 +15,10 @@ from drivers.base import Robot, RobotStatus
 from drivers.errors import WorkspaceError
 from mocks.scene import camera_pose_for_tcp, default_scene
 from service.validation_run import (
+    BoardEstimate,
+    CellChecks,
     GroundTruth,
+    Probe,
     approach_pose,
     board_in_base,
     probe_points,
@@ -134,9 +137,10 @@ def test_run_touches_each_point_after_an_approach_with_a_fake_robot():
     P0, obs = start_and_observation()
     robot = FakeRobot(P0)
     assert isinstance(robot, Robot)
-    report = run_dot_hit(robot, TRUE_POINTS, setup="eye_in_hand", hand_eye=X_TRUE,
-                         tcp_T_probe=PROBE, observation=obs, approach=0.04,
-                         ground_truth=GroundTruth(board_pose=Y_TRUE))
+    report = run_dot_hit(robot, TRUE_POINTS,
+                         BoardEstimate("eye_in_hand", X_TRUE, observation=obs),
+                         Probe(PROBE, approach=0.04),
+                         CellChecks(ground_truth=GroundTruth(board_pose=Y_TRUE)))
     assert [p.target_id for p in report.points] == list(TRUE_POINTS)
     assert len(robot.commands) == 3 * len(TRUE_POINTS) + 1
     assert_pose_close(matrix_from_ur_pose(robot.commands[-1]), P0, rot=1e-12, trans=1e-12)
@@ -159,8 +163,8 @@ def test_run_touches_each_point_after_an_approach_with_a_fake_robot():
 
 def test_run_without_truth_reports_no_errors():
     P0, _ = start_and_observation()
-    report = run_dot_hit(FakeRobot(P0), TRUE_POINTS, setup="eye_in_hand", hand_eye=X_TRUE,
-                         target_pose=Y_TRUE, tcp_T_probe=PROBE)
+    report = run_dot_hit(FakeRobot(P0), TRUE_POINTS,
+                         BoardEstimate("eye_in_hand", X_TRUE, target_pose=Y_TRUE), Probe(PROBE))
     assert report.errors_m is None and report.to_json()["error_m"] is None
     assert "error" not in report.summary()
 
@@ -174,8 +178,8 @@ def test_run_outside_the_workspace_is_refused_before_moving():
             raise WorkspaceError("above the ceiling")
 
     with pytest.raises(WorkspaceError, match="ceiling"):
-        run_dot_hit(robot, TRUE_POINTS, setup="eye_in_hand", hand_eye=X_TRUE, tcp_T_probe=PROBE,
-                    observation=obs, workspace_check=low_ceiling)
+        run_dot_hit(robot, TRUE_POINTS, BoardEstimate("eye_in_hand", X_TRUE, observation=obs),
+                    Probe(PROBE), CellChecks(workspace_check=low_ceiling))
     assert robot.commands == []
 
 
@@ -185,9 +189,9 @@ def test_eye_to_hand_run_probes_a_board_in_the_cell():
     board = make_transform(np.diag([1.0, -1.0, -1.0]), [0.3, -0.1, 0.0])
     C = invert(X) @ board
     start = make_transform(np.diag([1.0, -1.0, -1.0]), [0.4, 0.0, 0.4])
-    report = run_dot_hit(FakeRobot(start), TRUE_POINTS, setup="eye_to_hand", hand_eye=X,
-                         tcp_T_probe=PROBE, observation=(start, C),
-                         ground_truth=GroundTruth(board_pose=board))
+    report = run_dot_hit(FakeRobot(start), TRUE_POINTS,
+                         BoardEstimate("eye_to_hand", X, observation=(start, C)), Probe(PROBE),
+                         CellChecks(ground_truth=GroundTruth(board_pose=board)))
     assert report.errors_m.max() < 1e-9
 
 
@@ -196,11 +200,11 @@ def mock_run(hand_eye, seed=0):
     robot.connect()
     P_read = matrix_from_ur_pose(robot.tcp_pose())
     obs = (P_read, camera_pose_for_tcp(SCENE, robot.true_pose))
-    report = run_dot_hit(robot, TRUE_POINTS, setup="eye_in_hand", hand_eye=hand_eye,
-                         tcp_T_probe=PROBE, observation=obs,
-                         workspace_check=robot.workspace.check,
-                         ground_truth=GroundTruth(board_pose=Y_TRUE,
-                                                  tcp_pose=lambda: robot.true_pose))
+    report = run_dot_hit(robot, TRUE_POINTS,
+                         BoardEstimate("eye_in_hand", hand_eye, observation=obs), Probe(PROBE),
+                         CellChecks(workspace_check=robot.workspace.check,
+                                    ground_truth=GroundTruth(board_pose=Y_TRUE,
+                                                             tcp_pose=lambda: robot.true_pose)))
     return report, robot
 
 

@@ -11,16 +11,9 @@ from service import store
 from service.api.deps import CalibrationsDep, SessionDep
 from service.errors import ConflictError, UnprocessableError
 from service.exports import ExportNames, export
-from service.models import Calibration
 from service.schemas import CalibrationCreate, CalibrationPublic, Created, ExportQuery
 
 router = APIRouter(tags=["calibrations"])
-
-
-def calibration_public(cal: Calibration) -> CalibrationPublic:
-    return CalibrationPublic(id=cal.id, run_id=cal.run_id, state=cal.state, options=cal.options,
-                             result=cal.result, error=cal.error, created_at=cal.created_at,
-                             finished_at=cal.finished_at)
 
 
 @router.post("/runs/{run_id}/calibrations", status_code=status.HTTP_202_ACCEPTED, responses={
@@ -36,13 +29,14 @@ def create_calibration(run_id: str, calibrations: CalibrationsDep,
 @router.get("/runs/{run_id}/calibrations")
 def list_calibrations(run_id: str, session: SessionDep) -> list[CalibrationPublic]:
     """The run's calibrations, oldest first."""
-    return [calibration_public(c) for c in store.list_calibrations(session, run_id=run_id)]
+    rows = store.list_calibrations(session, run_id=run_id)
+    return [CalibrationPublic.model_validate(row) for row in rows]
 
 
 @router.get("/calibrations/{cal_id}")
 def get_calibration(cal_id: str, session: SessionDep) -> CalibrationPublic:
     """State (``running``, ``done``, ``failed``) and the ``cellcal/result@1`` document."""
-    return calibration_public(store.get_calibration(session, cal_id=cal_id))
+    return CalibrationPublic.model_validate(store.get_calibration(session, cal_id=cal_id))
 
 
 @router.get("/calibrations/{cal_id}/export", response_class=Response, responses={

@@ -6,16 +6,9 @@ from fastapi import APIRouter, status
 
 from service import store
 from service.api.deps import SessionDep, ValidationsDep
-from service.models import Validation
 from service.schemas import Created, ValidationCreate, ValidationPublic
 
 router = APIRouter(tags=["validations"])
-
-
-def validation_public(val: Validation) -> ValidationPublic:
-    return ValidationPublic(id=val.id, calibration_id=val.calibration_id, kind=val.kind,
-                            state=val.state, result=val.result, error=val.error,
-                            created_at=val.created_at, finished_at=val.finished_at)
 
 
 @router.post("/calibrations/{cal_id}/validations", status_code=status.HTTP_202_ACCEPTED,
@@ -38,10 +31,11 @@ def create_validation(cal_id: str, validations: ValidationsDep,
 @router.get("/calibrations/{cal_id}/validations")
 def list_validations(cal_id: str, session: SessionDep) -> list[ValidationPublic]:
     """The calibration's validations, oldest first."""
-    return [validation_public(v) for v in store.list_validations(session, cal_id=cal_id)]
+    rows = store.list_validations(session, cal_id=cal_id)
+    return [ValidationPublic.model_validate(row) for row in rows]
 
 
 @router.get("/validations/{val_id}")
 def get_validation(val_id: str, session: SessionDep) -> ValidationPublic:
     """State (``running``, ``done``, ``failed``) and the report."""
-    return validation_public(store.get_validation(session, val_id=val_id))
+    return ValidationPublic.model_validate(store.get_validation(session, val_id=val_id))

@@ -44,7 +44,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     robot_sub = robot.add_subparsers(dest="robot_command", required=True, metavar="ACTION")
     pose = robot_sub.add_parser(
         "pose", parents=[common], help="print the TCP pose as JSON",
-        description="Print the actual TCP pose, base_T_tcp as [x, y, z, rx, ry, rz] in metres "
+        description="Print the actual TCP pose, T_base_tcp as [x, y, z, rx, ry, rz] in metres "
                     "and radians (rotation vector, the UR convention). " + _URLS_HELP)
     pose.add_argument("--robot", required=True, metavar="URL", help=ROBOT_URLS)
     pose.set_defaults(func=_robot_pose)
@@ -55,7 +55,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "rest and print the reached pose as JSON. " + _URLS_HELP)
     move.add_argument("--robot", required=True, metavar="URL", help=ROBOT_URLS)
     move.add_argument("--pose", required=True, metavar="X,Y,Z,RX,RY,RZ",
-                      help="target base_T_tcp in metres and radians (rotation vector); "
+                      help="target T_base_tcp in metres and radians (rotation vector); "
                            "write --pose=-0.1,... when it starts with a minus sign")
     move.add_argument("--speed", type=float, default=0.1, help="m/s (default 0.1)")
     move.add_argument("--acceleration", type=float, default=0.5, help="m/s^2 (default 0.5)")

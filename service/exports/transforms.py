@@ -74,7 +74,7 @@ def ur_pose(result_json: dict[str, Any], setup: str,
 def ros2_static_tf(result_json: dict[str, Any], setup: str,
                    names: ExportNames) -> tuple[str, str, str]:
     """A ROS 2 Python launch file running ``tf2_ros static_transform_publisher`` with the
-    hand-eye as parent_T_child (translation in m, unit quaternion x, y, z, w with w >= 0)."""
+    hand-eye as T_parent_child (translation in m, unit quaternion x, y, z, w with w >= 0)."""
     X = matrix(result_json, "hand_eye")
     parent, child = names.frames(setup)
     q = Rotation.from_matrix(X[:3, :3]).as_quat(canonical=True)

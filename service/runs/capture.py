@@ -31,7 +31,7 @@ import numpy as np
 from sqlalchemy.exc import IntegrityError
 
 from calib import Detection, detect_checkerboard
-from drivers.capture import capture_station
+from drivers.capture import CaptureOptions, capture_station
 from drivers.errors import (
     CameraError,
     CameraTimeoutError,
@@ -121,6 +121,9 @@ class Capture:
         self.settings = motion.settings
         self.db = motion.db
         self.data_dir = Path(motion.settings.data_dir)
+        self.options = CaptureOptions(settle_timeout=self.settings.settle_timeout_s,
+                                      grab_timeout=self.settings.grab_timeout_s,
+                                      speed=self.settings.move_speed)
 
     # ---- the thread body: every way a capture ends -----------------------------------------
 
@@ -145,7 +148,7 @@ class Capture:
         """End the run in ``state`` if this thread still owns it, and tell the listeners."""
         with self.db.session() as s:
             changed = store.finish_run(s, run_id=self.run_id, token=self.token, state=state,
-                                       error=error, code=code)
+                                       error=error, error_code=code)
         if changed:
             with self.db.session() as s:
                 self.events.publish(self.run_id, state_event(s, run_id=self.run_id))
@@ -234,9 +237,7 @@ class Capture:
         for attempt in range(first_attempt, ATTEMPTS + 1):
             try:
                 taken = capture_station(self.robot, self.camera, np.asarray(pose),
-                                        settle_timeout=self.settings.settle_timeout_s,
-                                        grab_timeout=self.settings.grab_timeout_s,
-                                        speed=self.settings.move_speed)
+                                        self.options)
             except DeviceError as exc:
                 if not self._wanted():
                     return None
