@@ -8,11 +8,11 @@ from typing import Annotated
 from fastapi import APIRouter, Query
 
 from service import registry, store
-from service.api.calibrations import calibration_public
 from service.api.deps import SessionDep, SettingsDep
 from service.schemas import (
     ActiveCalibration,
     CalibrationPage,
+    CalibrationPublic,
     CalibrationQuery,
     CalibrationSummary,
 )
@@ -61,4 +61,5 @@ def _active(session: SessionDep, *, robot: str, history: int) -> ActiveCalibrati
     now, periods = registry.current(session, robot=robot, history=history)
     cal = store.get_calibration(session, cal_id=now.calibration_id)
     return ActiveCalibration(robot=robot, activated_at=now.activated_at,
-                             calibration=calibration_public(cal), history=periods)
+                             calibration=CalibrationPublic.model_validate(cal),
+                             history=periods)
