@@ -18,7 +18,7 @@ from urllib.parse import urlsplit
 
 import pytest
 
-from service.local import LocalService, local_service
+from service.local import LocalService, ServeOptions, local_service
 
 KEY = "guard-key-0123456789abcdef"
 BODY_BYTES = 60_000_000
@@ -31,7 +31,7 @@ CHUNK = 1 << 16
 def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalService]:
     data = tmp_path_factory.mktemp("guard") / "data"
     env = {**os.environ, "CELLCAL_MAX_BODY_BYTES": str(4 * 2**20)}
-    with local_service(data, KEY, env=env) as s:
+    with local_service(data, KEY, ServeOptions(env=env)) as s:
         yield s
 
 
