@@ -16,7 +16,7 @@ import numpy as np
 from pydantic import Field, SecretStr, ValidationInfo, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from calib.geometry import matrix_from_ur_pose
+from calib import matrix_from_ur_pose
 from drivers import registry
 from drivers.base import CellHints
 

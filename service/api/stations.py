@@ -50,7 +50,7 @@ def list_stations(run_id: str, session: SessionDep) -> list[StationPublic]:
 def post_station(
         run_id: str, runs: RunsDep,
         pose: Annotated[str | None, Form(
-            description="JSON [x, y, z, rx, ry, rz] (m, rad), base_T_tcp at the image; "
+            description="JSON [x, y, z, rx, ry, rz] (m, rad), T_base_tcp at the image; "
                         "without it the service reads the pose from its robot")] = None,
         joints: Annotated[str | None, Form(
             description="JSON six joint positions (rad), if known")] = None,

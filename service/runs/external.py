@@ -35,7 +35,7 @@ from service.runs.capture import Capture
 class PostedStation:
     """What a cell controller sent for one station (all optional, see the module doc).
 
-    pose : base_T_tcp ``[x, y, z, rx, ry, rz]`` (m, rad) at the image.
+    pose : T_base_tcp ``[x, y, z, rx, ry, rz]`` (m, rad) at the image.
     joints : the six joint positions (rad) at the image.
     image : PNG or JPEG bytes, as uploaded.
     """
