@@ -109,3 +109,9 @@ def test_packages_import_only_their_layers(package: str) -> None:
 def test_the_checker_sees_a_circle() -> None:
     assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
     assert _cycle({"a": {"b"}, "b": set()}) is None
+
+
+def test_calib_is_used_through_its_public_surface() -> None:
+    inner = {(m, d) for m, deps in _graph().items() if _package(m) != "calib"
+             for d in deps if _package(d) == "calib" and d != "calib"}
+    assert not inner, sorted(inner)
