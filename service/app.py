@@ -18,6 +18,7 @@ from fastapi import Depends, FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from fastapi_offline import FastAPIOffline
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from drivers.errors import DeviceError, WorkspaceError
@@ -44,6 +45,7 @@ from service.guard import PayloadTooLargeError, RequestGuard
 from service.results import software_version
 from service.runtime import Runtime
 from service.settings import Settings
+from service.web import mount_page
 
 log = logging.getLogger("cellcal.service")
 
@@ -79,13 +81,15 @@ def create_app(settings: Settings | None = None, *,
         finally:
             await run_in_threadpool(rt.close)
 
-    app = FastAPI(
+    # Swagger UI and ReDoc from assets shipped in fastapi_offline: /docs works without internet
+    app = FastAPIOffline(
         title="cellcal", version=software_version(), lifespan=lifespan,
         description="Capture calibration stations with a robot and a camera, compute the "
                     "camera intrinsics and the hand-eye transform. Every call but /health "
                     "needs `Authorization: Bearer <CELLCAL_API_KEY>`. Units: metres and "
                     "radians; poses are UR vectors [x, y, z, rx, ry, rz] (T_base_tcp).")
     app.state.settings = settings
+    mount_page(app)
     app.include_router(health.router)
     # registry before calibrations: /calibrations/active is not a calibration id
     for module in (runs, stations, registry, calibrations, validations, devices, metrics):

@@ -4,8 +4,8 @@ FastAPI reads and parses a JSON body before it runs a route's dependencies, so a
 a dependency comes too late: a 60 MB body without any key cost seconds and a gigabyte of memory
 (issue 11). :class:`RequestGuard` is plain ASGI middleware in front of everything:
 
-* every path but ``OPEN_PATHS`` needs ``Authorization: Bearer <key>``; a refusal is sent
-  without reading a byte of the body;
+* every path but the open ones (``is_open``) needs ``Authorization: Bearer <key>``; a
+  refusal is sent without reading a byte of the body;
 * a ``Content-Length`` beyond the limit is refused the same way (413); a body without one
   (chunked) is counted while the application reads it and cut off at the limit, so at most the
   limit plus one chunk is ever held.
@@ -26,8 +26,17 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.errors import AuthError, ServiceError
 
-#: Paths served without a key: liveness and the API documentation.
-OPEN_PATHS = frozenset({"/health", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
+#: Paths served without a key: liveness, the API documentation and the web page (its data
+#: calls need the key).
+OPEN_PATHS = frozenset({"/health", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json",
+                        "/", "/ui"})
+#: Static assets served without a key: the web page's and the offline docs' (no data in them).
+OPEN_PREFIXES = ("/ui/", "/static-offline-docs/")
+
+
+def is_open(path: str) -> bool:
+    """True for a path served without the API key."""
+    return path in OPEN_PATHS or path.startswith(OPEN_PREFIXES)
 
 
 class PayloadTooLargeError(ServiceError):
@@ -68,7 +77,8 @@ class RequestGuard:
     Parameters
     ----------
     app : the application behind the guard.
-    api_key : the key every call but ``OPEN_PATHS`` needs (None: every such call is refused).
+    api_key : the key every call but the open paths (``is_open``) need (None: every such
+        call is refused).
     max_body_bytes : largest request body accepted.
     refuse : turns a :class:`ServiceError` into the response sent instead.
     """
@@ -88,7 +98,7 @@ class RequestGuard:
                    for k, v in scope["headers"] if k.lower() in (b"authorization",
                                                                  b"content-length")}
         try:
-            if scope["path"] not in OPEN_PATHS:
+            if not is_open(scope["path"]):
                 check_api_key(self.api_key, bearer_token(headers.get("authorization")))
             length = headers.get("content-length", "")
             if length.isdigit() and int(length) > self.max_body_bytes:

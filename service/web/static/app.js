@@ -1,0 +1,292 @@
+// cellcal web page: plain JavaScript over the REST API, with the same API key (session storage).
+"use strict";
+
+const FORMATS = ["json", "opencv-yaml", "ros-camera-info", "urdf", "ur-pose", "ros2-static-tf"];
+const $ = (selector) => document.querySelector(selector);
+let key = sessionStorage.getItem("cellcal-key") || "";
+let currentRun = null;
+let stream = null;
+
+function setStatus(text) { $("#status").textContent = text; }
+
+async function api(method, path, body) {
+  const options = { method, headers: { Authorization: `Bearer ${key}` } };
+  if (body !== undefined) {
+    options.headers["Content-Type"] = "application/json";
+    options.body = JSON.stringify(body);
+  }
+  const response = await fetch(path, options);
+  if (!response.ok) {
+    const error = await response.json().catch(() => ({ detail: response.statusText }));
+    throw new Error(`${response.status}: ${error.detail}`);
+  }
+  return response;
+}
+
+const json = async (method, path, body) => (await api(method, path, body)).json();
+
+function cell(row, text, cls) {
+  const td = row.insertCell();
+  td.textContent = text ?? "–";
+  if (cls) td.className = cls;
+  return td;
+}
+
+function short(id) { return id.slice(0, 8); }
+
+async function loadDevices() {
+  const d = await json("GET", "/devices");
+  const robot = d.robot.error ? `error: ${d.robot.error.detail}`
+    : `${d.robot.connected ? "connected" : "not connected"}, ${d.robot.mode ?? ""}`;
+  const camera = d.camera.error ? `error: ${d.camera.error.detail}`
+    : `${d.camera.opened ? "open" : "closed"} ${(d.camera.resolution ?? []).join("x")}`;
+  $("#devices").textContent = `Robot ${d.robot.url}: ${robot}. Camera ${d.camera.url}: ${camera}.`;
+}
+
+async function loadRuns() {
+  const runs = await json("GET", "/runs?limit=20");
+  const body = $("#runs tbody");
+  body.replaceChildren();
+  for (const run of runs) {
+    const row = body.insertRow();
+    row.dataset.id = run.id;
+    cell(row, short(run.id));
+    cell(row, run.mode);
+    cell(row, run.state, run.state);
+    cell(row, run.stations_captured);
+    cell(row, run.stations_skipped);
+    cell(row, run.stations_planned);
+    cell(row, new Date(run.created_at).toLocaleString());
+    row.addEventListener("click", () => openRun(run.id));
+  }
+}
+
+async function openRun(runId) {
+  currentRun = runId;
+  $("#run-view").hidden = false;
+  $("#run-id").textContent = short(runId);
+  await refreshRun();
+  follow(runId);
+}
+
+async function refreshRun() {
+  const run = await json("GET", `/runs/${currentRun}`);
+  $("#run-state").textContent = run.state;
+  $("#run-state").className = run.state;
+  const planned = Math.max(run.stations_planned, run.stations_captured + run.stations_skipped, 1);
+  $("#progress").max = planned;
+  $("#progress").value = run.stations_captured + run.stations_skipped;
+  const stations = await json("GET", `/runs/${currentRun}/stations`);
+  const body = $("#stations tbody");
+  body.replaceChildren();
+  for (const station of stations) {
+    const row = body.insertRow();
+    cell(row, station.index);
+    cell(row, station.state, station.state);
+    cell(row, station.error ? station.error.detail : "");
+  }
+  const last = stations.filter((s) => s.image_url).pop();
+  if (last) await drawStation(last.index);
+}
+
+async function drawStation(index) {
+  const station = await json("GET", `/runs/${currentRun}/stations/${index}`);
+  const blob = await (await api("GET", station.image_url)).blob();
+  const image = await createImageBitmap(blob);
+  const canvas = $("#latest");
+  canvas.width = image.width;
+  canvas.height = image.height;
+  const g = canvas.getContext("2d");
+  g.drawImage(image, 0, 0);
+  const corners = station.detection?.corners ?? [];
+  g.strokeStyle = "#0f0";
+  g.lineWidth = Math.max(1, image.width / 640);
+  for (const [x, y] of corners) {
+    g.beginPath();
+    g.arc(x, y, 3 * g.lineWidth, 0, 2 * Math.PI);
+    g.stroke();
+  }
+  $("#latest-caption").textContent = `Station ${index}: ${station.state}` +
+    (corners.length ? `, ${corners.length} corners` : "") +
+    (station.error ? ` (${station.error.detail})` : "");
+}
+
+// Server-sent events read with fetch, so the API key goes in the header; resumes with
+// Last-Event-ID after a dropped connection.
+async function follow(runId) {
+  if (stream) stream.abort();
+  const controller = new AbortController();
+  stream = controller;
+  let lastId = null;
+  while (!controller.signal.aborted) {
+    try {
+      const headers = { Authorization: `Bearer ${key}` };
+      if (lastId !== null) headers["Last-Event-ID"] = lastId;
+      const response = await fetch(`/runs/${runId}/events`, { headers, signal: controller.signal });
+      const reader = response.body.pipeThrough(new TextDecoderStream()).getReader();
+      let buffer = "";
+      for (;;) {
+        const { value, done } = await reader.read();
+        if (done) return;
+        buffer += value;
+        let end;
+        while ((end = buffer.indexOf("\n\n")) >= 0) {
+          const block = buffer.slice(0, end);
+          buffer = buffer.slice(end + 2);
+          const id = /^id: (.*)$/m.exec(block);
+          if (id) lastId = id[1];
+          if (/^event: /m.test(block)) {
+            await refreshRun();
+            await loadRuns();
+          }
+        }
+      }
+    } catch (error) {
+      if (controller.signal.aborted) return;
+      setStatus(`event stream: ${error.message}; reconnecting`);
+      await new Promise((resolve) => setTimeout(resolve, 1000));
+    }
+  }
+}
+
+async function loadCalibrations() {
+  const page = await json("GET", "/calibrations?limit=20");
+  const body = $("#calibrations tbody");
+  body.replaceChildren();
+  for (const cal of page.items) {
+    const row = body.insertRow();
+    cell(row, short(cal.id));
+    cell(row, short(cal.run_id));
+    cell(row, cal.setup);
+    cell(row, cal.state, cal.state);
+    cell(row, cal.rms_px === null ? null : cal.rms_px.toFixed(3));
+    cell(row, cal.active ? "active" : "");
+    const exports = cell(row, "");
+    if (cal.state === "done") {
+      for (const format of FORMATS) {
+        const link = document.createElement("a");
+        link.href = "#";
+        link.textContent = format;
+        link.addEventListener("click", (event) => { event.preventDefault(); download(cal.id, format); });
+        exports.append(link, " ");
+      }
+      const activate = document.createElement("button");
+      activate.textContent = "Activate";
+      activate.addEventListener("click", async (event) => {
+        event.stopPropagation();
+        await json("POST", `/calibrations/${cal.id}/activate`);
+        await loadCalibrations();
+      });
+      cell(row, "").append(activate);
+    } else {
+      cell(row, cal.error ?? "");
+    }
+    row.addEventListener("click", () => showCalibration(cal.id));
+  }
+}
+
+async function showCalibration(calId) {
+  const cal = await json("GET", `/calibrations/${calId}`);
+  $("#calibration-view").hidden = false;
+  $("#cal-id").textContent = short(calId);
+  const r = cal.result ?? {};
+  const figures = {
+    state: cal.state,
+    verdict: r.quality?.verdict,
+    "RMS (px)": r.camera?.rms_px?.toFixed(3),
+    "cross-validated RMS (px)": r.cross_validation?.rms_px?.toFixed(3),
+    kappa: r.target?.kappa?.toFixed(5),
+    nu: r.target?.nu?.toFixed(5),
+    "hand-eye [x y z rx ry rz]": r.hand_eye?.pose?.map((v) => v.toFixed(4)).join(" "),
+    "hand-eye σ translation (mm)": r.uncertainty?.hand_eye_trans_m?.map((v) => (1e3 * v).toFixed(2)).join(" "),
+    error: cal.error,
+  };
+  const list = $("#figures");
+  list.replaceChildren();
+  for (const [name, value] of Object.entries(figures)) {
+    if (value === undefined || value === null) continue;
+    const dt = document.createElement("dt");
+    dt.textContent = name;
+    const dd = document.createElement("dd");
+    dd.textContent = value;
+    if (name === "verdict") dd.className = value;
+    list.append(dt, dd);
+  }
+}
+
+async function download(calId, format) {
+  const response = await api("GET", `/calibrations/${calId}/export?format=${format}`);
+  const name = /filename="([^"]+)"/.exec(response.headers.get("Content-Disposition") ?? "");
+  const link = document.createElement("a");
+  link.href = URL.createObjectURL(await response.blob());
+  link.download = name ? name[1] : `calibration-${format}`;
+  link.click();
+  URL.revokeObjectURL(link.href);
+}
+
+async function run(action) {
+  try {
+    setStatus("");
+    await action();
+  } catch (error) {
+    setStatus(error.message);
+  }
+}
+
+async function loadAll() {
+  await Promise.all([loadDevices(), loadRuns(), loadCalibrations()]);
+  setStatus("connected");
+}
+
+$("#key-form").addEventListener("submit", (event) => {
+  event.preventDefault();
+  key = $("#key").value;
+  sessionStorage.setItem("cellcal-key", key);
+  run(loadAll);
+});
+
+$("#run-form").addEventListener("submit", (event) => {
+  event.preventDefault();
+  run(async () => {
+    const created = await json("POST", "/runs", { stations: Number($("#stations").value) });
+    await loadRuns();
+    await openRun(created.id);
+  });
+});
+
+for (const button of document.querySelectorAll("[data-action]")) {
+  button.addEventListener("click", () => run(async () => {
+    await json("POST", `/runs/${currentRun}/${button.dataset.action}`);
+    await refreshRun();
+    await loadRuns();
+  }));
+}
+
+$("#calibrate").addEventListener("click", () => run(async () => {
+  const created = await json("POST", `/runs/${currentRun}/calibrations`, {});
+  setStatus(`calibrating (${short(created.id)})`);
+  for (;;) {
+    const cal = await json("GET", `/calibrations/${created.id}`);
+    if (cal.state !== "running") break;
+    await new Promise((resolve) => setTimeout(resolve, 1000));
+  }
+  await loadCalibrations();
+  await showCalibration(created.id);
+  setStatus("calibration finished");
+}));
+
+// The address fragment (never sent to the server) may carry the key, taken once and removed,
+// and a run and a calibration to open: #key=...&run=ID&calibration=ID.
+const fragment = new URLSearchParams(location.hash.slice(1));
+if (fragment.get("key")) {
+  key = fragment.get("key");
+  sessionStorage.setItem("cellcal-key", key);
+  history.replaceState(null, "", location.pathname);
+}
+if (key) {
+  run(async () => {
+    await loadAll();
+    if (fragment.get("run")) await openRun(fragment.get("run"));
+    if (fragment.get("calibration")) await showCalibration(fragment.get("calibration"));
+  });
+}
