@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Response, status
+from fastapi.responses import HTMLResponse
 
 from service import store
 from service.api.deps import CalibrationsDep, SessionDep
@@ -62,3 +63,18 @@ def export_calibration(cal_id: str, session: SessionDep,
         raise UnprocessableError(str(exc), code="export_unavailable") from None
     return Response(content, media_type=media_type,
                     headers={"Content-Disposition": f'attachment; filename="{filename}"'})
+
+
+@router.get("/calibrations/{cal_id}/report", response_class=HTMLResponse, responses={
+    200: {"content": {"text/html": {}},
+          "description": "one self-contained HTML page (plots embedded, no external links)"},
+    409: {"description": "the calibration is running or failed"}})
+def calibration_report(cal_id: str, session: SessionDep) -> HTMLResponse:
+    """The report a person reads, prints and files: verdict, findings, plots, stations."""
+    from service.report import render_report  # matplotlib: loaded on the first report only
+
+    cal = store.get_calibration(session, cal_id=cal_id)
+    if cal.state != "done" or cal.result is None:
+        raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished calibration "
+                            "has a report.", code="invalid_state")
+    return HTMLResponse(render_report(cal.result))

@@ -1,2 +1,3 @@
 """The ``cellcal`` command line: ``main`` builds the parser from one module per command
-(``calibrate``, ``demo``, ``devices``, ``serve``); the commands import nothing from ``main``."""
+(``calibrate``, ``demo``, ``devices``, ``export``, ``report``, ``serve``); the commands import
+nothing from ``main``."""

@@ -12,7 +12,7 @@ import sys
 from collections.abc import Callable, Sequence
 
 from drivers.errors import DeviceError
-from service.cli import calibrate, demo, devices, export, serve
+from service.cli import calibrate, demo, devices, export, report, serve
 from service.cli.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from service.results import software_version
 
@@ -25,7 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version",
                         version=f"cellcal {software_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for command in (calibrate, demo, devices, export, serve):
+    for command in (calibrate, demo, devices, export, report, serve):
         command.register(sub)
     return parser
 

@@ -1,0 +1,175 @@
+"""The HTML report (``service.report``) of real results: ``cellcal report`` on a real UR set and
+``GET /calibrations/{id}/report`` after a capture run on the mock cell."""
+
+from __future__ import annotations
+
+import base64
+import json
+import shutil
+import time
+from html.parser import HTMLParser
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from service.cli.main import main
+from service.report import report_plots
+from tests.test_service_api import client, finished, start_run, wait_run  # noqa: F401
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+UR_SET = DATA / "ur-kinect-lowR_highT"
+#: Plots a hand-eye result from images always has (``model-selection`` needs the block).
+IMAGE_PLOTS = ("station-errors", "residuals", "coverage", "uncertainty")
+
+
+class _Page(HTMLParser):
+    """Collects every URL-bearing attribute, figure ids and the visible text."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.urls: list[str] = []
+        self.figures: list[str] = []
+        self.images: list[str] = []
+        self.text: list[str] = []
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        a = dict(attrs)
+        self.urls += [v or "" for k, v in attrs if k in ("src", "href", "action", "srcset")]
+        if tag == "figure":
+            self.figures.append(a.get("id") or "")
+        if tag == "img":
+            self.images.append(a.get("src") or "")
+
+    def handle_data(self, data: str) -> None:
+        self.text.append(data)
+
+
+def parse(html: str) -> _Page:
+    page = _Page()
+    page.feed(html)
+    page.close()
+    return page
+
+
+def assert_self_contained(html: str) -> _Page:
+    """No external reference of any kind; every image an embedded, decodable PNG."""
+    page = parse(html)
+    assert "http://" not in html and "https://" not in html
+    assert "<link" not in html and "<script" not in html and "@import" not in html
+    assert page.urls and all(u.startswith("data:image/png;base64,") for u in page.urls)
+    for src in page.images:
+        png = base64.b64decode(src.split(",", 1)[1], validate=True)
+        image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+        assert image is not None and image.shape[0] > 150 and image.shape[1] > 400
+        assert image.std() > 10  # something is drawn
+    return page
+
+
+@pytest.fixture(scope="module")
+def ur_result(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, Any]]:
+    """``cellcal calibrate`` on the real UR set, with one station's image replaced by a blank
+    frame (a station the pipeline must reject with its reason)."""
+    d = tmp_path_factory.mktemp("ur")
+    doc = json.loads((UR_SET / "stations.json").read_text())
+    for s in doc["stations"]:
+        shutil.copy(UR_SET / s["image"], d / s["image"])
+    blank = doc["stations"][4]["image"]
+    cv2.imwrite(str(d / blank), np.full((720, 1280), 128, np.uint8))
+    (d / "stations.json").write_text(json.dumps(doc))
+    out = d / "result.json"
+    assert main(["calibrate", str(d), "--out", str(out)]) in (0, 3)
+    return out, json.loads(out.read_text())
+
+
+def test_report_of_a_real_calibration(ur_result, capsys) -> None:
+    path, result = ur_result
+    assert main(["report", str(path)]) == 0  # next to the result by default
+    out = path.with_suffix(".html")
+    assert f"wrote {out}" in capsys.readouterr().err
+    html = out.read_text()
+    page = assert_self_contained(html)
+    text = " ".join(page.text)
+    assert page.figures == [f"fig-{p.key}" for p in report_plots(result)]
+    assert set(IMAGE_PLOTS) <= {f.removeprefix("fig-") for f in page.figures}
+    if "model_selection" in result:
+        assert "fig-model-selection" in page.figures
+    quality = result.get("quality")
+    verdict = quality["verdict"] if quality else "no verdict"
+    # the verdict comes before the first plot, with every finding's message
+    assert html.index(f">{verdict}<") < html.index("<figure")
+    for finding in (quality or {}).get("findings", []):
+        assert finding["message"] in text
+    # every used station has a row; the blank one is listed with the detector's reason
+    for s in result["stations"]:
+        assert f"<td class=\"l\">{s['id']}</td>" in html
+    (rejected,) = result["rejected"]
+    assert rejected["id"] == "04" and "blank" in rejected["reason"]
+    assert f"rejected: {rejected['reason']}" in text
+    # the figures a person reads: κ and the hand-eye translation in mm
+    assert f"{result['target']['kappa']:.5f}" in text
+    t_mm = np.asarray(result["hand_eye"]["pose"][:3]) * 1e3
+    assert all(f"{v:.2f}" in text for v in t_mm)
+
+
+def test_bad_report_input_is_one_line(tmp_path, capsys) -> None:
+    (tmp_path / "other.json").write_text(json.dumps({"format": "cellcal/stations@1"}))
+    (tmp_path / "broken.json").write_text("{")
+    for name, message in [("missing.json", "cannot read"), ("other.json", "not a cellcal result"),
+                          ("broken.json", "not valid JSON")]:
+        assert main(["report", str(tmp_path / name), "--out", str(tmp_path / "r.html")]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("cellcal: error: ") and message in err and err.count("\n") == 1
+    assert not (tmp_path / "r.html").exists()
+
+
+def test_intrinsics_only_and_pose_only_results_have_reports(ur_result, tmp_path) -> None:
+    """Results without hand-eye or without camera still give a page, with the plots they
+    allow."""
+    from calib.pipeline import calibrate_stations
+    from calib.stations import StationInputs
+    from calib.target import Board
+    from mocks.posesim import default_cell, simulate
+    from service.report import render_report
+    from service.results import calibration_result_json
+    from tests.test_cli_calibrate import write_station_set
+
+    _, result = ur_result
+    corners = [np.asarray(s["corners_px"]) for s in result["stations"]]
+    intrinsics = calibration_result_json(calibrate_stations(
+        StationInputs(corners, image_size=(1280, 720)), Board((11, 8), 0.03)))
+    page = assert_self_contained(render_report(intrinsics))
+    assert page.figures == ["fig-station-errors", "fig-residuals", "fig-coverage"]
+
+    P, C = simulate(default_cell("eye_in_hand"), 12, np.random.default_rng(3))
+    out = tmp_path / "pose.json"
+    assert main(["calibrate", str(write_station_set(tmp_path / "set", P, C)), "--out",
+                 str(out)]) == 0
+    pose_only = json.loads(out.read_text())
+    html = render_report(pose_only)
+    assert parse(html).figures == ["fig-uncertainty"]
+    s = pose_only["stations"][5]
+    assert (f"<td>{np.rad2deg(s['residual_rot_rad']):.3f}</td>"
+            f"<td>{s['residual_trans_m'] * 1e3:.2f}</td>") in html
+
+
+@pytest.mark.timeout(90)
+def test_rest_report_of_a_capture_run(client) -> None:  # noqa: F811
+    run_id = start_run(client, 8)
+    wait_run(client, run_id, finished)
+    cal_id = client.post(f"/runs/{run_id}/calibrations", json={}).json()["id"]
+    deadline = time.monotonic() + 60
+    while (cal := client.get(f"/calibrations/{cal_id}").json())["state"] == "running":
+        assert time.monotonic() < deadline
+        time.sleep(0.2)
+    assert cal["state"] == "done", cal["error"]
+    r = client.get(f"/calibrations/{cal_id}/report")
+    assert r.status_code == 200
+    assert r.headers["content-type"].startswith("text/html")
+    page = assert_self_contained(r.text)
+    assert set(IMAGE_PLOTS) <= {f.removeprefix("fig-") for f in page.figures}
+    assert all(f"<td class=\"l\">{s['id']}</td>" in r.text for s in cal["result"]["stations"])
+    missing = client.get("/calibrations/nope/report")
+    assert missing.status_code == 404 and missing.json()["code"] == "not_found"
