@@ -26,14 +26,22 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-#: SB detector flags, tried in order: fast first, exhaustive search only when that fails.
 #: Images at least this large (smaller side, px) are searched at half size first.
 _COARSE_MIN_SIZE = 960
-#: ``CALIB_CB_ACCURACY`` is left out: it is 4x slower and less accurate than :func:`_refine`.
+#: SB detector flags, tried in order until one reads the board: the fast common case first,
+#: then without normalisation (the histogram equalisation can drown a board in a bright or
+#: unevenly lit image), then the exhaustive search with and without it, and last with
+#: ``CALIB_CB_ACCURACY``, whose up-sampled search reads some boards the others miss (it is
+#: 4x slower, and its corners are replaced by :func:`_refine`'s anyway).
 _SB_FLAG_SETS = (
     cv2.CALIB_CB_NORMALIZE_IMAGE,
+    0,
     cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE,
+    cv2.CALIB_CB_EXHAUSTIVE,
+    cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY,
 )
+#: Local contrast equalisation for the last attempt (tile size in board-independent px).
+_CLAHE = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(8, 8))
 #: Gaussian sigma (px) of the smoothing applied before the sub-pixel refinement.
 _REFINE_SIGMA = 1.2
 #: Largest half window (px) of the sub-pixel refinement.
@@ -126,12 +134,13 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
     if grey is None:
         return Detection(ok=False, reason=reason)
     lo, hi = _grey_range(grey)
-    if hi - lo < min_contrast:
-        return Detection(ok=False, sharpness=0.0, reason=(
-            f"image is blank: grey levels span only {lo:.0f}..{hi:.0f} "
-            "(nothing in view, lens cap, lighting or exposure?)"))
-    found, raw = _find_grid(grey, (cols, rows))
+    faint = hi - lo < min_contrast  # a blank frame, or a board in a few grey levels
+    found, raw = (False, None) if hi == lo else _find_grid(grey, (cols, rows), quick=faint)
     if not found:
+        if faint:
+            return Detection(ok=False, sharpness=0.0, reason=(
+                f"image is blank: grey levels span only {lo:.0f}..{hi:.0f} "
+                "(nothing in view, lens cap, lighting or exposure?)"))
         sharpness = _sharpness(grey)
         if sharpness < min_sharpness:
             reason = f"image too blurred (sharpness {sharpness:.3f} < {min_sharpness:.3f})"
@@ -150,7 +159,8 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
                "ambiguous": ambiguous}
     if sharpness < min_sharpness:
         return Detection(ok=False, **metrics, reason=(
-            f"image too blurred (sharpness {sharpness:.3f} < {min_sharpness:.3f})"))
+            f"image too blurred: the board was found but its edges are soft (sharpness "
+            f"{sharpness:.3f} < {min_sharpness:.3f}), corners would be inaccurate"))
     return Detection(ok=True, corners=corners, **metrics)
 
 
@@ -162,24 +172,31 @@ def _grey_range(grey: np.ndarray) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
-def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int]
+def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], *, quick: bool = False
                ) -> tuple[bool, np.ndarray | None]:
     """OpenCV's SB detector, first on a half-size copy of a large image (about 4x faster).
 
     Half-size corners are scaled back (a half-size pixel centre x sits at 2x + 0.5) and are
     only a start for :func:`_refine` at full resolution; when the half-size search fails
-    (small or distant board) the full image is searched.
+    (small or distant board) the full image is searched with each of ``_SB_FLAG_SETS`` in
+    turn, and last the exhaustive search on a locally equalised copy (CLAHE) for boards in
+    shadow or glare. The common case costs one call; only a missing board costs them all.
+    ``quick`` (faint images, usually blank frames) tries the normalised search alone.
     """
     if min(grey.shape) >= _COARSE_MIN_SIZE:
         found, raw = cv2.findChessboardCornersSB(cv2.pyrDown(grey), inner_corners,
                                                  flags=_SB_FLAG_SETS[0])
         if found:
             return True, raw * 2.0 + 0.5
-    for flags in _SB_FLAG_SETS:
+    for flags in _SB_FLAG_SETS[:1] if quick else _SB_FLAG_SETS:
         found, raw = cv2.findChessboardCornersSB(grey, inner_corners, flags=flags)
         if found:
             return True, raw
-    return False, None
+    if quick:
+        return False, None
+    found, raw = cv2.findChessboardCornersSB(_CLAHE.apply(grey), inner_corners,
+                                             flags=_SB_FLAG_SETS[2])
+    return (True, raw) if found else (False, None)
 
 
 def order_corners(grey: np.ndarray, corners: np.ndarray,
@@ -285,10 +302,19 @@ def _diagnose_missing_board(grey: np.ndarray, inner_corners: tuple[int, int]) ->
     if near_edge and len(pts) < cols * rows:
         return (f"only part of the board is visible: {grid_cols}x{grid_rows} of {cols}x{rows} "
                 "inner corners found, the board runs off the image")
-    if sorted((grid_cols, grid_rows)) != sorted((cols, rows)):
-        return (f"board not found with {cols}x{rows} inner corners; a {grid_cols}x{grid_rows} "
-                "grid is visible: check inner_corners, or whether part of the board is hidden")
-    return f"board not found ({cols}x{rows} inner corners expected)"
+    seen, wanted = sorted((grid_cols, grid_rows)), sorted((cols, rows))
+    if seen == wanted:
+        return (f"board seen ({grid_cols}x{grid_rows} inner corners) but not read reliably "
+                "(glare, shadow or strong perspective?)")
+    if seen[0] >= wanted[0] and seen[1] >= wanted[1]:
+        return (f"board not found with {cols}x{rows} inner corners; a larger "
+                f"{grid_cols}x{grid_rows} grid is visible: check inner_corners")
+    if seen[0] <= wanted[0] and seen[1] <= wanted[1] and len(pts) < cols * rows // 2:
+        return (f"board not read: only a {grid_cols}x{grid_rows} patch of the {cols}x{rows} "
+                "inner corners could be followed (part of the board hidden, in glare or "
+                "shadow, or too blurred?)")
+    return (f"board not found with {cols}x{rows} inner corners; a {grid_cols}x{grid_rows} "
+            "grid is visible: check inner_corners, or whether part of the board is hidden")
 
 
 def _refine(grey: np.ndarray, corners: np.ndarray, inner_corners: tuple[int, int]) -> np.ndarray:

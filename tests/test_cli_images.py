@@ -85,7 +85,8 @@ def test_wrong_inner_corners_is_one_clear_line(tmp_path, capsys):
     assert main(["calibrate", str(d)]) == 2
     err = capsys.readouterr().err
     assert re.match(r"cellcal: error: only 0 of 3 stations usable, need at least 3 \(000: "
-                    r"board not found with 10x8 inner corners; a (11x8|8x11) grid is visible: "
+                    r"board not found with 10x8 inner corners; a larger (11x8|8x11) grid is "
+                    r"visible: "
                     r"check inner_corners", err), err
     assert err.count("\n") == 1
 

@@ -102,8 +102,8 @@ def test_all_images_rejected_is_a_clear_error():
 
 def test_wrong_inner_corners_says_what_is_visible():
     images, poses = rendered_stations()
-    with pytest.raises(ValueError, match=r"only 0 of 3 stations usable.*a 11x8 grid is "
-                                         r"visible: check inner_corners"):
+    with pytest.raises(ValueError, match=r"only 0 of 3 stations usable.*a larger 11x8 grid "
+                                         r"is visible: check inner_corners"):
         calibrate_set(images[:3], poses[:3], inner_corners=(10, 8), square_size=SQUARE)
 
 

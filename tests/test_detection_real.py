@@ -1,0 +1,123 @@
+"""Detection reads every board OpenCV reads: real images (``../shared/data``) and degraded
+copies of them, against ``findChessboardCornersSB`` under several flag sets.
+
+The degradations are made here: low contrast, dark and bright gamma, sensor noise, defocus
+blur and uneven lighting. A board that any of OpenCV's flag sets finds must be detected, in
+the same place (corners within a few px of OpenCV's, whatever their order). The fast test
+takes one image per set and two flag sets; the slow one every image and five flag sets.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+
+import cv2
+import numpy as np
+import pytest
+
+from calib.target import detect_checkerboard
+from tests.helpers import OPENCV_LEFT, SHARED
+
+UR_SETS = [SHARED / "data" / s for s in ("ur-kinect-highR_highT", "ur-kinect-lowR_highT")]
+OPENCV_FLAGS = {
+    "normalize": cv2.CALIB_CB_NORMALIZE_IMAGE,
+    "none": 0,
+    "exhaustive": cv2.CALIB_CB_EXHAUSTIVE,
+    "normalize+exhaustive": cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE,
+    "accuracy": cv2.CALIB_CB_ACCURACY,
+}
+
+
+def _ramp(grey: np.ndarray) -> np.ndarray:
+    """Light falling off to 15 % across the image and 50 % down it (one lamp at a corner)."""
+    h, w = grey.shape
+    gain = np.linspace(0.15, 1.0, w)[None, :] * np.linspace(0.5, 1.0, h)[:, None]
+    return (grey * gain).astype(np.uint8)
+
+
+def _noisy(grey: np.ndarray, sigma: float) -> np.ndarray:
+    rng = np.random.default_rng(int(grey.sum()) % 2**32)
+    return np.clip(grey + rng.normal(0.0, sigma, grey.shape), 0, 255).astype(np.uint8)
+
+
+DEGRADATIONS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
+    "original": lambda g: g,
+    "contrast 10 %": lambda g: (g * 0.1 + 100).astype(np.uint8),
+    "gamma 3.5": lambda g: (255 * (g / 255.0) ** 3.5).astype(np.uint8),
+    "gamma 0.3": lambda g: (255 * (g / 255.0) ** 0.3).astype(np.uint8),
+    "noise 25": lambda g: _noisy(g, 25.0),
+    "blur 2.5 px": lambda g: cv2.GaussianBlur(g, (0, 0), 2.5),
+    "uneven light + noise": lambda g: _noisy(_ramp(g), 6.0),
+}
+
+
+def _ur_images(every: int) -> list[tuple[str, tuple[int, int]]]:
+    out = []
+    for d in UR_SETS:
+        doc = json.loads((d / "stations.json").read_text())
+        board = tuple(doc["target"]["inner_corners"])
+        out += [(str(d / s["image"]), board) for s in doc["stations"][::every]]
+    return out
+
+
+def _images(every: int) -> list[tuple[str, tuple[int, int]]]:
+    left = [(str(p), (9, 6)) for p in sorted(OPENCV_LEFT.glob("left*.jpg"))[::every]]
+    return left + _ur_images(every)
+
+
+def _same_grid(ours: np.ndarray, theirs: np.ndarray, board: tuple[int, int]) -> float:
+    """Largest corner distance (px) between two detections of a grid, over the grid flips."""
+    cols, rows = board
+    g = theirs.reshape(rows, cols, 2)
+    flips = [g, g[::-1, ::-1], g[::-1], g[:, ::-1]]
+    return min(float(np.abs(f.reshape(-1, 2) - ours).max()) for f in flips)
+
+
+def _check(path: str, board: tuple[int, int], degrade: str, flag_sets: list[str]) -> bool:
+    """Assert our detection where OpenCV reads the board with any of ``flag_sets``; return
+    whether it did."""
+    grey = DEGRADATIONS[degrade](cv2.imread(path, cv2.IMREAD_GRAYSCALE))
+    found = {}
+    for name in flag_sets:
+        flags = OPENCV_FLAGS[name]
+        ok, corners = cv2.findChessboardCornersSB(grey, board, flags=flags)
+        if ok:
+            found[name] = corners.reshape(-1, 2).astype(float)
+    if not found:
+        return False
+    det = detect_checkerboard(grey, board)
+    assert det.ok, f"{path} ({degrade}): OpenCV reads it with {sorted(found)}; " \
+                   f"we say: {det.reason}"
+    # the same board in the same place (squares here are 20-70 px; blur moves SB's corners)
+    assert min(_same_grid(det.corners, c, board) for c in found.values()) < 5.0
+    return True
+
+
+@pytest.mark.parametrize("degrade", DEGRADATIONS)
+def test_every_board_opencv_reads_is_read(degrade: str) -> None:
+    images = _images(every=100)  # the first image of each set
+    flag_sets = ["normalize", "none"]
+    compared = sum(_check(path, board, degrade, flag_sets) for path, board in images)
+    assert compared >= len(images) - 1  # OpenCV reads (almost) all: the test compares
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("degrade", DEGRADATIONS)
+def test_every_board_opencv_reads_is_read_on_every_image(degrade: str) -> None:
+    images = _images(every=1)
+    compared = sum(_check(path, board, degrade, list(OPENCV_FLAGS)) for path, board in images)
+    assert compared >= 0.8 * len(images)
+
+
+def test_low_contrast_board_is_read_and_a_flat_image_is_blank() -> None:
+    """A board in 20 grey levels is read (OpenCV reads it); an image of under 20 levels
+    without a board is still called blank."""
+    path, board = _ur_images(100)[0]
+    faint = (cv2.imread(path, cv2.IMREAD_GRAYSCALE) * 0.08 + 100).astype(np.uint8)
+    assert np.percentile(faint, 99) - np.percentile(faint, 1) < 20
+    assert cv2.findChessboardCornersSB(faint, board, flags=cv2.CALIB_CB_NORMALIZE_IMAGE)[0]
+    assert detect_checkerboard(faint, board).ok
+    flat = _noisy(np.full((720, 1280), 110, np.uint8), 3.0)
+    det = detect_checkerboard(flat, board)
+    assert not det.ok and det.reason.startswith("image is blank")
