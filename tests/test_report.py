@@ -17,10 +17,10 @@ import pytest
 
 from service.cli.main import main
 from service.report import report_plots
+from tests.helpers import SHARED
 from tests.test_service_api import client, finished, start_run, wait_run  # noqa: F401
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
-UR_SET = DATA / "ur-kinect-lowR_highT"
+UR_SET = SHARED / "data" / "ur-kinect-lowR_highT"
 #: Plots a hand-eye result from images always has (``model-selection`` needs the block).
 IMAGE_PLOTS = ("station-errors", "residuals", "coverage", "uncertainty")
 
