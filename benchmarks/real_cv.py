@@ -1,0 +1,328 @@
+"""Real data: how well does a calibration predict what it has not seen? cellcal vs OpenCV.
+
+Sets (``../shared/data``, read in place): the two real UR eye-in-hand sets ``ur-kinect-*``
+(21 stations each, 11x8 board printed about 10 % larger than its nominal 30 mm squares) and
+OpenCV's ``opencv-left`` images (13 views of a 9x6 board, no robot: intrinsics only).
+
+Hand-eye sets, k-fold cross-validation over stations (k = 5, the same folds for every method):
+each method is fitted on the other folds and predicts each held-out station's board corners
+from its robot pose alone, ``cam_T_target = inv(X) inv(P_k) Y``, with the fold's camera model
+(and for cellcal its κ and ν). The error of a station is the RMS pixel distance to the
+detected corners (cellcal's detections, the common reference); the figure of a method is the
+RMS over stations of those per-station errors.
+
+- ``cellcal`` — the default pipeline (``calibrate_stations``, joint ML with κ, ν);
+- ``opencv-<m>`` — OpenCV's pipeline: ``findChessboardCornersSB`` (NORMALIZE | EXHAUSTIVE |
+  ACCURACY, its corners put in cellcal's corner order so the origin is consistent — a favour
+  to the peer), ``calibrateCamera`` on the nominal board, ``calibrateHandEye`` with Park, Tsai
+  or Daniilidis, and Y = base_T_target averaged over the training stations (rotation mean by
+  ``scipy Rotation.mean``, translation mean).
+
+Uncertainty: cellcal's reported 1σ of the hand-eye (full set) against the delete-a-group
+jackknife spread of the k fold estimates, ``sqrt((k-1)/k Σ (θ_i - θ̄)²)`` per axis.
+
+Intrinsics only (``opencv-left``): k-fold over images; the fold's camera model (cellcal's
+``calibrate_stations`` without robot poses, or ``calibrateCamera``) and a held-out image's pose
+from ``solvePnP`` on half of its corners (the (i + j) even checkerboard half) predict the other
+half; the figure is the RMS over images of those errors.
+
+    python -m benchmarks.real_cv            # about 2 min on 2 idle cores
+
+Prints a table and writes ``benchmarks/results/real_cv.png`` and ``real_cv.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import matplotlib
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from calib.geometry import check_ur_poses, invert, make_transform
+from calib.peers import solve_opencv
+from calib.pipeline import calibrate_stations
+from calib.stations import StationInputs
+from calib.target import Board, board_points, detect_checkerboard
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+OUT = Path(__file__).parent / "results"
+UR_SETS = ("ur-kinect-highR_highT", "ur-kinect-lowR_highT")
+PEERS = ("park", "tsai", "daniilidis")
+K_FOLDS = 5
+SB_FLAGS = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+
+
+@dataclass(frozen=True)
+class StationData:
+    """One set's usable stations: both detectors read the board in each."""
+
+    name: str
+    board: tuple[int, int]
+    square: float
+    image_size: tuple[int, int]
+    corners: list[np.ndarray]  # cellcal's detections, (N, 2) each
+    corners_cv: list[np.ndarray]  # OpenCV's, in cellcal's corner order
+    T_base_tcp: np.ndarray | None  # (n, 4, 4), None for intrinsics-only sets
+
+
+@dataclass(frozen=True)
+class Fit:
+    """What a method needs to predict a held-out station."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    grid: np.ndarray  # board corners at the method's scale, (N, 3)
+    X: np.ndarray | None = None
+    Y: np.ndarray | None = None
+
+
+def folds(n: int, k: int = K_FOLDS) -> list[np.ndarray]:
+    """Held-out station indices of each fold: station i in fold i mod k (interleaved, so
+    every fold spans the capture order)."""
+    return [np.arange(f, n, k) for f in range(min(k, n))]
+
+
+# ---- data --------------------------------------------------------------------------------------
+
+def _in_our_order(cv_corners: np.ndarray, ours: np.ndarray, board: tuple[int, int]) -> np.ndarray:
+    """OpenCV's grid (N, 2) re-indexed to cellcal's order (the closest of the grid flips)."""
+    cols, rows = board
+    g = cv_corners.reshape(rows, cols, 2)
+    candidates = [g, g[::-1, ::-1], g[::-1], g[:, ::-1]]
+    errs = [np.abs(c.reshape(-1, 2) - ours).max() for c in candidates]
+    return candidates[int(np.argmin(errs))].reshape(-1, 2)
+
+
+def _detect_both(images: Sequence[np.ndarray], board: tuple[int, int]
+                 ) -> tuple[list[int], list[np.ndarray], list[np.ndarray]]:
+    keep, ours, theirs = [], [], []
+    for k, grey in enumerate(images):
+        det = detect_checkerboard(grey, board)
+        found, cv_raw = cv2.findChessboardCornersSB(grey, board, flags=SB_FLAGS)
+        if det.ok and found:
+            keep.append(k)
+            ours.append(det.corners)
+            theirs.append(_in_our_order(cv_raw.reshape(-1, 2).astype(float), det.corners,
+                                        board))
+    return keep, ours, theirs
+
+
+def load_ur_set(name: str) -> StationData:
+    doc = json.loads((DATA / name / "stations.json").read_text())
+    board = tuple(doc["target"]["inner_corners"])
+    images = [cv2.imread(str(DATA / name / s["image"]), cv2.IMREAD_GRAYSCALE)
+              for s in doc["stations"]]
+    keep, ours, theirs = _detect_both(images, board)
+    P = check_ur_poses([doc["stations"][k]["tcp_pose"] for k in keep], "tcp_pose")
+    h, w = images[0].shape
+    return StationData(name, board, doc["target"]["square_size_m"], (w, h), ours, theirs, P)
+
+
+def load_opencv_left() -> StationData:
+    files = sorted((DATA / "opencv-left").glob("left*.jpg"))
+    images = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in files]
+    _, ours, theirs = _detect_both(images, (9, 6))
+    h, w = images[0].shape
+    # The square size is unknown and irrelevant to intrinsics; 1 unit.
+    return StationData("opencv-left", (9, 6), 1.0, (w, h), ours, theirs, None)
+
+
+# ---- fits ----------------------------------------------------------------------------------------
+
+def fit_cellcal(data: StationData, train: np.ndarray):
+    """cellcal's default on the training stations: (Fit, the CalibrationResult)."""
+    poses = None if data.T_base_tcp is None else [
+        np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
+        for T in data.T_base_tcp[train]]
+    res = calibrate_stations(
+        StationInputs([data.corners[i] for i in train], poses, image_size=data.image_size),
+        Board(data.board, data.square))
+    grid = board_points(data.board, data.square, kappa=res.kappa, nu=res.nu)
+    return Fit(res.K, res.dist, grid, res.hand_eye, res.target_pose), res
+
+
+def _opencv_camera(data: StationData, train: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    grid = board_points(data.board, data.square).astype(np.float32)
+    _, K, dist, rvecs, tvecs = cv2.calibrateCamera(
+        [grid] * len(train), [data.corners_cv[i].astype(np.float32) for i in train],
+        data.image_size, None, None)
+    C = np.stack([make_transform(cv2.Rodrigues(r)[0], t.ravel())
+                  for r, t in zip(rvecs, tvecs, strict=True)])
+    return K, dist.ravel()[:5], grid.astype(float), C
+
+
+def fit_opencv(data: StationData, train: np.ndarray, method: str) -> Fit:
+    """OpenCV's pipeline on the training stations; Y averaged over them."""
+    K, dist, grid, C = _opencv_camera(data, train)
+    if data.T_base_tcp is None:
+        return Fit(K, dist, grid)
+    P = data.T_base_tcp[train]
+    X, _ = solve_opencv(P, C, method)
+    Y_each = P @ X @ C
+    Y = make_transform(Rotation.from_matrix(Y_each[:, :3, :3]).mean().as_matrix(),
+                       Y_each[:, :3, 3].mean(axis=0))
+    return Fit(K, dist, grid, X, Y)
+
+
+# ---- prediction errors -----------------------------------------------------------------------
+
+def _project(fit: Fit, T_cam_target: np.ndarray, points: np.ndarray) -> np.ndarray:
+    rvec = Rotation.from_matrix(T_cam_target[:3, :3]).as_rotvec()
+    return cv2.projectPoints(points, rvec, T_cam_target[:3, 3], fit.K, fit.dist)[0].reshape(-1, 2)
+
+
+def chain_errors(data: StationData, fit: Fit, held: np.ndarray) -> np.ndarray:
+    """Per held-out station RMS px of the corners predicted from the robot pose alone."""
+    out = []
+    for i in held:
+        C = invert(fit.X) @ invert(data.T_base_tcp[i]) @ fit.Y
+        uv = _project(fit, C, fit.grid)
+        out.append(np.sqrt(np.mean(np.sum((uv - data.corners[i]) ** 2, axis=1))))
+    return np.array(out)
+
+
+def half_board_errors(data: StationData, fit: Fit, held: np.ndarray) -> np.ndarray:
+    """Per held-out image RMS px on the odd checkerboard half, pose by PnP on the even half."""
+    cols, rows = data.board
+    j, i = np.mgrid[0:rows, 0:cols]
+    even = ((i + j) % 2 == 0).ravel()
+    out = []
+    for k in held:
+        m = data.corners[k]
+        _, rvec, tvec = cv2.solvePnP(fit.grid[even], m[even], fit.K, fit.dist)
+        T = make_transform(cv2.Rodrigues(rvec)[0], tvec.ravel())
+        uv = _project(fit, T, fit.grid[~even])
+        out.append(np.sqrt(np.mean(np.sum((uv - m[~even]) ** 2, axis=1))))
+    return np.array(out)
+
+
+def _delta(X: np.ndarray, X_ref: np.ndarray) -> np.ndarray:
+    """Small rotation (left, rad) and translation (m) from X_ref to X, shape (6,)."""
+    rot = Rotation.from_matrix(X[:3, :3] @ X_ref[:3, :3].T).as_rotvec()
+    return np.concatenate([rot, X[:3, 3] - X_ref[:3, 3]])
+
+
+def jackknife_sd(estimates: Sequence[np.ndarray], reference: np.ndarray) -> np.ndarray:
+    """Delete-a-group jackknife standard deviation per axis (rot rad x3, trans m x3)."""
+    d = np.array([_delta(X, reference) for X in estimates])
+    g = len(d)
+    return np.sqrt((g - 1) / g * np.sum((d - d.mean(axis=0)) ** 2, axis=0))
+
+
+# ---- per set -----------------------------------------------------------------------------------
+
+def run_set(data: StationData, methods: Sequence[str]) -> dict:
+    """CV errors per method (per-station arrays) and, for hand-eye sets, σ vs jackknife."""
+    n = len(data.corners)
+    errors: dict[str, np.ndarray] = {m: np.full(n, np.nan) for m in methods}
+    predict = half_board_errors if data.T_base_tcp is None else chain_errors
+    estimates = []
+    for held in folds(n):
+        train = np.setdiff1d(np.arange(n), held)
+        for m in methods:
+            if m == "cellcal":
+                fit, _ = fit_cellcal(data, train)
+                estimates.append(fit.X)
+            else:
+                fit = fit_opencv(data, train, m.removeprefix("opencv-"))
+            errors[m][held] = predict(data, fit, held)
+    out = {"n": n, "errors": errors,
+           "cv_px": {m: float(np.sqrt(np.mean(e ** 2))) for m, e in errors.items()}}
+    if data.T_base_tcp is not None:
+        full_fit, full = fit_cellcal(data, np.arange(n))
+        reported = np.concatenate([full.sigmas["hand_eye_rot_rad"],
+                                   full.sigmas["hand_eye_trans_m"]])
+        jack = jackknife_sd(estimates, full_fit.X)
+        out.update(kappa=full.kappa, reported=reported, jackknife=jack,
+                   ratio_rot=float(np.linalg.norm(reported[:3]) / np.linalg.norm(jack[:3])),
+                   ratio_trans=float(np.linalg.norm(reported[3:]) / np.linalg.norm(jack[3:])))
+    return out
+
+
+# ---- output ------------------------------------------------------------------------------------
+
+def table(results: dict[str, dict]) -> str:
+    lines = ["| set | stations | method | CV px | / best OpenCV |", "|---|---|---|---|---|"]
+    for name, r in results.items():
+        best = min(v for m, v in r["cv_px"].items() if m != "cellcal")
+        for m, v in r["cv_px"].items():
+            lines.append(f"| {name} | {r['n']} | {m} | {v:.3f} | {v / best:.2f} |")
+    lines += ["", "| set | κ | reported σ rot (deg) | jackknife rot (deg) | ratio | "
+              "reported σ trans (mm) | jackknife trans (mm) | ratio |",
+              "|---|---|---|---|---|---|---|---|"]
+    for name, r in results.items():
+        if "reported" not in r:
+            continue
+        rep, jk = r["reported"], r["jackknife"]
+        lines.append(
+            f"| {name} | {r['kappa']:.4f} | {np.rad2deg(np.linalg.norm(rep[:3])):.3f} | "
+            f"{np.rad2deg(np.linalg.norm(jk[:3])):.3f} | {r['ratio_rot']:.2f} | "
+            f"{1e3 * np.linalg.norm(rep[3:]):.2f} | {1e3 * np.linalg.norm(jk[3:]):.2f} | "
+            f"{r['ratio_trans']:.2f} |")
+    return "\n".join(lines)
+
+
+def plot(results: dict[str, dict], path: Path) -> None:
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2), width_ratios=(2, 1),
+                             layout="constrained")
+    names = list(results)
+    colours = {}
+    for k, name in enumerate(names):
+        methods = list(results[name]["cv_px"])
+        width = 0.8 / len(methods)
+        for j, m in enumerate(methods):
+            first = m not in colours
+            colours.setdefault(m, f"C{len(colours)}")
+            axes[0].bar(k + (j - (len(methods) - 1) / 2) * width, results[name]["cv_px"][m],
+                        width, color=colours[m], label=m if first else None)
+    axes[0].set_xticks(np.arange(len(names)), names)
+    axes[0].set_ylabel("k-fold CV RMS error (px)")
+    axes[0].set_yscale("log")
+    axes[0].set_title("held-out stations predicted from robot poses (opencv-left: half-board)")
+    axes[0].legend(fontsize=8)
+    he = [s for s in names if "reported" in results[s]]
+    for k, (label, key) in enumerate((("rotation", "ratio_rot"), ("translation", "ratio_trans"))):
+        axes[1].bar(np.arange(len(he)) + (k - 0.5) * 0.4, [results[s][key] for s in he], 0.4,
+                    label=label)
+    axes[1].axhline(1.0, color="k", lw=0.8)
+    axes[1].axhline(0.7, color="r", lw=0.8, ls="--", label="target 0.7")
+    axes[1].set_xticks(np.arange(len(he)), [s.removeprefix("ur-kinect-") for s in he])
+    axes[1].set_title("cellcal reported σ / jackknife spread")
+    axes[1].legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sets", nargs="+", default=[*UR_SETS, "opencv-left"])
+    args = parser.parse_args(argv)
+    methods = ["cellcal", *(f"opencv-{m}" for m in PEERS)]
+    results = {}
+    for name in args.sets:
+        data = load_opencv_left() if name == "opencv-left" else load_ur_set(name)
+        results[name] = run_set(data, methods if data.T_base_tcp is not None
+                                else ["cellcal", "opencv-calibrateCamera"])
+        print(f"{name}: " + ", ".join(f"{m} {v:.3f} px"
+                                      for m, v in results[name]["cv_px"].items()), flush=True)
+    text = table(results)
+    print(text)
+    OUT.mkdir(exist_ok=True)
+    (OUT / "real_cv.md").write_text(text + "\n")
+    plot(results, OUT / "real_cv.png")
+    print(f"wrote {OUT / 'real_cv.png'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
