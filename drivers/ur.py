@@ -88,9 +88,11 @@ def _rtde_request(sock: socket.socket, msg_type: bytes, payload: bytes = b"") ->
 class URRobot(RobotSession):
     """A UR arm driven through ur-rtde; see the module docstring for the connection strategy.
 
-    ``connect_timeout`` bounds ``connect()`` (seconds); a move is considered settled once the
-    TCP speed stays below ``settle_speed`` (m/s for the linear part, rad/s for the angular part)
-    for ``settle_dwell`` seconds. Moves block until the robot is at the target and settled.
+    ``connect_timeout`` bounds each stage of ``connect()`` (seconds: the probe, then the wait
+    for the program on the status stream; ur-rtde's own program start takes up to 5 s). A move
+    is considered settled once the TCP speed stays below ``settle_speed`` (m/s for the linear
+    part, rad/s for the angular part) for ``settle_dwell`` seconds. Moves block until the robot
+    is at the target and settled.
     """
 
     def __init__(self, host: str, *, connect_timeout: float = 5.0, settle_speed: float = 1e-3,

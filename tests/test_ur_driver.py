@@ -47,7 +47,7 @@ def emulator() -> Iterator[EmulatorProcess]:
 def robot(emulator: EmulatorProcess) -> Iterator[URRobot]:
     assert emulator.command("emulator clear") == "emulator: faults cleared"
     wait_ports(emulator.host)  # a previous test may have dropped the connections
-    bot = URRobot(emulator.host, connect_timeout=3.0, settle_dwell=0.05, motion_timeout=10.0)
+    bot = URRobot(emulator.host, connect_timeout=10.0, settle_dwell=0.05, motion_timeout=10.0)
     bot.connect()
     yield bot
     bot.close()
@@ -81,12 +81,12 @@ def test_connect_waits_for_the_program_on_the_status_stream(emulator: EmulatorPr
     emulator.command("emulator clear")
     try:
         emulator.command("emulator fault program_status_lag=0.5")
-        with URRobot(emulator.host, connect_timeout=3.0) as bot:
+        with URRobot(emulator.host, connect_timeout=10.0) as bot:
             status = bot.status()  # read at once: connect returned only when it shows running
             assert status.program_running and status.ready
         emulator.command("emulator fault program_status_lag=60")
         with pytest.raises(RobotError, match="did not report the remote-control program") as info:
-            URRobot(emulator.host, connect_timeout=1.0).connect()
+            URRobot(emulator.host, connect_timeout=5.0).connect()
         assert info.value.code == "program_not_started"
     finally:
         emulator.command("emulator clear")
@@ -202,7 +202,7 @@ def test_not_in_remote_control(emulator: EmulatorProcess) -> None:
     emulator.command("emulator fault local_control")
     try:
         with pytest.raises(RobotError, match="Remote Control") as info:
-            URRobot(emulator.host, connect_timeout=3.0).connect()
+            URRobot(emulator.host, connect_timeout=10.0).connect()
         assert info.value.code == "not_in_remote_control"
     finally:
         emulator.command("emulator clear")
@@ -218,7 +218,7 @@ def test_slow_controller(emulator: EmulatorProcess) -> None:
         with pytest.raises(RobotConnectionError, match="too slowly"):
             URRobot(emulator.host, connect_timeout=2.0).connect()
         emulator.command("emulator fault slow_replies=0.01")
-        with URRobot(emulator.host, connect_timeout=3.0, settle_dwell=0.05) as bot:
+        with URRobot(emulator.host, connect_timeout=10.0, settle_dwell=0.05) as bot:
             assert bot.status().ready
     finally:
         emulator.command("emulator clear")
@@ -245,7 +245,7 @@ def test_invalid_targets_rejected_before_moving(robot: URRobot) -> None:
 def test_program_never_starts_is_a_clear_error() -> None:
     with running_emulator("--fault", "program_never_starts") as emu:
         with pytest.raises(RobotError, match="did not start the remote-control program") as info:
-            URRobot(emu.host, connect_timeout=3.0).connect()
+            URRobot(emu.host, connect_timeout=10.0).connect()
         assert info.value.code == "program_not_started"
 
 
