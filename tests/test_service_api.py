@@ -373,7 +373,7 @@ def test_events_of_a_finished_run_end_with_its_state(client: TestClient) -> None
     assert '"state": "done"' in text and '"stations_captured": 3' in text
 
 
-@pytest.mark.timeout(60)
+@pytest.mark.timeout(240)
 def test_calibration_of_a_run(client: TestClient) -> None:
     run_id = start_run(client, 8)
     r = client.post(f"/runs/{run_id}/calibrations", json={})
@@ -384,7 +384,7 @@ def test_calibration_of_a_run(client: TestClient) -> None:
                                       "robot_noise_trans_mm": 0.1}})
     assert r.status_code == 202, r.text
     cal_id = r.json()["id"]
-    deadline = time.monotonic() + 45
+    deadline = time.monotonic() + 180  # a stuck solve, not a slow machine
     while (cal := client.get(f"/calibrations/{cal_id}").json())["state"] == "running":
         assert time.monotonic() < deadline
         time.sleep(0.2)

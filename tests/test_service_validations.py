@@ -42,7 +42,7 @@ def calibrated(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str, str
         run_id = r.json()["id"]
         assert wait_run(c, run_id, finished)["state"] == "done"
         cal_id = c.post(f"/runs/{run_id}/calibrations", json={}).json()["id"]
-        cal = wait_for(c, f"/calibrations/{cal_id}", timeout=45)
+        cal = wait_for(c, f"/calibrations/{cal_id}", timeout=180)
         assert cal["state"] == "done", cal["error"]
     return data, run_id, cal_id
 
@@ -66,8 +66,9 @@ def app_on(calibrated: tuple[Path, str, str]) -> Iterator[Client]:
         c.__exit__(None, None, None)
 
 
-def wait_for(client: TestClient, path: str, timeout: float = 20.0) -> dict[str, Any]:
-    """Poll ``path`` until its state is no longer ``running``."""
+def wait_for(client: TestClient, path: str, timeout: float = 60.0) -> dict[str, Any]:
+    """Poll ``path`` until its state is no longer ``running``; ``timeout`` only catches a
+    stuck job (a loaded machine solves several times slower)."""
     deadline = time.monotonic() + timeout
     while (doc := client.get(path).json())["state"] == "running":
         assert time.monotonic() < deadline, f"{path} stuck: {doc}"
@@ -86,7 +87,7 @@ def true_pose(client: TestClient) -> np.ndarray:
     return client.app.state.devices.get()[0].true_pose
 
 
-@pytest.mark.timeout(90)
+@pytest.mark.timeout(300)  # includes the module fixture's capture and solve
 def test_dot_hit_touches_the_true_points_within_a_millimetre(
         app_on: Client, calibrated: tuple[Path, str, str]) -> None:
     client = app_on()
