@@ -181,14 +181,14 @@ def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], *, quick: bool 
     (small or distant board) the full image is searched with each of ``_SB_FLAG_SETS`` in
     turn, and last the exhaustive search on a locally equalised copy (CLAHE) for boards in
     shadow or glare. The common case costs one call; only a missing board costs them all.
-    ``quick`` (faint images, usually blank frames) tries the normalised search alone.
+    ``quick`` (faint images, usually blank frames) tries the normalised searches alone.
     """
     if min(grey.shape) >= _COARSE_MIN_SIZE:
         found, raw = cv2.findChessboardCornersSB(cv2.pyrDown(grey), inner_corners,
                                                  flags=_SB_FLAG_SETS[0])
         if found:
             return True, raw * 2.0 + 0.5
-    for flags in _SB_FLAG_SETS[:1] if quick else _SB_FLAG_SETS:
+    for flags in _SB_FLAG_SETS[::2][:2] if quick else _SB_FLAG_SETS:
         found, raw = cv2.findChessboardCornersSB(grey, inner_corners, flags=flags)
         if found:
             return True, raw

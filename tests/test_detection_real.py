@@ -103,6 +103,7 @@ def test_every_board_opencv_reads_is_read(degrade: str) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)
 @pytest.mark.parametrize("degrade", DEGRADATIONS)
 def test_every_board_opencv_reads_is_read_on_every_image(degrade: str) -> None:
     images = _images(every=1)
