@@ -10,6 +10,7 @@ from fastapi.responses import HTMLResponse
 
 from service import store
 from service.api.deps import CalibrationsDep, SessionDep
+from service.api.reads import Read, add_reads
 from service.errors import ConflictError, UnprocessableError
 from service.exports import ExportNames, export
 from service.schemas import CalibrationCreate, CalibrationPublic, Created, ExportQuery
@@ -27,17 +28,12 @@ def create_calibration(run_id: str, calibrations: CalibrationsDep,
     return Created(id=calibrations.start(run_id, body.options).id)
 
 
-@router.get("/runs/{run_id}/calibrations")
-def list_calibrations(run_id: str, session: SessionDep) -> list[CalibrationPublic]:
-    """The run's calibrations, oldest first."""
-    rows = store.list_calibrations(session, run_id=run_id)
-    return [CalibrationPublic.model_validate(row) for row in rows]
-
-
-@router.get("/calibrations/{cal_id}")
-def get_calibration(cal_id: str, session: SessionDep) -> CalibrationPublic:
-    """State (``running``, ``done``, ``failed``) and the ``cellcal/result@1`` document."""
-    return CalibrationPublic.model_validate(store.get_calibration(session, cal_id=cal_id))
+add_reads(router, CalibrationPublic,
+          listing=Read("/runs/{run_id}/calibrations", store.list_calibrations,
+                       "list_calibrations", "The run's calibrations, oldest first."),
+          item=Read("/calibrations/{cal_id}", store.get_calibration, "get_calibration",
+                    "State (``running``, ``done``, ``failed``) and the ``cellcal/result@1`` "
+                    "document."))
 
 
 @router.get("/calibrations/{cal_id}/export", response_class=Response, responses={

@@ -5,7 +5,8 @@ from __future__ import annotations
 from fastapi import APIRouter, status
 
 from service import store
-from service.api.deps import SessionDep, ValidationsDep
+from service.api.deps import ValidationsDep
+from service.api.reads import Read, add_reads
 from service.schemas import Created, ValidationCreate, ValidationPublic
 
 router = APIRouter(tags=["validations"])
@@ -28,14 +29,8 @@ def create_validation(cal_id: str, validations: ValidationsDep,
     return Created(id=validations.start(cal_id, body or ValidationCreate()).id)
 
 
-@router.get("/calibrations/{cal_id}/validations")
-def list_validations(cal_id: str, session: SessionDep) -> list[ValidationPublic]:
-    """The calibration's validations, oldest first."""
-    rows = store.list_validations(session, cal_id=cal_id)
-    return [ValidationPublic.model_validate(row) for row in rows]
-
-
-@router.get("/validations/{val_id}")
-def get_validation(val_id: str, session: SessionDep) -> ValidationPublic:
-    """State (``running``, ``done``, ``failed``) and the report."""
-    return ValidationPublic.model_validate(store.get_validation(session, val_id=val_id))
+add_reads(router, ValidationPublic,
+          listing=Read("/calibrations/{cal_id}/validations", store.list_validations,
+                       "list_validations", "The calibration's validations, oldest first."),
+          item=Read("/validations/{val_id}", store.get_validation, "get_validation",
+                    "State (``running``, ``done``, ``failed``) and the report."))
