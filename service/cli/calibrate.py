@@ -1,4 +1,13 @@
-"""``cellcal calibrate STATION_DIR``: a station set directory -> result JSON document."""
+"""Calibrate a station set.
+
+With images: corners are detected, then intrinsics with the board aspect ratio nu, hand-eye by
+screw motions (SM), the board scale kappa, and by default ('joint') a maximum-likelihood estimate
+over all corners and robot poses with standard deviations; images that cannot be used are listed
+with the reason. Pose-only sets (stations with target_pose): by default ('refine') SM, then a
+weighted least-squares refinement over all stations.
+"""
+
+# ``cellcal calibrate STATION_DIR``: a station set directory -> result JSON document.
 
 from __future__ import annotations
 
@@ -21,41 +30,35 @@ from calib import (
 from service.image_files import DEFAULT_MAX_PIXELS, read_station_image
 from service.stationset import DEFAULT_MAX_STATIONS, StationSet, load_station_set
 
+#: The command's line in ``cellcal --help``.
+HELP = "calibrate a station set directory (stations.json)"
 
-def register(sub: argparse._SubParsersAction) -> None:
-    """Add the ``calibrate`` command to the ``cellcal`` parser."""
-    cal = sub.add_parser(
-        "calibrate", help="calibrate a station set directory (stations.json)",
-        description="Calibrate a station set. With images: corners are detected, then "
-                    "intrinsics with the board aspect ratio nu, hand-eye by screw motions (SM), "
-                    "the board scale kappa, and by default ('joint') a maximum-likelihood "
-                    "estimate over all corners and robot poses with standard deviations; "
-                    "images that cannot be used are listed with the reason. Pose-only sets "
-                    "(stations with target_pose): by default ('refine') SM, then a weighted "
-                    "least-squares refinement over all stations.")
-    cal.add_argument("station_dir", help="directory holding stations.json")
-    cal.add_argument("--out", help="result JSON path (default: stdout)")
-    cal.add_argument("--method", choices=METHODS,
-                     help="solver (default: joint with images, refine for pose-only sets)")
-    cal.add_argument("--estimate-kappa", action="store_true",
-                     help="pose-only sets: also estimate the board scale kappa (refine only; "
-                          "always estimated from images)")
-    cal.add_argument("--nu-method", default="images", choices=("images", "extrinsics"),
-                     help="images: board aspect ratio nu from the corner residuals (Method #1, "
-                          "default); extrinsics: from the hand-eye residuals (Method #2)")
-    cal.add_argument("--max-stations", type=int, default=DEFAULT_MAX_STATIONS, metavar="N",
-                     help=f"refuse sets of more stations (default {DEFAULT_MAX_STATIONS})")
-    cal.add_argument("--max-image-pixels", type=int, default=DEFAULT_MAX_PIXELS, metavar="N",
-                     help="reject images larger than this, width x height, read from the file "
-                          f"header before decoding (default {DEFAULT_MAX_PIXELS})")
-    cal.set_defaults(func=_calibrate)
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``calibrate`` command's arguments."""
+    parser.add_argument("station_dir", help="directory holding stations.json")
+    parser.add_argument("--out", help="result JSON path (default: stdout)")
+    parser.add_argument("--method", choices=METHODS,
+                        help="solver (default: joint with images, refine for pose-only sets)")
+    parser.add_argument("--estimate-kappa", action="store_true",
+                        help="pose-only sets: also estimate the board scale kappa (refine only; "
+                             "always estimated from images)")
+    parser.add_argument("--nu-method", default="images", choices=("images", "extrinsics"),
+                        help="images: board aspect ratio nu from the corner residuals (Method #1, "
+                             "default); extrinsics: from the hand-eye residuals (Method #2)")
+    parser.add_argument("--max-stations", type=int, default=DEFAULT_MAX_STATIONS, metavar="N",
+                        help=f"refuse sets of more stations (default {DEFAULT_MAX_STATIONS})")
+    parser.add_argument("--max-image-pixels", type=int, default=DEFAULT_MAX_PIXELS, metavar="N",
+                        help="reject images larger than this, width x height, read from the file "
+                             f"header before decoding (default {DEFAULT_MAX_PIXELS})")
 
 
 #: Show a detection progress bar from this many images on.
 PROGRESS_MIN_IMAGES = 10
 
 
-def _calibrate(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
+    """Calibrate ``args.station_dir`` and write the result document."""
     stations = load_station_set(args.station_dir, max_stations=args.max_stations)
     command = " ".join(["cellcal", *sys.argv[1:]])
     if stations.pose_only:

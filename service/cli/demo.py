@@ -1,10 +1,14 @@
-"""``cellcal demo``: the service flow on a simulated cell.
-
-The demo belongs to the simulator (``mocks/demo.py``): it starts ``cellcal serve --mock`` and
-checks the results against the mock scene's truth. The service never imports the mocks, so the
-command names its implementation by an import string, as ``drivers.registry`` names the mock
-devices.
+"""Start the REST service with mock devices on a free loopback port, plan and capture 15
+stations, calibrate, run the dot-hit validation, export the result, and compare everything with
+the simulated cell's truth. The service and its data are removed at the end.
 """
+
+# ``cellcal demo``: the service flow on a simulated cell.
+#
+# The demo belongs to the simulator (``mocks/demo.py``): it starts ``cellcal serve --mock`` and
+# checks the results against the mock scene's truth. The service never imports the mocks, so the
+# command names its implementation by an import string, as ``drivers.registry`` names the mock
+# devices.
 
 from __future__ import annotations
 
@@ -18,27 +22,25 @@ DEMO = "mocks.demo:run_demo"
 POSE_DEMO = "mocks.demo:run_pose_demo"
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    """Add the ``demo`` command to the ``cellcal`` parser."""
-    demo = sub.add_parser(
-        "demo", help="run the service on a simulated cell: capture, calibrate, validate",
-        description="Start the REST service with mock devices on a free loopback port, plan "
-                    "and capture 15 stations, calibrate, run the dot-hit validation, export "
-                    "the result, and compare everything with the simulated cell's truth. The "
-                    "service and its data are removed at the end.")
-    demo.add_argument("--scene", type=Path, metavar="SCENE_JSON",
-                      help="mock scene file (default: the built-in eye-in-hand cell)")
-    demo.add_argument("--out", type=Path, metavar="DIR",
-                      help="where to write the result JSON and its exports (default: a new "
-                           "temporary directory, kept)")
-    demo.add_argument("--poses-only", action="store_true",
-                      help="instead: compare every hand-eye method on simulated poses")
-    demo.add_argument("--seed", type=int, default=1, help="--poses-only: simulation seed")
-    demo.add_argument("--stations", type=int, default=15, help=argparse.SUPPRESS)
-    demo.set_defaults(func=_demo)
+#: The command's line in ``cellcal --help``.
+HELP = "run the service on a simulated cell: capture, calibrate, validate"
 
 
-def _demo(args: argparse.Namespace) -> int:
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``demo`` command's arguments."""
+    parser.add_argument("--scene", type=Path, metavar="SCENE_JSON",
+                        help="mock scene file (default: the built-in eye-in-hand cell)")
+    parser.add_argument("--out", type=Path, metavar="DIR",
+                        help="where to write the result JSON and its exports (default: a new "
+                             "temporary directory, kept)")
+    parser.add_argument("--poses-only", action="store_true",
+                        help="instead: compare every hand-eye method on simulated poses")
+    parser.add_argument("--seed", type=int, default=1, help="--poses-only: simulation seed")
+    parser.add_argument("--stations", type=int, default=15, help=argparse.SUPPRESS)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the simulator's demo (or the pose-only comparison)."""
     if args.poses_only:
         return resolve(POSE_DEMO)(seed=args.seed, stations=args.stations)
     return resolve(DEMO)(stations=args.stations, scene=args.scene, out=args.out)

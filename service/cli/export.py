@@ -1,5 +1,11 @@
-"""``cellcal export RESULT.json --format FMT``: a result document as the file a user's stack
-reads (``service.exports``), the same files as ``GET /calibrations/{id}/export``."""
+"""Write a cellcal/result@1 document (from 'cellcal calibrate' or GET /calibrations/{id}) in
+another format. Camera formats (opencv-yaml, ros-camera-info) need a camera model; transform
+formats (urdf, ur-pose, ros2-static-tf) need a hand-eye: a result without one says which formats
+it has.
+"""
+
+# ``cellcal export RESULT.json --format FMT``: a result document as the file a user's stack reads
+# (``service.exports``), the same files as ``GET /calibrations/{id}/export``.
 
 from __future__ import annotations
 
@@ -14,30 +20,26 @@ from service.exports import FORMATS, ExportNames, export
 MAX_RESULT_BYTES = 256 * 1024 * 1024
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    """Add the ``export`` command to the ``cellcal`` parser."""
-    cmd = sub.add_parser(
-        "export", help="export a result file for OpenCV, ROS, a URDF or a UR program",
-        description="Write a cellcal/result@1 document (from 'cellcal calibrate' or GET "
-                    "/calibrations/{id}) in another format. Camera formats (opencv-yaml, "
-                    "ros-camera-info) need a camera model; transform formats (urdf, ur-pose, "
-                    "ros2-static-tf) need a hand-eye: a result without one says which formats "
-                    "it has.")
-    cmd.add_argument("result", help="result JSON file")
-    cmd.add_argument("--format", required=True, choices=FORMATS, dest="fmt",
-                     help="json, opencv-yaml (cv::FileStorage), ros-camera-info, urdf (camera "
-                          "joint), ur-pose (hand-eye as p[...]), ros2-static-tf (ROS 2 launch "
-                          "file with a static transform publisher)")
-    cmd.add_argument("--out", help="output file (default: stdout)")
-    cmd.add_argument("--camera-name", default="camera",
-                     help="ROS camera_name, prefix of the URDF joint and the ROS 2 node "
-                          "(default camera)")
-    cmd.add_argument("--parent-frame",
-                     help="frame the camera is fixed to (default tool0 eye-in-hand, base "
-                          "eye-to-hand)")
-    cmd.add_argument("--child-frame",
-                     help="the camera's frame (default <camera-name>_optical_frame)")
-    cmd.set_defaults(func=_export)
+#: The command's line in ``cellcal --help``.
+HELP = "export a result file for OpenCV, ROS, a URDF or a UR program"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``export`` command's arguments."""
+    parser.add_argument("result", help="result JSON file")
+    parser.add_argument("--format", required=True, choices=FORMATS, dest="fmt",
+                        help="json, opencv-yaml (cv::FileStorage), ros-camera-info, urdf (camera "
+                             "joint), ur-pose (hand-eye as p[...]), ros2-static-tf (ROS 2 launch "
+                             "file with a static transform publisher)")
+    parser.add_argument("--out", help="output file (default: stdout)")
+    parser.add_argument("--camera-name", default="camera",
+                        help="ROS camera_name, prefix of the URDF joint and the ROS 2 node "
+                             "(default camera)")
+    parser.add_argument("--parent-frame",
+                        help="frame the camera is fixed to (default tool0 eye-in-hand, base "
+                             "eye-to-hand)")
+    parser.add_argument("--child-frame",
+                        help="the camera's frame (default <camera-name>_optical_frame)")
 
 
 def read_result(path: str) -> dict[str, object]:
@@ -56,7 +58,8 @@ def read_result(path: str) -> dict[str, object]:
     return doc
 
 
-def _export(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
+    """Write ``args.result`` in ``args.fmt``."""
     names = ExportNames(args.camera_name, parent_frame=args.parent_frame,
                         child_frame=args.child_frame)
     content, _, _ = export(read_result(args.result), args.fmt, names)

@@ -1,5 +1,9 @@
 """``cellcal`` command line: the parser and the error policy; each command is a module.
 
+A command module offers ``HELP`` (its line in ``cellcal --help``), a docstring (its description
+in ``cellcal COMMAND --help``), ``add_arguments(parser)`` and ``run(args)`` (the exit status);
+``devices`` adds its command groups (``robot``, ``camera``, ``devices``) itself.
+
 Every error prints one line on stderr and exits non-zero; no traceback reaches a user
 (set ``CELLCAL_DEBUG=1`` to see one).
 """
@@ -10,6 +14,7 @@ import argparse
 import os
 import sys
 from collections.abc import Callable, Sequence
+from types import ModuleType
 
 from drivers.errors import DeviceError
 from service.cli import calibrate, demo, devices, export, report, serve
@@ -25,9 +30,19 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version",
                         version=f"cellcal {software_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for command in (calibrate, demo, devices, export, report, serve):
-        command.register(sub)
+    _add_command(sub, "calibrate", calibrate)
+    _add_command(sub, "demo", demo)
+    devices.register(sub)
+    _add_command(sub, "export", export)
+    _add_command(sub, "report", report)
+    _add_command(sub, "serve", serve)
     return parser
+
+
+def _add_command(sub: argparse._SubParsersAction, name: str, command: ModuleType) -> None:
+    parser = sub.add_parser(name, help=command.HELP, description=command.__doc__)
+    command.add_arguments(parser)
+    parser.set_defaults(func=command.run)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

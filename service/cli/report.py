@@ -1,4 +1,10 @@
-"""``cellcal report``: the self-contained HTML report of a result file (``service.report``)."""
+"""Write one self-contained HTML file (plots embedded, no external links) to read, print and
+file: the verdict and its findings, the calibration with its uncertainty, per-station and
+cross-validated errors, residuals over the image, corner coverage, model selection and every
+rejected station with the reason.
+"""
+
+# ``cellcal report``: the self-contained HTML report of a result file (``service.report``).
 
 from __future__ import annotations
 
@@ -7,24 +13,20 @@ import json
 import sys
 from pathlib import Path
 
+#: The command's line in ``cellcal --help``.
+HELP = "write the HTML report of a calibration result"
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``report`` command to the ``cellcal`` parser."""
-    report = subparsers.add_parser(
-        "report", help="write the HTML report of a calibration result",
-        description="Write one self-contained HTML file (plots embedded, no external links) "
-                    "to read, print and file: the verdict and its findings, the calibration "
-                    "with its uncertainty, per-station and cross-validated errors, residuals "
-                    "over the image, corner coverage, model selection and every rejected "
-                    "station with the reason.")
-    report.add_argument("result", type=Path, metavar="RESULT_JSON",
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``report`` command's arguments."""
+    parser.add_argument("result", type=Path, metavar="RESULT_JSON",
                         help="a result written by 'cellcal calibrate --out'")
-    report.add_argument("--out", type=Path, metavar="HTML",
+    parser.add_argument("--out", type=Path, metavar="HTML",
                         help="output file (default: RESULT_JSON with .html)")
-    report.set_defaults(func=_report)
 
 
-def _report(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
+    """Write the report of ``args.result``."""
     from service.report import render_report
 
     try:

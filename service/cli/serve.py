@@ -1,9 +1,14 @@
-"""``cellcal serve``: run the REST service (FastAPI on uvicorn) for the configured cell.
-
-Configuration comes from ``CELLCAL_*`` environment variables (``service.settings``); the options
-here override them. Without ``CELLCAL_API_KEY`` the service makes up a key for this session and
-prints it, and it refuses to listen beyond loopback at all.
+"""Serve the calibration REST API (OpenAPI at /docs). Every call but /health needs
+'Authorization: Bearer <CELLCAL_API_KEY>'. Settings come from CELLCAL_* environment variables
+(CELLCAL_DATA_DIR, CELLCAL_ROBOT, CELLCAL_CAMERA, CELLCAL_WORKSPACE_MIN/MAX, ...); options
+override them.
 """
+
+# ``cellcal serve``: run the REST service (FastAPI on uvicorn) for the configured cell.
+#
+# Configuration comes from ``CELLCAL_*`` environment variables (``service.settings``); the options
+# here override them. Without ``CELLCAL_API_KEY`` the service makes up a key for this session and
+# prints it, and it refuses to listen beyond loopback at all.
 
 from __future__ import annotations
 
@@ -14,25 +19,22 @@ from typing import Any
 
 from pydantic import ValidationError
 
-
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``serve`` command to the ``cellcal`` parser."""
-    serve = subparsers.add_parser(
-        "serve", help="run the REST service",
-        description="Serve the calibration REST API (OpenAPI at /docs). Every call but /health "
-                    "needs 'Authorization: Bearer <CELLCAL_API_KEY>'. Settings come from "
-                    "CELLCAL_* environment variables (CELLCAL_DATA_DIR, CELLCAL_ROBOT, "
-                    "CELLCAL_CAMERA, CELLCAL_WORKSPACE_MIN/MAX, ...); options override them.")
-    serve.add_argument("--mock", action="store_true",
-                       help="simulate the cell: mock:// robot and camera")
-    serve.add_argument("--scene", metavar="SCENE_JSON",
-                       help="mock scene file (default: the built-in demo cell)")
-    serve.add_argument("--host", help="address to listen on (default 127.0.0.1)")
-    serve.add_argument("--port", type=int, help="TCP port (default 8000)")
-    serve.set_defaults(func=_serve)
+#: The command's line in ``cellcal --help``.
+HELP = "run the REST service"
 
 
-def _serve(args: argparse.Namespace) -> int:
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``serve`` command's arguments."""
+    parser.add_argument("--mock", action="store_true",
+                        help="simulate the cell: mock:// robot and camera")
+    parser.add_argument("--scene", metavar="SCENE_JSON",
+                        help="mock scene file (default: the built-in demo cell)")
+    parser.add_argument("--host", help="address to listen on (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, help="TCP port (default 8000)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the service until it is stopped (Ctrl-C)."""
     import uvicorn
 
     from service.app import create_app
