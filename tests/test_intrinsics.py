@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from functools import cache
 
 import cv2
@@ -37,14 +38,23 @@ BOARD = (11, 8)
 SQUARE = 0.03
 
 
-def synthetic_views(rng: np.random.Generator, n: int, *, nu: float = 0.9975,
-                    kappa: float = 1.013, noise: float = 0.15,
-                    dist: np.ndarray = DIST_TRUE) -> tuple[list[np.ndarray], np.ndarray]:
+@dataclass(frozen=True)
+class Truth:
+    """The simulated cell: the board's scale κ and aspect ratio ν, the lens distortion (5,)."""
+
+    nu: float = 0.9975
+    kappa: float = 1.013
+    dist: np.ndarray = field(default_factory=DIST_TRUE.copy)
+
+
+def synthetic_views(rng: np.random.Generator, n: int, *, noise: float = 0.15,
+                    truth: Truth = Truth()) -> tuple[list[np.ndarray], np.ndarray]:
     """Noisy corners of the true board (κν i s, κ j s, 0) in n random views fully in the image.
 
     Returns the corners, each shape (88, 2), and the true ``cam_T_target`` rotation vectors and
     translations (nominal-scale frame, i.e. translations divided by κ), shape (n, 6).
     """
+    nu, kappa = truth.nu, truth.kappa
     true = board_points(BOARD, SQUARE, kappa=kappa, nu=nu)
     centre = true.mean(axis=0)
     views, poses = [], []
@@ -53,7 +63,7 @@ def synthetic_views(rng: np.random.Generator, n: int, *, nu: float = 0.9975,
             * Rotation.from_euler("x", np.pi)
         t = np.array([rng.uniform(-0.12, 0.12), rng.uniform(-0.1, 0.1), rng.uniform(0.45, 0.9)])
         t -= R.apply(centre)
-        uv = Pinhole(K_TRUE, dist).project(true, R.as_rotvec(), t)
+        uv = Pinhole(K_TRUE, truth.dist).project(true, R.as_rotvec(), t)
         if uv.min() < 5 or (uv > np.array(SIZE) - 5).any():
             continue
         views.append(uv + rng.normal(0.0, noise, uv.shape))
@@ -152,7 +162,8 @@ def test_bundle_adjustment_jacobian_matches_finite_differences() -> None:
 # ---- closed form (section III-A) ---------------------------------------------------------------
 
 def test_initial_intrinsics_recovers_focal_and_nu() -> None:
-    views, poses = synthetic_views(np.random.default_rng(3), 15, noise=0.0, dist=np.zeros(5))
+    views, poses = synthetic_views(np.random.default_rng(3), 15, noise=0.0,
+                                   truth=Truth(dist=np.zeros(5)))
     obj = [board_points(BOARD, SQUARE)[:, :2]] * 15
     init = initial_intrinsics(obj, views, SIZE)
     # principal point is assumed at the centre (off by 5.5, 1.5 px), so f is close, not exact

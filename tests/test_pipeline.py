@@ -40,16 +40,18 @@ def detections(n: int = 15, seed: int = 5) -> list[Detection]:
     return [detect_checkerboard(im, BOARD) for im in rendered_stations(n, seed)[0]]
 
 
-def calibrate_set(observations, poses, *, inner_corners=BOARD, square_size=SQUARE,
-                  station_ids=None, image_size=None, intrinsics=None, **options):
-    """``calibrate_stations`` with the inputs, board and options as plain arguments."""
-    inputs = StationInputs(observations, poses, station_ids, image_size, intrinsics)
-    return calibrate_stations(inputs, Board(inner_corners, square_size),
-                              PipelineOptions(**options))
+TARGET = Board(BOARD, SQUARE)
 
 
-def calibrate(observations, poses, **options):
-    return calibrate_set(observations, poses, image_size=SIZE, **options)
+def calibrate_set(inputs: StationInputs, board: Board = TARGET, **options):
+    """``calibrate_stations`` with the options as plain arguments."""
+    return calibrate_stations(inputs, board, PipelineOptions(**options))
+
+
+def calibrate(observations, poses, *, intrinsics=None, **options):
+    """``calibrate_set`` on the default board and image size."""
+    return calibrate_set(StationInputs(observations, poses, image_size=SIZE,
+                                       intrinsics=intrinsics), **options)
 
 
 def test_joint_recovers_nu_and_kappa_and_beats_the_nominal_pipeline():
@@ -83,8 +85,7 @@ def test_images_are_detected_and_unusable_ones_rejected_with_reasons():
     unread = Detection(ok=False, reason="cannot read image file 'x.png'")
     obs = [*images[:10], blank, clutter, unread]
     ids = [f"s{k}" for k in range(len(obs))]
-    res = calibrate_set(obs, [*poses[:10], *poses[10:13]], inner_corners=BOARD,
-                             square_size=SQUARE, station_ids=ids)
+    res = calibrate_set(StationInputs(obs, [*poses[:10], *poses[10:13]], ids=ids))
     reasons = dict(res.rejected)
     assert list(reasons) == ["s10", "s11", "s12"]
     assert "blank" in reasons["s10"] and "board not found" in reasons["s11"]
@@ -97,14 +98,14 @@ def test_all_images_rejected_is_a_clear_error():
     blank = np.full(SIZE[::-1], 110, np.uint8)
     with pytest.raises(ValueError, match=r"only 0 of 3 stations usable, need at least 3 "
                                          r"\(000: image is blank"):
-        calibrate_set([blank] * 3, None, inner_corners=BOARD, square_size=SQUARE)
+        calibrate_set(StationInputs([blank] * 3, None))
 
 
 def test_wrong_inner_corners_says_what_is_visible():
     images, poses = rendered_stations()
     with pytest.raises(ValueError, match=r"only 0 of 3 stations usable.*a larger 11x8 grid "
                                          r"is visible: check inner_corners"):
-        calibrate_set(images[:3], poses[:3], inner_corners=(10, 8), square_size=SQUARE)
+        calibrate_set(StationInputs(images[:3], poses[:3]), Board((10, 8), SQUARE))
 
 
 def test_corrupted_robot_pose_is_rejected_with_its_reason():
@@ -166,8 +167,8 @@ def test_symmetric_board_origin_is_made_consistent():
             + rng.normal(0.0, 0.1, (len(pts), 2))
         obs.append(Detection(ok=True, corners=uv[::-1] if k % 2 else uv, ambiguous=True))
     P = perturb(robot_poses(cell, C), np.deg2rad(0.05), 0.25e-3, rng)
-    res = calibrate_set(obs, ur_pose_from_matrix(P).tolist(), inner_corners=(8, 6),
-                             square_size=0.03, image_size=(1280, 1024))
+    res = calibrate_set(StationInputs(obs, ur_pose_from_matrix(P).tolist(),
+                                      image_size=(1280, 1024)), Board((8, 6), 0.03))
     assert res.rejected == ()
     rot, trans = pose_error(res.hand_eye, cell.hand_eye)
     assert rot < np.deg2rad(0.05) and trans < 0.5e-3
@@ -182,8 +183,7 @@ def test_bad_options_are_named():
     with pytest.raises(ValueError, match="3 observations but 3 station ids and 2 robot poses"):
         calibrate(obs, rendered_stations()[1][:2])
     with pytest.raises(ValueError, match="image_size is required"):
-        calibrate_set([d.corners for d in obs], None, inner_corners=BOARD,
-                           square_size=SQUARE)
+        calibrate_set(StationInputs([d.corners for d in obs], None))
     with pytest.raises(ValueError, match="terms beyond k3 are not supported"):
         calibrate(obs, None, intrinsics=(SCENE.camera.k_matrix, [0, 0, 0, 0, 0, 0.1]))
 
