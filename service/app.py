@@ -38,6 +38,7 @@ from service.errors import (
     AuthError,
     ConflictError,
     NotFoundError,
+    QueueFullError,
     ServiceError,
     UnprocessableError,
 )
@@ -56,6 +57,7 @@ ERROR_STATUS: dict[type[Exception], int] = {
     ConflictError: 409,
     PayloadTooLargeError: 413,
     UnprocessableError: 422,
+    QueueFullError: 429,
     WorkspaceError: 422,
     DeviceError: 503,
     ServiceError: 400,

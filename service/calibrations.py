@@ -1,15 +1,16 @@
 """Calibrations: start a solve over a run's captured stations, compute it in a worker process,
 store the outcome when it completes.
 
-Calibrations are CPU-bound: they run in a ``ProcessPoolExecutor`` (spawned workers) so the API
-stays responsive, and the result is stored when the future completes.
+Calibrations are CPU-bound: they run in worker processes (``service.workers``: they exit with
+the service, however it dies) so the API stays responsive, and the result is stored when the
+future completes. At most ``Settings.max_queued_calibrations`` solves wait or run at a time;
+beyond, a request is refused (429 ``queue_full``) instead of piling up work and memory.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
 import logging
-import multiprocessing
 import threading
 from typing import Any
 
@@ -26,10 +27,11 @@ from calib import (
 )
 from service import store
 from service.db import Database
-from service.errors import ConflictError, UnprocessableError
+from service.errors import ConflictError, QueueFullError, UnprocessableError
 from service.models import Calibration
 from service.schemas import CalibrationOptions
 from service.settings import Settings
+from service.workers import CalibrationPool
 
 log = logging.getLogger("cellcal.service")
 
@@ -40,11 +42,39 @@ class Calibrations:
     def __init__(self, settings: Settings, db: Database) -> None:
         self.settings = settings
         self.db = db
-        self._pool: cf.ProcessPoolExecutor | None = None
+        self._pool: CalibrationPool | None = None
         self._pool_lock = threading.Lock()
+        self._pending = 0  # solves queued or running, under _pool_lock
 
     def start(self, run_id: str, options: CalibrationOptions) -> Calibration:
-        """Queue a solve over the run's captured stations in a worker process."""
+        """Queue a solve over the run's captured stations in a worker process (429 when
+        ``max_queued_calibrations`` are already queued or running)."""
+        self._reserve()
+        try:
+            cal, payload = self._create(run_id, options)
+            future = self._submit(payload)
+        except BaseException:
+            self._release()
+            raise
+        future.add_done_callback(lambda f: self._done(cal.id, f))
+        return cal
+
+    def _reserve(self) -> None:
+        with self._pool_lock:
+            limit = self.settings.max_queued_calibrations
+            if self._pending >= limit:
+                raise QueueFullError(
+                    f"{self._pending} calibrations are already queued or running, the limit "
+                    "(CELLCAL_MAX_QUEUED_CALIBRATIONS); retry when one has finished.")
+            self._pending += 1
+
+    def _release(self) -> None:
+        with self._pool_lock:
+            self._pending -= 1
+
+    def _create(self, run_id: str, options: CalibrationOptions
+                ) -> tuple[Calibration, dict[str, Any]]:
+        """The calibration row (committed) and the worker's payload."""
         with self.db.session() as s:
             run = store.get_run(s, run_id=run_id)
             if run.state == "capturing":
@@ -67,27 +97,24 @@ class Calibrations:
             cal = Calibration(run_id=run_id, state="running", options=options.model_dump())
             s.add(cal)
             s.commit()
-        future = self._submit(payload)
-        future.add_done_callback(lambda f: self._done(cal.id, f))
-        return cal
+        return cal, payload
 
     def shutdown(self) -> None:
         """Cancel queued solves and let the worker processes go."""
         with self._pool_lock:
             if self._pool is not None:
-                self._pool.shutdown(wait=False, cancel_futures=True)
+                self._pool.shutdown()
                 self._pool = None
 
     def _submit(self, payload: dict[str, Any]) -> cf.Future[dict[str, Any]]:
         with self._pool_lock:
             if self._pool is None:
-                self._pool = cf.ProcessPoolExecutor(
-                    self.settings.calibration_workers,
-                    mp_context=multiprocessing.get_context("spawn"))
+                self._pool = CalibrationPool(self.settings.calibration_workers)
             return self._pool.submit(solve_calibration, payload)
 
     def _done(self, cal_id: str, future: cf.Future[dict[str, Any]]) -> None:
         """Store the outcome of a solve: its result, or why it failed."""
+        self._release()
         values: dict[str, Any]
         try:
             values = {"state": "done", "result": future.result()}
@@ -98,6 +125,8 @@ class Calibrations:
             values = {"state": "failed", "error": str(exc)}
         except cf.process.BrokenProcessPool:
             with self._pool_lock:
+                if self._pool is not None:
+                    self._pool.shutdown()
                 self._pool = None
             values = {"state": "failed", "error": "The calibration worker process died (out "
                                                   "of memory?); start it again."}

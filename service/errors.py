@@ -29,3 +29,7 @@ class UnprocessableError(ServiceError, code="invalid_request"):
 
 class AuthError(ServiceError, code="unauthorized"):
     """Missing or wrong API key (401)."""
+
+
+class QueueFullError(ServiceError, code="queue_full"):
+    """Too much work is already waiting; retry later (429)."""

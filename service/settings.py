@@ -76,6 +76,8 @@ class Settings(BaseSettings):
     grab_timeout_s: Annotated[float, Field(gt=0.0)] = 2.0
     move_speed: Annotated[float, Field(gt=0.0, le=1.0)] = 0.25
     calibration_workers: Annotated[int, Field(ge=1, le=16)] = 1
+    max_queued_calibrations: Annotated[int, Field(ge=1, le=1000)] = Field(
+        8, description="calibrations queued or running at a time; more get 429 queue_full")
 
     @field_validator("robot")
     @classmethod

@@ -20,7 +20,8 @@ router = APIRouter(tags=["calibrations"])
 
 @router.post("/runs/{run_id}/calibrations", status_code=status.HTTP_202_ACCEPTED, responses={
     409: {"description": "the run is still capturing"},
-    422: {"description": "malformed options or too few captured stations"}})
+    422: {"description": "malformed options or too few captured stations"},
+    429: {"description": "max_queued_calibrations solves are already queued or running"}})
 def create_calibration(run_id: str, calibrations: CalibrationsDep,
                        body: CalibrationCreate | None = None) -> Created:
     """Start computing intrinsics, κ / ν and the hand-eye; poll ``GET /calibrations/{id}``."""
