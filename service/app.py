@@ -33,6 +33,7 @@ from service.api import (
     validations,
 )
 from service.api.deps import require_api_key
+from service.db import TRANSIENT_ERRORS, DatabaseUnavailableError
 from service.devices import DeviceOpener, Devices
 from service.errors import (
     AuthError,
@@ -100,6 +101,9 @@ def create_app(settings: Settings | None = None, *,
         app.add_exception_handler(exc_type, _domain_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
+    for exc_type in (*TRANSIENT_ERRORS, DatabaseUnavailableError):
+        app.add_exception_handler(exc_type, _database_error)
+    app.add_exception_handler(Exception, _internal_error)
     app.add_middleware(RequestGuard, api_key=settings.api_key,
                        max_body_bytes=settings.max_body_bytes, refuse=error_response)
     return app
@@ -127,6 +131,21 @@ def error_response(exc: Exception) -> JSONResponse:
 
 async def _domain_error(request: Request, exc: Exception) -> JSONResponse:
     return error_response(exc)
+
+
+async def _database_error(request: Request, exc: Exception) -> JSONResponse:
+    """A database that does not answer (lock timeout, server restart): 503, retry later."""
+    why = str(getattr(exc, "orig", None) or exc).splitlines()[0]
+    log.warning("%s %s: database unavailable: %s", request.method, request.url.path, why)
+    return _error(503, f"The database is not answering ({why}); retry in a moment.",
+                  "database_unavailable")
+
+
+async def _internal_error(request: Request, exc: Exception) -> JSONResponse:
+    """Anything unforeseen still gets the JSON error body (the traceback goes to the log)."""
+    log.error("%s %s: %s: %s", request.method, request.url.path, type(exc).__name__, exc)
+    return _error(500, f"Internal error ({type(exc).__name__}); see the service log.",
+                  "internal_error")
 
 
 async def _validation_error(request: Request, exc: Exception) -> JSONResponse:

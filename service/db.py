@@ -2,15 +2,60 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import Any, TypeVar
 
 from sqlalchemy import Engine, create_engine, event, inspect, text
+from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.schema import CreateColumn
 
 from service.models import Base
+
+log = logging.getLogger("cellcal.service")
+T = TypeVar("T")
+
+#: Errors a later attempt of the same transaction can get past: a lock held beyond the busy
+#: timeout, a database server restarting, a dropped connection.
+TRANSIENT_ERRORS = (OperationalError, InterfaceError)
+#: First pause between attempts (s); doubled after each failure up to ``_MAX_DELAY_S``.
+_FIRST_DELAY_S = 0.1
+_MAX_DELAY_S = 2.0
+
+
+class DatabaseUnavailableError(Exception):
+    """The database kept failing (``TRANSIENT_ERRORS``) for a whole retry budget."""
+
+    code = "database_unavailable"
+
+
+def retry_transient(transaction: Callable[[], T], *, budget_s: float, what: str,
+                    stopping: threading.Event | None = None) -> T:
+    """Run ``transaction`` (a whole session's work), again after transient errors.
+
+    Pauses grow from 0.1 s to 2 s (exponential backoff). After ``budget_s`` seconds of failures,
+    or when ``stopping`` is set, ``DatabaseUnavailableError`` names ``what`` failed and why.
+    """
+    deadline = time.monotonic() + budget_s
+    delay = _FIRST_DELAY_S
+    while True:
+        try:
+            return transaction()
+        except TRANSIENT_ERRORS as exc:
+            why = str(getattr(exc, "orig", None) or exc).splitlines()[0]
+            if time.monotonic() + delay > deadline or (stopping and stopping.is_set()):
+                raise DatabaseUnavailableError(
+                    f"{what}: the database did not answer for {budget_s:g} s ({why})") from exc
+            log.warning("%s: %s; retrying in %.1f s", what, why, delay)
+        if stopping is not None:
+            stopping.wait(delay)
+        else:
+            time.sleep(delay)
+        delay = min(2.0 * delay, _MAX_DELAY_S)
 
 
 class Database:
@@ -21,11 +66,12 @@ class Database:
     station while requests read, and foreign keys are enforced as on other databases.
     """
 
-    def __init__(self, url: str) -> None:
+    def __init__(self, url: str, *, busy_timeout_s: float = 30.0) -> None:
         is_sqlite = url.startswith("sqlite")
         connect_args: dict[str, Any] = (
-            {"check_same_thread": False, "timeout": 30.0} if is_sqlite else {})
-        self.engine: Engine = create_engine(url, connect_args=connect_args)
+            {"check_same_thread": False, "timeout": busy_timeout_s} if is_sqlite else {})
+        # pre-ping: a connection dropped by a restarted server is replaced, not handed out
+        self.engine: Engine = create_engine(url, connect_args=connect_args, pool_pre_ping=True)
         if is_sqlite:
             event.listen(self.engine, "connect", _sqlite_pragmas)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)

@@ -1,5 +1,5 @@
 """The cell's robot and camera as the service holds them: opened on first use, reopened after
-a connection loss, closed at shutdown."""
+a connection loss or any device fault of a run, closed at shutdown."""
 
 from __future__ import annotations
 
@@ -42,10 +42,16 @@ class Devices:
         self._devices: tuple[Robot, Camera] | None = None
 
     def get(self) -> tuple[Robot, Camera]:
-        """The open devices; raises ``DeviceError`` (or ``ValueError``) if they cannot open."""
+        """The open devices; raises ``DeviceError`` (or ``ValueError``) if they cannot open.
+
+        A camera that closed itself (unplugged, stalled: ``opened`` is False) is opened again
+        here, so it comes back as soon as it is plugged in or delivers again.
+        """
         with self._lock:
             if self._devices is None:
                 self._devices = self._opener()
+            elif not self._devices[1].opened:
+                self._devices[1].open()
             return self._devices
 
     def current(self) -> tuple[Robot, Camera] | None:

@@ -37,7 +37,7 @@ class Runtime:
         """Open the database and recover from a previous service's death; devices open on
         first use (``open_devices`` replaces opening ``settings.robot`` / ``camera``)."""
         settings.data_dir.mkdir(parents=True, exist_ok=True)
-        db = Database(settings.database)
+        db = Database(settings.database, busy_timeout_s=settings.database_busy_timeout_s)
         devices = Devices(open_devices or settings_opener(settings))
         events = EventBus(db)
         motion = Motion(settings, db, devices)

@@ -72,6 +72,11 @@ class Settings(BaseSettings):
     max_body_bytes: Annotated[int, Field(ge=1024)] = Field(
         4 * 2**20, description="largest request body, bytes (413 beyond); checked before the "
                                "body is read")
+    database_busy_timeout_s: Annotated[float, Field(gt=0.0)] = Field(
+        30.0, description="SQLite: how long a statement waits for another writer's lock")
+    database_retry_s: Annotated[float, Field(ge=0.0)] = Field(
+        60.0, description="how long a capture run retries a failing database write before it "
+                          "is interrupted (resume it once the database is back)")
     settle_timeout_s: Annotated[float, Field(gt=0.0)] = 5.0
     grab_timeout_s: Annotated[float, Field(gt=0.0)] = 2.0
     move_speed: Annotated[float, Field(gt=0.0, le=1.0)] = 0.25

@@ -169,20 +169,37 @@ def active_calibration_ids(s: Session, *, robots: list[str]) -> set[str]:
 def run_counts(s: Session, *, run: Run) -> dict[str, int]:
     """Stations planned, captured and skipped, counted in SQL (never loading the stations with
     their corners, so polling stays fast on long runs)."""
-    by_state = dict(s.execute(
-        select(Station.state, func.count()).where(Station.run_id == run.id)
-        .group_by(Station.state)).all())
-    captured = by_state.get("captured", 0)
-    return {"stations_planned": len(run.poses), "stations_captured": captured,
-            "stations_skipped": sum(by_state.values()) - captured}
+    return runs_counts(s, runs=[run])[run.id]
+
+
+def runs_counts(s: Session, *, runs: list[Run]) -> dict[str, dict[str, int]]:
+    """``run_counts`` of many runs in one query (a page of ``GET /runs``), by run id."""
+    by_state: dict[str, dict[str, int]] = {run.id: {} for run in runs}
+    for run_id, state, n in s.execute(
+            select(Station.run_id, Station.state, func.count())
+            .where(Station.run_id.in_(list(by_state))).group_by(Station.run_id, Station.state)):
+        by_state[run_id][state] = n
+    return {run.id: {"stations_planned": len(run.poses),
+                     "stations_captured": by_state[run.id].get("captured", 0),
+                     "stations_skipped": sum(by_state[run.id].values())
+                     - by_state[run.id].get("captured", 0)} for run in runs}
 
 
 def station_errors(s: Session, *, run_id: str) -> list[tuple[int, str | None, str]]:
     """``(index, code, detail)`` of the run's stations that have an error, in index order."""
-    return [(i, code, detail) for i, code, detail in s.execute(
-        select(Station.index, Station.error_code, Station.error)
-        .where(Station.run_id == run_id, Station.error.is_not(None))
-        .order_by(Station.index)).all()]
+    return runs_station_errors(s, run_ids=[run_id])[run_id]
+
+
+def runs_station_errors(s: Session, *, run_ids: list[str]
+                        ) -> dict[str, list[tuple[int, str | None, str]]]:
+    """``station_errors`` of many runs in one query, by run id."""
+    errors: dict[str, list[tuple[int, str | None, str]]] = {run_id: [] for run_id in run_ids}
+    for run_id, index, code, detail in s.execute(
+            select(Station.run_id, Station.index, Station.error_code, Station.error)
+            .where(Station.run_id.in_(run_ids), Station.error.is_not(None))
+            .order_by(Station.run_id, Station.index)):
+        errors[run_id].append((index, code, detail))
+    return errors
 
 
 # ---- who has the robot ---------------------------------------------------------------------
@@ -206,6 +223,18 @@ def owns_run(s: Session, *, run_id: str, token: str) -> bool:
 
 
 # ---- conditional updates -------------------------------------------------------------------
+
+
+def claim_run(s: Session, *, run_id: str, token: str) -> bool:
+    """Lock the run row for this transaction if thread ``token`` owns the capturing run.
+
+    An update, not a read: it takes the row's write lock (the whole database on SQLite), so a
+    cancel, pause or takeover either commits before it (and the claim fails) or waits until
+    the caller's transaction has committed. Does not commit.
+    """
+    return bool(s.execute(
+        update(Run).where(Run.id == run_id, Run.owner == token, Run.state == "capturing")
+        .values(owner=token)).rowcount)
 
 
 def move_run(s: Session, *, run_id: str, from_state: str, **values: Any) -> bool:

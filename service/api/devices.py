@@ -36,7 +36,7 @@ def get_devices(devices: DevicesDep, settings: SettingsDep) -> DevicesPublic:
     except DeviceError as exc:
         robot_info.error = _error(exc)
     try:
-        camera_info = CameraInfo(url=settings.camera, opened=True,
+        camera_info = CameraInfo(url=settings.camera, opened=camera.opened,
                                  resolution=list(camera.resolution))
     except DeviceError as exc:
         camera_info.error = _error(exc)

@@ -26,15 +26,21 @@ KEEPALIVE_S = 15.0
 def run_public(session: SessionDep, run: Run) -> RunPublic:
     """The public view of a run; station counts and errors come from small SQL queries, never
     from loading every station (with its corners), so polling stays fast on long runs."""
-    return RunPublic(
+    return runs_public(session, [run])[0]
+
+
+def runs_public(session: SessionDep, runs: list[Run]) -> list[RunPublic]:
+    """``run_public`` of many runs with two queries in all, whatever their number."""
+    counts = store.runs_counts(session, runs=runs)
+    errors = store.runs_station_errors(session, run_ids=[run.id for run in runs])
+    return [RunPublic(
         id=run.id, state=run.state, mode=run.mode, robot=run.robot, setup=run.setup,
-        target=run.target,
-        **store.run_counts(session, run=run),
+        target=run.target, **counts[run.id],
         error=None if run.error is None else ErrorInfo(code=run.error_code or "error",
                                                        detail=run.error),
         station_errors=[StationError(index=i, code=code, detail=detail)
-                        for i, code, detail in store.station_errors(session, run_id=run.id)],
-        created_at=run.created_at, updated_at=run.updated_at)
+                        for i, code, detail in errors[run.id]],
+        created_at=run.created_at, updated_at=run.updated_at) for run in runs]
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, responses={
@@ -49,7 +55,7 @@ def create_run(body: RunCreate, runs: RunsDep) -> Created:
 def list_runs(session: SessionDep,
               limit: Annotated[int, Query(ge=1, le=500)] = 50) -> list[RunPublic]:
     """Runs, newest first."""
-    return [run_public(session, r) for r in store.list_runs(session, limit=limit)]
+    return runs_public(session, store.list_runs(session, limit=limit))
 
 
 @router.get("/{run_id}")

@@ -14,21 +14,29 @@ order, so a crash loses at most those two. Restart safety rests on the database:
 - ``(run, index)`` is unique, so no station is ever stored twice.
 
 Every exception that ends a capture thread passes through ``Capture.run``, which turns it into
-the run's final state: the one place for the capture loop's error handling.
+the run's final state, always one ``resume`` continues from: the one place for the capture
+loop's error handling. Database work is retried with backoff (``service.db.retry_transient``)
+for ``Settings.database_retry_s``; then the run becomes ``interrupted`` with the reason (that
+last write waits for the database as long as the service runs). After a device fault the devices
+are closed, so the next run or ``resume`` opens them afresh. A run that ends without a single
+captured station is ``failed``.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
 import logging
+import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
 from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
 
 from calib import Detection, detect_checkerboard
 from drivers.capture import CaptureOptions, capture_station
@@ -41,15 +49,17 @@ from drivers.errors import (
     RobotConnectionError,
 )
 from service import store
+from service.db import DatabaseUnavailableError, retry_transient
 from service.events import EventBus, state_event
 from service.models import Run, Station
 from service.motion import Motion
 
 log = logging.getLogger("cellcal.service")
+T = TypeVar("T")
 
 #: Camera error codes that mean the camera is gone (stop the run, do not skip stations).
 _CAMERA_GONE = ("camera_not_open", "camera_not_found", "camera_open_failed",
-                "camera_disconnected")
+                "camera_disconnected", "camera_stalled")
 #: A failed station is tried this many times in all before it is skipped.
 ATTEMPTS = 2
 
@@ -134,9 +144,14 @@ class Capture:
             with self.motion.robot_lock:
                 self._capture_owned()
         except DeviceError as exc:
-            if isinstance(exc, RobotConnectionError):
-                self.motion.devices.reset()
+            # whatever the fault, the next run or resume opens the devices afresh (a camera
+            # unplugged and plugged in again, a robot that dropped its connection)
+            self.motion.devices.reset()
             self.finish("failed", str(exc), exc.code)
+        except DatabaseUnavailableError as exc:
+            log.error("run %s interrupted: %s", self.run_id, exc)
+            self.finish("interrupted", f"{exc}; resume the run once the database is back.",
+                        DatabaseUnavailableError.code)
         except ValueError as exc:  # e.g. a malformed device URL
             self.finish("failed", str(exc), "invalid_configuration")
         except Exception as exc:
@@ -145,13 +160,39 @@ class Capture:
                         "internal_error")
 
     def finish(self, state: str, error: str | None = None, code: str | None = None) -> None:
-        """End the run in ``state`` if this thread still owns it, and tell the listeners."""
-        with self.db.session() as s:
-            changed = store.finish_run(s, run_id=self.run_id, token=self.token, state=state,
-                                       error=error, error_code=code)
-        if changed:
+        """End the run in ``state`` if this thread still owns it, and tell the listeners.
+
+        Retried for as long as the service runs: a run must not stay ``capturing`` without a
+        thread (if the service stops first, its next start marks the run ``interrupted``).
+        """
+        try:
+            changed = self._in_session(lambda s: store.finish_run(
+                s, run_id=self.run_id, token=self.token, state=state, error=error,
+                error_code=code),
+                f"ending run {self.run_id} as {state}", budget_s=math.inf)
+            if changed:
+                self._publish(self._in_session(lambda s: state_event(s, run_id=self.run_id),
+                                               "reading the run state"))
+        except DatabaseUnavailableError as exc:
+            log.error("run %s: %s", self.run_id, exc)
+
+    def _publish(self, event: dict[str, Any]) -> None:
+        """Store and send a run event (a database write), retried like the capture's own."""
+        retry_transient(lambda: self.events.publish(self.run_id, event),
+                        budget_s=self.settings.database_retry_s,
+                        what=f"storing a {event['type']} event of run {self.run_id}",
+                        stopping=self.motion.stopping)
+
+    def _in_session(self, work: Callable[[Session], T], what: str, *,
+                    budget_s: float | None = None) -> T:
+        """``work`` in a session of its own, retried after transient database errors."""
+        def transaction() -> T:
             with self.db.session() as s:
-                self.events.publish(self.run_id, state_event(s, run_id=self.run_id))
+                return work(s)
+
+        budget = self.settings.database_retry_s if budget_s is None else budget_s
+        return retry_transient(transaction, budget_s=budget, what=what,
+                               stopping=self.motion.stopping)
 
     # ---- the loop --------------------------------------------------------------------------
 
@@ -174,20 +215,32 @@ class Capture:
         handed over is dropped.
         """
         self.robot, self.camera = self.motion.devices.get()
-        with self.db.session() as s:
-            run = s.get(Run, self.run_id)
-            if run is None or run.owner != self.token or run.state != "capturing":
-                return
-            stored = store.stored_indices(s, run_id=self.run_id)
-            poses, self.inner = run.poses, tuple(run.target["inner_corners"])
-        todo = [k for k in range(len(poses)) if k not in stored]
+        plan = self._in_session(self._plan, f"reading run {self.run_id}")
+        if plan is None:
+            return
+        todo, poses = plan
         with cf.ThreadPoolExecutor(1, thread_name_prefix=f"develop-{self.run_id[:8]}") as pool:
             self._worker = pool
             complete = self._visit(todo, poses)
         if self.motion.stopping.is_set():
             self.finish("interrupted", store.INTERRUPTED, "interrupted")
         elif complete:
-            self.finish("done")
+            counts = self._in_session(lambda s: store.run_counts(
+                s, run=store.get_run(s, run_id=self.run_id)), "counting stations")
+            if counts["stations_captured"] == 0:
+                self.finish("failed", f"No station was captured ({counts['stations_skipped']} "
+                            "skipped): see the station errors.", "nothing_captured")
+            else:
+                self.finish("done")
+
+    def _plan(self, s: Session) -> tuple[list[int], list[list[float]]] | None:
+        """The missing station indices and all poses, or None if the run is not ours."""
+        run = s.get(Run, self.run_id)
+        if run is None or run.owner != self.token or run.state != "capturing":
+            return None
+        stored = store.stored_indices(s, run_id=self.run_id)
+        self.inner = tuple(run.target["inner_corners"])
+        return [k for k in range(len(run.poses)) if k not in stored], run.poses
 
     def _visit(self, todo: list[int], poses: list[list[float]]) -> bool:
         """Capture the stations ``todo`` in order; True if all of them were stored."""
@@ -232,7 +285,8 @@ class Capture:
 
     def _shoot(self, index: int, pose: list[float], first_attempt: int) -> _Shot | None:
         """Move, settle, grab and read the pose, retrying a device error once; None if the
-        run was taken meanwhile. Raises the device errors that stop the run."""
+        run was taken meanwhile. Raises the device errors that stop the run (among them
+        ``camera_stalled``: the camera's ``drivers.stall.STALL_AFTER``-th timeout in a row)."""
         shot: _Shot | None = None
         for attempt in range(first_attempt, ATTEMPTS + 1):
             try:
@@ -289,40 +343,52 @@ class Capture:
         return not self.motion.stopping.is_set() and self._owns()
 
     def _owns(self) -> bool:
-        with self.db.session() as s:
-            return store.owns_run(s, run_id=self.run_id, token=self.token)
+        return self._in_session(
+            lambda s: store.owns_run(s, run_id=self.run_id, token=self.token),
+            f"checking run {self.run_id}")
 
     def _store(self, shot: _Shot, visit: _Visit) -> bool:
         """Commit one station (image file first) unless the run is no longer ours; True if
-        it was stored."""
+        it was stored.
+
+        Ownership is claimed in the same transaction as the insert (``store.claim_run`` locks
+        the run row), so a station is never committed after a cancel, a pause or a takeover
+        has been committed.
+        """
         rel = None
         if visit.image is not None:
             rel = Path("runs") / self.run_id / f"{shot.index:03d}-{self.token[:8]}.png"
             write_png(self.data_dir / rel, visit.image)
         size = None if visit.image is None else [visit.image.shape[1], visit.image.shape[0]]
-        with self.db.session() as s:
-            if not self._owns():
-                stored = False
-            else:
-                s.add(Station(run_id=self.run_id, index=shot.index, state=visit.state,
-                              target_pose=shot.pose, tcp_pose=visit.tcp_pose,
-                              joint_positions=shot.joints,
-                              image_path=None if rel is None else rel.as_posix(),
-                              image_size=size, detection=visit.detection, error=visit.error,
-                              error_code=visit.error_code, attempts=visit.attempts))
-                try:
-                    s.commit()
-                    stored = True
-                except IntegrityError:  # another owner stored this index
-                    s.rollback()
-                    stored = False
-        if not stored:
-            if rel is not None:
+
+        def commit(s: Session) -> bool:
+            if not store.claim_run(s, run_id=self.run_id, token=self.token):
+                return False
+            s.add(Station(run_id=self.run_id, index=shot.index, state=visit.state,
+                          target_pose=shot.pose, tcp_pose=visit.tcp_pose,
+                          joint_positions=shot.joints,
+                          image_path=None if rel is None else rel.as_posix(),
+                          image_size=size, detection=visit.detection, error=visit.error,
+                          error_code=visit.error_code, attempts=visit.attempts))
+            try:
+                s.commit()
+            except IntegrityError:  # another owner stored this index
+                s.rollback()
+                return False
+            return True
+
+        stored = False
+        try:
+            stored = self._in_session(commit, f"storing station {shot.index} of run "
+                                              f"{self.run_id}")
+        finally:
+            if not stored and rel is not None:
                 (self.data_dir / rel).unlink(missing_ok=True)
+        if not stored:
             return False
         event: dict[str, Any] = {"type": "station", "run_id": self.run_id,
                                  "index": shot.index, "state": visit.state}
         if visit.error:
             event["error"] = {"code": visit.error_code, "detail": visit.error}
-        self.events.publish(self.run_id, event)
+        self._publish(event)
         return True
