@@ -75,37 +75,47 @@ def decode_image_bytes(data: bytes, name: str, *,
 def _read_regular_file(directory: Path, name: str, *, max_bytes: int) -> bytes:
     """Bytes of ``directory/name`` if it is a regular file inside ``directory``, else refuse."""
     root = directory.resolve()
+    if "\0" in name:
+        raise ImageFileError(f"image path {_shown(name)} contains a NUL character")
     if Path(name).is_absolute():
-        raise ImageFileError(f"image path '{name}' is absolute: name files relative to the "
-                           "station directory")
+        raise ImageFileError(f"image path {_shown(name)} is absolute: name files relative to the "
+                             "station directory")
     path = (root / name).resolve()
     if not path.is_relative_to(root):
-        raise ImageFileError(f"image path '{name}' leads outside the station directory")
+        raise ImageFileError(f"image path {_shown(name)} leads outside the station directory")
     try:
         before = os.stat(path)
     except OSError as exc:
-        raise ImageFileError(f"cannot read image file '{name}': {exc.strerror or exc}") from None
+        raise ImageFileError(f"cannot read image file {_shown(name)}: "
+                             f"{exc.strerror or exc}") from None
     if not stat.S_ISREG(before.st_mode):
-        raise ImageFileError(f"image path '{name}' is {_kind(before.st_mode)}, not a regular file")
+        raise ImageFileError(f"image path {_shown(name)} is {_kind(before.st_mode)}, not a "
+                             "regular file")
     if before.st_size > max_bytes:
-        raise ImageFileError(f"image file '{name}' is {before.st_size / 1e6:.0f} MB, more than "
-                           f"the {max_bytes / 1e6:.0f} MB allowed")
+        raise ImageFileError(f"image file {_shown(name)} is {before.st_size / 1e6:.0f} MB, "
+                             f"more than the {max_bytes / 1e6:.0f} MB allowed")
     # O_NONBLOCK: should the file be swapped for a FIFO after the check, open does not block;
     # fstat then shows the swap and nothing is read.
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOFOLLOW | os.O_CLOEXEC)
     except OSError as exc:
-        raise ImageFileError(f"cannot read image file '{name}': {exc.strerror or exc}") from None
+        raise ImageFileError(f"cannot read image file {_shown(name)}: "
+                             f"{exc.strerror or exc}") from None
     with os.fdopen(fd, "rb") as file:
         now = os.fstat(file.fileno())
         if (now.st_dev, now.st_ino) != (before.st_dev, before.st_ino) \
                 or not stat.S_ISREG(now.st_mode):
-            raise ImageFileError(f"image file '{name}' changed while it was opened")
+            raise ImageFileError(f"image file {_shown(name)} changed while it was opened")
         data = file.read(max_bytes + 1)
     if len(data) > max_bytes:
-        raise ImageFileError(f"image file '{name}' grew beyond the {max_bytes / 1e6:.0f} MB "
-                           "allowed while it was read")
+        raise ImageFileError(f"image file {_shown(name)} grew beyond the {max_bytes / 1e6:.0f} MB "
+                             "allowed while it was read")
     return data
+
+
+def _shown(name: str, limit: int = 80) -> str:
+    """``name`` quoted for a message, cut short if it is long."""
+    return repr(name) if len(name) <= limit else repr(name[:limit]) + "..."
 
 
 def _kind(mode: int) -> str:
@@ -124,21 +134,21 @@ def _kind(mode: int) -> str:
 def _decode(data: bytes, name: str, max_pixels: int) -> np.ndarray:
     """Grey uint8 image from PNG or JPEG bytes whose header allows at most ``max_pixels``."""
     if not data:
-        raise ImageFileError(f"image file '{name}' is empty (0 bytes)")
+        raise ImageFileError(f"image file {_shown(name)} is empty (0 bytes)")
     size = image_size(data)
     if size is None:
-        raise ImageFileError(f"image file '{name}' is not a readable image (PNG or JPEG "
-                           "expected)")
+        raise ImageFileError(f"image file {_shown(name)} is not a readable image (PNG or JPEG "
+                             "expected)")
     width, height = size
     if width == 0 or height == 0:
-        raise ImageFileError(f"image file '{name}' has a {width}x{height} header")
+        raise ImageFileError(f"image file {_shown(name)} has a {width}x{height} header")
     if width * height > max_pixels:
-        raise ImageFileError(f"image file '{name}' is {width}x{height} = "
-                           f"{width * height / 1e6:.0f} MP, more than the "
-                           f"{max_pixels / 1e6:g} MP allowed")
+        raise ImageFileError(f"image file {_shown(name)} is {width}x{height} = "
+                             f"{width * height / 1e6:.0f} MP, more than the "
+                             f"{max_pixels / 1e6:g} MP allowed")
     if _truncated(data):
-        raise ImageFileError(f"image file '{name}' is truncated (incomplete copy or interrupted "
-                           "capture?)")
+        raise ImageFileError(f"image file {_shown(name)} is truncated (incomplete copy or "
+                             "interrupted capture?)")
     with _native_stderr() as warnings:
         try:
             image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
@@ -146,7 +156,7 @@ def _decode(data: bytes, name: str, max_pixels: int) -> np.ndarray:
             image = None
     why = " ".join(warnings.getvalue().split())
     if image is None or why:
-        raise ImageFileError(f"image file '{name}' is corrupt" + (f" ({why})" if why else ""))
+        raise ImageFileError(f"image file {_shown(name)} is corrupt" + (f" ({why})" if why else ""))
     return image
 
 

@@ -110,7 +110,7 @@ def corrupt_png(source: Path, target: Path) -> Path:
 
 @pytest.fixture
 def hostile_set(tmp_path):
-    """15 rendered stations; 8 of them name hostile files. Returns (dir, expected reasons)."""
+    """15 rendered stations; 9 of them name hostile files. Returns (dir, expected reasons)."""
     d = write_image_set(tmp_path / "set", n=15)
     outside = tmp_path / "outside.png"
     cv2.imwrite(str(outside), cv2.imread(str(d / "005.png")))  # a good image, but outside
@@ -124,7 +124,7 @@ def hostile_set(tmp_path):
     (d / "sub" / "moved.png").write_bytes((d / "007.png").read_bytes())  # subfolders are fine
     names = {"000": "sub/empty.png", "001": "../outside.png", "002": "/etc/passwd",
              "003": "link.png", "004": "fifo.png", "005": "zero.png", "006": "huge.png",
-             "008": "sub/crc.png", "007": "sub/moved.png"}
+             "008": "sub/crc.png", "007": "sub/moved.png", "009": "a\0b.png"}
     doc = json.loads((d / "stations.json").read_text())
     for station in doc["stations"]:
         station["image"] = names.get(station["id"], station["image"])
@@ -138,6 +138,7 @@ def hostile_set(tmp_path):
         "005": r"^image path 'zero.png' leads outside the station directory$",
         "006": r"^image file 'huge.png' is 20000x20000 = 400 MP, more than the 50 MP allowed$",
         "008": r"^image file 'sub/crc.png' is corrupt \(.*CRC error.*\)$",
+        "009": r"^image path 'a\\x00b.png' contains a NUL character$",
     }
     return d, expected
 
