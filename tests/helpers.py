@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 import os
+import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calib.geometry import make_transform, pose_error
 from mocks.posesim import Cell, default_cell, robot_poses, sample_camera_poses
+
+T = TypeVar("T")
 
 
 def random_transforms(rng: np.random.Generator, n: int, *, scale: float = 1.0) -> np.ndarray:
@@ -30,6 +35,16 @@ def exact_stations(setup: str, n: int, seed: int) -> tuple[Cell, np.ndarray, np.
     cell = default_cell(setup)
     C = sample_camera_poses(cell, n, np.random.default_rng(seed))
     return cell, robot_poses(cell, C), C
+
+
+def wait_for(what: str, condition: Callable[[], T], timeout: float = 120.0) -> T:
+    """Poll ``condition`` until it returns something truthy and return that; fail after
+    ``timeout`` s naming ``what`` (a guard against hangs, not a speed requirement)."""
+    deadline = time.monotonic() + timeout
+    while not (value := condition()):
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.02)
+    return value
 
 
 #: ``../shared`` beside the repository (CI and developers have it there), e.g. the real images.

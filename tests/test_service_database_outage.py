@@ -12,29 +12,26 @@ from __future__ import annotations
 import os
 import sqlite3
 import time
-from collections.abc import Callable
 from typing import Any
 
 import httpx
 import numpy as np
+from fastapi.testclient import TestClient
+from sqlalchemy.exc import OperationalError
 
 from calib.geometry import ur_pose_from_matrix
 from mocks.scene import default_scene, sample_station_poses
+from service import store
+from service.app import create_app
 from service.local import local_service
+from service.settings import Settings
+from tests.helpers import wait_for
 
 KEY = "outage-key-0123456789abcdef"
 LOCK_S = float(os.environ.get("CELLCAL_TEST_DB_LOCK_S", "5"))
 #: The service's SQLite busy timeout and write retry budget in this test, seconds.
 BUSY_S, RETRY_S = 0.5, 2.0
 STATIONS = 30
-
-
-def _wait(what: str, condition: Callable[[], Any], timeout: float = 120.0) -> Any:
-    deadline = time.monotonic() + timeout
-    while not (value := condition()):
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.02)
-    return value
 
 
 def test_run_survives_a_database_lock_and_resumes(tmp_path):
@@ -47,7 +44,7 @@ def test_run_survives_a_database_lock_and_resumes(tmp_path):
                        timeout=30) as client):
         run_id = client.post("/runs", json={"poses": poses}).json()["id"]
         path = f"/runs/{run_id}"
-        _wait("a first station", lambda: client.get(path).json()["stations_captured"] >= 1)
+        wait_for("a first station", lambda: client.get(path).json()["stations_captured"] >= 1)
 
         lock = sqlite3.connect(tmp_path / "data" / "cellcal.db", timeout=30,
                                isolation_level=None)
@@ -62,22 +59,48 @@ def test_run_survives_a_database_lock_and_resumes(tmp_path):
             assert paused.status_code == 503
             assert paused.json()["code"] == "database_unavailable"
             assert paused.json()["detail"].startswith("The database is not answering (")
-            _wait("the capture thread to give up", lambda: f"run {run_id} interrupted: "
+            wait_for("the capture thread to give up", lambda: f"run {run_id} interrupted: "
                   in service.log.read_text(errors="replace"), 60 + LOCK_S)
             time.sleep(max(0.0, LOCK_S - (time.monotonic() - locked_at)))
         finally:
             lock.execute("ROLLBACK")
             lock.close()
 
-        run = _wait("the run to be interrupted", lambda: (
+        run = wait_for("the run to be interrupted", lambda: (
             r := client.get(path).json())["state"] != "capturing" and r)
         assert run["state"] == "interrupted", run
         assert run["error"]["code"] == "database_unavailable"
         assert run["error"]["detail"].endswith("resume the run once the database is back.")
         assert client.post(f"{path}/resume").json()["state"] == "capturing"
-        run = _wait("the run to finish", lambda: (
+        run = wait_for("the run to finish", lambda: (
             r := client.get(path).json())["state"] != "capturing" and r)
         assert run["state"] == "done", run
         indices = [s["index"] for s in client.get(f"{path}/stations").json()]
         assert indices == list(range(STATIONS))  # every station, exactly once
         assert run["stations_captured"] + run["stations_skipped"] == STATIONS
+
+
+def test_database_errors_in_requests_are_json(tmp_path, monkeypatch):
+    """A read that fails (SQLite readers are never locked out in WAL mode, so the failure of
+    a PostgreSQL restart is injected): 503 with the JSON body; anything unforeseen: 500 JSON."""
+    def restarting(*args: Any, **kwargs: Any) -> None:
+        raise OperationalError("SELECT runs", {}, Exception(
+            "server closed the connection unexpectedly"))
+
+    def broken(*args: Any, **kwargs: Any) -> None:
+        raise RuntimeError("something unforeseen")
+
+    app = create_app(Settings(data_dir=tmp_path, api_key=KEY))
+    with TestClient(app, raise_server_exceptions=False) as client:
+        client.headers["Authorization"] = f"Bearer {KEY}"
+        monkeypatch.setattr(store, "get_run", restarting)
+        r = client.get("/runs/some-run")
+        assert r.status_code == 503
+        assert r.json() == {"detail": "The database is not answering (server closed the "
+                                      "connection unexpectedly); retry in a moment.",
+                            "code": "database_unavailable"}
+        monkeypatch.setattr(store, "get_run", broken)
+        r = client.get("/runs/some-run")
+        assert r.status_code == 500
+        assert r.json() == {"detail": "Internal error (RuntimeError); see the service log.",
+                            "code": "internal_error"}

@@ -16,7 +16,7 @@ import sqlite3
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +33,7 @@ from service.app import create_app
 from service.local import LocalService, _wait_healthy, free_port, local_service, stop
 from service.models import Run, Station
 from service.settings import Settings
+from tests.helpers import wait_for
 from tests.test_pipeline import rendered_stations
 
 KEY = "faults-key-0123456789abcdef"
@@ -44,17 +45,9 @@ def _poses(n: int, seed: int = 6) -> list[list[float]]:
                                                     np.random.default_rng(seed))).tolist()
 
 
-def _wait(what: str, condition: Callable[[], Any], timeout: float = 120.0) -> Any:
-    deadline = time.monotonic() + timeout
-    while not (value := condition()):
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.02)
-    return value
-
-
 def _settled(client: httpx.Client | TestClient, run_id: str) -> dict[str, Any]:
     """The run once it is no longer capturing."""
-    return _wait(f"run {run_id}", lambda: (r := client.get(f"/runs/{run_id}").json())["state"]
+    return wait_for(f"run {run_id}", lambda: (r := client.get(f"/runs/{run_id}").json())["state"]
                  != "capturing" and r)
 
 
@@ -96,9 +89,9 @@ def test_unplugged_camera_comes_back_on_resume(tmp_path, board_images):
           httpx.Client(base_url=service.url, headers=AUTH, timeout=30) as client):
         run_id = client.post("/runs", json={"poses": _poses(n)}).json()["id"]
         path = f"/runs/{run_id}"
-        _wait("a first station", lambda: client.get(path).json()["stations_captured"] >= 1)
+        wait_for("a first station", lambda: client.get(path).json()["stations_captured"] >= 1)
         client.post(f"{path}/pause")
-        run = _wait("the pause", lambda: (r := client.get(path).json())["state"] == "paused"
+        run = wait_for("the pause", lambda: (r := client.get(path).json())["state"] == "paused"
                     and r)
         assert run["stations_captured"] < n, "the run ended before the pause: add frames"
 
@@ -159,7 +152,7 @@ def test_no_station_is_committed_after_a_cancel(tmp_path):
           httpx.Client(base_url=service.url, headers=AUTH, timeout=30) as client):
         run_id = client.post("/runs", json={"poses": _poses(30)}).json()["id"]
         path = f"/runs/{run_id}"
-        _wait("a first station", lambda: client.get(path).json()["stations_captured"] >= 1)
+        wait_for("a first station", lambda: client.get(path).json()["stations_captured"] >= 1)
         db = sqlite3.connect(tmp_path / "data" / "cellcal.db", timeout=30, isolation_level=None)
         try:
             db.execute("BEGIN IMMEDIATE")

@@ -20,6 +20,7 @@ import numpy as np
 from calib.geometry import ur_pose_from_matrix
 from mocks.scene import default_scene, sample_station_poses
 from service.local import LocalService, local_service
+from tests.helpers import wait_for
 
 KEY = "orphan-key-0123456789abcdef"
 #: Issue 11 acceptance: no orphan 15 s after the kill.
@@ -63,20 +64,12 @@ def _cmdline(pid: int) -> str:
         return ""
 
 
-def _wait_for(what: str, condition, timeout: float):
-    deadline = time.monotonic() + timeout
-    while not (value := condition()):
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.1)
-    return value
-
-
 def _captured_run(client: httpx.Client) -> str:
     """A finished capture run of 5 stations of the mock cell; its id."""
     poses = ur_pose_from_matrix(
         sample_station_poses(default_scene(), 5, np.random.default_rng(4))).tolist()
     run = client.post("/runs", json={"poses": poses}).json()
-    _wait_for("the run", lambda: client.get(f"/runs/{run['id']}").json()["state"] == "done",
+    wait_for("the run", lambda: client.get(f"/runs/{run['id']}").json()["state"] == "done",
               120)
     return run["id"]
 
@@ -97,7 +90,7 @@ def test_kill_9_during_a_calibration_leaves_no_process(tmp_path):
         cal = client.post(f"/runs/{run_id}/calibrations", json={})
         assert cal.status_code == 202, cal.text
         server = service.proc.pid
-        workers = _wait_for("a calibration worker", lambda: _workers(server), 60)
+        workers = wait_for("a calibration worker", lambda: _workers(server), 60)
         before = descendants(server)
         assert workers <= before
         os.kill(server, signal.SIGKILL)
@@ -122,7 +115,7 @@ def test_calibration_queue_is_bounded(tmp_path):
         run_id = _captured_run(client)
         path = f"/runs/{run_id}/calibrations"
         assert client.post(path, json={}).status_code == 202
-        (worker,) = _wait_for("the calibration worker", lambda: _workers(service.proc.pid), 60)
+        (worker,) = wait_for("the calibration worker", lambda: _workers(service.proc.pid), 60)
         os.kill(worker[0], signal.SIGSTOP)  # nothing finishes from now on
         try:
             answers = [client.post(path, json={}) for _ in range(limit + 1)]
@@ -136,6 +129,6 @@ def test_calibration_queue_is_bounded(tmp_path):
             "detail": f"{limit} calibrations are already queued or running, the limit "
                       "(CELLCAL_MAX_QUEUED_CALIBRATIONS); retry when one has finished.",
             "code": "queue_full"}
-        _wait_for("the queued calibrations", lambda: all(
+        wait_for("the queued calibrations", lambda: all(
             c["state"] != "running" for c in client.get(path).json()), 120)
         assert client.post(path, json={}).status_code == 202  # room again
