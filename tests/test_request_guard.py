@@ -64,7 +64,9 @@ def post_streaming(url: str, path: str, headers: dict[str, str],
                    body: Iterator[bytes]) -> tuple[int, dict, int]:
     """POST ``body`` over a raw socket, stopping as soon as an answer arrives.
 
-    Returns the status, the JSON answer and how many body bytes were sent before it came.
+    Returns the status, the JSON answer and how many body bytes were sent before it came. The
+    server closes the connection with body bytes unread, so the end of the answer may come as
+    a reset instead of an orderly close: the answer is complete once its Content-Length is in.
     """
     host, port = urlsplit(url).hostname, urlsplit(url).port
     head = "".join(f"{k}: {v}\r\n" for k, v in {"Host": f"{host}:{port}",
@@ -73,21 +75,49 @@ def post_streaming(url: str, path: str, headers: dict[str, str],
     sent = 0
     with socket.create_connection((host, port), timeout=30) as sock:
         sock.sendall(f"POST {path} HTTP/1.1\r\n{head}\r\n".encode())
-        for part in body:
-            readable, _, _ = select.select([sock], [], [], 0)
+        pending = b""
+        parts = iter(body)
+        while True:  # send while nothing has come back, never blocking in a send
+            readable, writable, _ = select.select([sock], [sock], [], 30)
             if readable:
                 break
-            try:
-                sock.sendall(part)
-            except (BrokenPipeError, ConnectionResetError):
-                break
-            sent += len(part)
-        answer = b""
-        while chunk := sock.recv(CHUNK):
-            answer += chunk
+            if writable:
+                pending = pending or next(parts, b"")
+                if not pending:
+                    break
+                try:
+                    n = sock.send(pending)
+                except (BrokenPipeError, ConnectionResetError):
+                    break
+                sent, pending = sent + n, pending[n:]
+        return (*_read_answer(sock), sent)
+
+
+def _read_answer(sock: socket.socket) -> tuple[int, dict]:
+    """Status and JSON body of an HTTP/1.1 answer with a Content-Length."""
+    answer = b""
+    while not _complete(answer):
+        try:
+            chunk = sock.recv(CHUNK)
+        except ConnectionResetError:
+            break
+        if not chunk:
+            break
+        answer += chunk
     status_line, _, rest = answer.partition(b"\r\n")
     _, _, payload = rest.partition(b"\r\n\r\n")
-    return int(status_line.split()[1]), json.loads(payload), sent
+    return int(status_line.split()[1]), json.loads(payload)
+
+
+def _complete(answer: bytes) -> bool:
+    head, sep, payload = answer.partition(b"\r\n\r\n")
+    if not sep:
+        return False
+    for line in head.split(b"\r\n")[1:]:
+        name, _, value = line.partition(b":")
+        if name.strip().lower() == b"content-length":
+            return len(payload) >= int(value)
+    return False
 
 
 def _reset_peak(pid: int) -> float:
