@@ -23,7 +23,7 @@ from calib.geometry import ur_pose_from_matrix
 from mocks.scene import default_scene, sample_station_poses
 from service import store
 from service.app import create_app
-from service.local import local_service
+from service.local import ServeOptions, local_service
 from service.settings import Settings
 from tests.helpers import wait_for
 
@@ -39,7 +39,7 @@ def test_run_survives_a_database_lock_and_resumes(tmp_path):
            "CELLCAL_DATABASE_RETRY_S": str(RETRY_S)}
     poses = ur_pose_from_matrix(sample_station_poses(default_scene(), STATIONS,
                                                      np.random.default_rng(8))).tolist()
-    with (local_service(tmp_path / "data", KEY, env=env) as service,
+    with (local_service(tmp_path / "data", KEY, ServeOptions(env=env)) as service,
           httpx.Client(base_url=service.url, headers={"Authorization": f"Bearer {KEY}"},
                        timeout=30) as client):
         run_id = client.post("/runs", json={"poses": poses}).json()["id"]

@@ -19,7 +19,7 @@ import numpy as np
 
 from calib.geometry import ur_pose_from_matrix
 from mocks.scene import default_scene, sample_station_poses
-from service.local import LocalService, local_service
+from service.local import LocalService, ServeOptions, local_service
 from tests.helpers import wait_for
 
 KEY = "orphan-key-0123456789abcdef"
@@ -110,7 +110,7 @@ def _wait_for_gone(processes: set[Process]) -> set[Process]:
 def test_calibration_queue_is_bounded(tmp_path):
     limit = 2
     env = {**os.environ, "CELLCAL_MAX_QUEUED_CALIBRATIONS": str(limit)}
-    with (local_service(tmp_path / "data", KEY, env=env) as service,
+    with (local_service(tmp_path / "data", KEY, ServeOptions(env=env)) as service,
           _client(service) as client):
         run_id = _captured_run(client)
         path = f"/runs/{run_id}/calibrations"
