@@ -39,10 +39,8 @@ def is_open(path: str) -> bool:
     return path in OPEN_PATHS or path.startswith(OPEN_PREFIXES)
 
 
-class PayloadTooLargeError(ServiceError):
-    """A request body beyond ``Settings.max_body_bytes``."""
-
-    code = "payload_too_large"
+class PayloadTooLargeError(ServiceError, code="payload_too_large"):
+    """A request body beyond ``Settings.max_body_bytes`` (413)."""
 
 
 def bearer_token(authorization: str | None) -> str | None:
