@@ -113,9 +113,10 @@ def ratios(mc: dict[str, np.ndarray]) -> dict[str, float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--quick", action="store_true", help="12 seeds per scene")
+    ap.add_argument("--seeds", type=int, default=60, help="seeds per scene (default 60)")
     args = ap.parse_args()
-    seeds = 12 if args.quick else 60
+    seeds = 12 if args.quick else args.seeds
     scene = load_scene(SCENE)
     rows = {"kinematic errors": ratios(monte_carlo(scene, seeds)),
             "control (no kinematic errors)": ratios(monte_carlo(

@@ -70,7 +70,11 @@ def choose_joint(data: JointData, station_ids: Sequence[str], base: JointModel,
         selection = select_joint_model(data, station_ids, base, first, Modes(kappa=kappa))
     fit = selection.chosen.fit
     assert fit is not None  # joint candidates always carry their fit
-    result = fit.result(first.stations, first.rejected)
+    # the noise levels the data show: those of the candidate that estimated them
+    estimated = next((c.fit for c in selection.candidates
+                      if c.model is not None and c.model.estimate_noise and c.fit), None)
+    result = fit.result(first.stations, first.rejected, noise=None if estimated is None else (
+        estimated.sigma_px, estimated.noise.rot_rad, estimated.noise.trans_m))
     return JointChoice(result=result, selection=selection,
                        uncertainty=honest(result.sigmas, selection.chosen.cv.estimates,
                                           FoldEstimate.of(result)))

@@ -88,19 +88,24 @@ class JointFit:
     solution: BlockSolution
     problem: JointProblem
 
-    def result(self, stations: np.ndarray,
-               rejected: tuple[tuple[int, str], ...] = ()) -> JointResult:
+    def result(self, stations: np.ndarray, rejected: tuple[tuple[int, str], ...] = (), *,
+               noise: tuple[float, float, float] | None = None) -> JointResult:
         """The fit as ``calib.joint.JointResult`` (covariance, sigmas, corrections).
 
         The covariance is the sandwich ``H⁻¹ Jᵀ F J H⁻¹`` (``H = JᵀJ`` of the normalised
         residuals, ``F`` each residual group's variance factor from the variance-component
         estimate): the spread of *this* estimator when the noise is what the data show, not
         what was assumed. Assumed levels that are off weight the groups wrongly, which one
-        global variance factor cannot correct.
+        global variance factor cannot correct. ``noise`` (σ_px, σ_rot, σ_trans), e.g. those of
+        a converged fit with ``estimate_noise``, gives the factors directly; without it they
+        are estimated in one step at this fit's weights.
         """
         res = self.problem.result(self.solution, stations, rejected)
+        factors = None if noise is None else (
+            (noise[0] / self.sigma_px) ** 2, (noise[1] / self.noise.rot_rad) ** 2,
+            (noise[2] / self.noise.trans_m) ** 2)
         try:
-            free_cov = _sandwich(self.problem, self.solution.x)
+            free_cov = _sandwich(self.problem, self.solution.x, factors)
         except np.linalg.LinAlgError:
             return res
         cov = np.zeros((len(GLOBAL_PARAMS), len(GLOBAL_PARAMS)))
@@ -149,9 +154,10 @@ def variance_factors(problem: JointProblem, x: np.ndarray) -> tuple[float, float
             float(np.sum(prior[:, 3:] ** 2)) / max(red_trans, 1e-3))
 
 
-def _sandwich(problem: JointProblem, x: np.ndarray) -> np.ndarray:
+def _sandwich(problem: JointProblem, x: np.ndarray,
+              factors: tuple[float, float, float] | None = None) -> np.ndarray:
     """Covariance of the free globals under the group variance factors (``JointFit.result``)."""
-    f_corner, f_rot, f_trans = variance_factors(problem, x)
+    f_corner, f_rot, f_trans = factors or variance_factors(problem, x)
     J = problem.jacobian(x)
     H = (J.T @ J).toarray()
     g = problem.n_free_global
