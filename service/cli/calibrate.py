@@ -10,16 +10,16 @@ from pathlib import Path
 from typing import Any
 
 from calib import (
+    KAPPA_MODES,
     METHODS,
     Board,
     PipelineOptions,
+    PoseStations,
     RefineOptions,
     StationInputs,
     calibrate_stations,
+    choose_pose_only,
 )
-from calib.crossval import PoseStations
-from calib.evidence import choose_pose_only
-from calib.selection import KAPPA_MODES
 from service.cli.exit_codes import EXIT_VERDICT_FAIL
 from service.image_files import DEFAULT_MAX_PIXELS, read_station_image
 from service.stationset import DEFAULT_MAX_STATIONS, StationSet, load_station_set
