@@ -27,6 +27,8 @@ from calib.chain import (
     station_motions,
     target_from_station,
 )
+from calib.crossval import CrossValidation, PoseStations
+from calib.evidence import Trust, choose_pose_only
 from calib.geometry import (
     check_joint_positions,
     check_transforms,
@@ -67,6 +69,8 @@ from calib.pipeline import (
 from calib.planning import CellGuess, Plan, PlanOptions, plan_stations, rough_target_from_image
 from calib.refine import RefineOptions
 from calib.screw import solve_sm
+from calib.selection import KAPPA_MODES, Candidate, Selection
+from calib.selection import RULE as SELECTION_RULE
 from calib.stations import StationInputs
 from calib.target import (
     MIN_CONTRAST,
@@ -79,18 +83,22 @@ from calib.validation import dot_hit, leave_one_out, motion_residuals, reproject
 
 __all__ = [
     "CAMERA_PARAMS",
+    "KAPPA_MODES",
     "METHODS",
     "MIN_CONTRAST",
     "MIN_IMAGES",
     "OPENCV_HAND_EYE_METHODS",
     "OPENCV_ROBOT_WORLD_METHODS",
     "POSE_METHODS",
+    "SELECTION_RULE",
     "SETUPS",
     "Board",
     "CalibrationResult",
+    "Candidate",
     "CellGuess",
     "CellParameters",
     "CornerStations",
+    "CrossValidation",
     "Detection",
     "HandEyeResult",
     "IntrinsicsOptions",
@@ -103,10 +111,13 @@ __all__ = [
     "PipelineOptions",
     "Plan",
     "PlanOptions",
+    "PoseStations",
     "RefineOptions",
     "RobotNoise",
+    "Selection",
     "StationInputs",
     "StationReport",
+    "Trust",
     "board_points",
     "calibrate_hand_eye",
     "calibrate_intrinsics",
@@ -117,6 +128,7 @@ __all__ = [
     "check_transforms",
     "check_ur_pose",
     "check_ur_poses",
+    "choose_pose_only",
     "cramer_rao_bound",
     "detect_checkerboard",
     "dot_hit",

@@ -21,8 +21,9 @@ footnote 5; their Method #1 residuals plus the robot readings as noisy measureme
   rotation vector (translation) has standard deviation σ / √3.
 
 Unknowns: ``fx, fy, cx, cy, k1, k2, p1, p2, k3, ν, κ``, X and Y (small left rotations and
-translations about a reference), and 6 per station. ``scipy.optimize.least_squares`` runs with
-an analytic sparse Jacobian (one 2 x (23 + 6) block per corner, one diagonal entry per prior).
+translations about a reference), and 6 per station. Levenberg-Marquardt with the station blocks
+eliminated (``calib.schur``) runs on an analytic Jacobian (one 2 x (23 + 6) block per corner,
+one diagonal entry per prior).
 The covariance of the 23 global parameters comes from the Jacobian at the optimum with the
 station blocks eliminated by a Schur complement, scaled by the residual variance factor.
 
@@ -39,7 +40,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import OptimizeResult, least_squares
 from scipy.sparse import csr_matrix
 from scipy.stats import chi2
 
@@ -49,6 +49,7 @@ from calib.chain import RobotNoise, check_setup, robot_chain
 from calib.geometry import check_transforms, invert
 from calib.handeye import MIN_STATIONS
 from calib.lsq import CachedProblem
+from calib.schur import BlockSolution, solve_blocks
 from calib.target import Board
 
 #: Camera and board parameters, in the order of :attr:`JointResult.covariance`.
@@ -210,12 +211,9 @@ def solve_joint(stations: CornerStations, start: CellParameters,
     while True:
         problem = JointProblem([grid[ids[k]] for k in keep], [pts[k] for k in keep],
                                T_base_tcp[keep], start, options)
-        # lsmr needs more than its default min(m, n) iterations on small, ill-conditioned
-        # problems (far cameras, eye-to-hand) to give Gauss-Newton steps.
-        lsmr = {"atol": 1e-10, "btol": 1e-10, "maxiter": max(problem.shape[1], 1000)}
-        sol = least_squares(problem.residuals, problem.x0(), jac=problem.jacobian,
-                            method="trf", x_scale="jac", tr_solver="lsmr", tr_options=lsmr,
-                            ftol=1e-12, xtol=1e-12, gtol=1e-12, max_nfev=options.max_nfev)
+        # the station blocks eliminated exactly (calib.schur): an iterative sparse solver
+        # needs hundreds of products per step on these ill-conditioned problems
+        sol = solve_blocks(problem, problem.x0(), max_nfev=options.max_nfev, ftol=1e-12)
         start, delta = problem.unpack(sol.x)
         d = _distance(delta, options.noise)
         scale = max(1.0, float(np.median(d)) / _DISTANCE_MEDIAN)
@@ -374,7 +372,7 @@ class JointProblem(CachedProblem):
         cov[np.ix_(self.free, self.free)] = variance_factor * np.linalg.inv(S)
         return cov
 
-    def result(self, sol: OptimizeResult, stations: np.ndarray,
+    def result(self, sol: BlockSolution, stations: np.ndarray,
                rejected: tuple[tuple[int, str], ...]) -> JointResult:
         x = sol.x
         r, _ = self.evaluate(x)
@@ -382,11 +380,7 @@ class JointProblem(CachedProblem):
         m, n = self.shape
         variance_factor = float(r @ r) / max(m - n, 1)
         cov = self.covariance(x, variance_factor)
-        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-        sigmas: dict[str, float | np.ndarray] = {
-            name: float(sd[i]) for i, name in enumerate(CAMERA_PARAMS)}
-        sigmas.update(hand_eye_rot_rad=sd[11:14], hand_eye_trans_m=sd[14:17],
-                      target_pose_rot_rad=sd[17:20], target_pose_trans_m=sd[20:23])
+        sigmas = sigmas_from_covariance(cov)
         residuals_px = r[:2 * len(self.obj)].reshape(-1, 2) * self.sigma_px
         sq = np.sum(residuals_px ** 2, axis=1)
         return JointResult(
@@ -398,6 +392,16 @@ class JointProblem(CachedProblem):
             robot_noise_trans=self.noise.trans_m,
             variance_factor=variance_factor,
             nfev=int(sol.nfev), converged=bool(sol.status > 0))
+
+
+def sigmas_from_covariance(cov: np.ndarray) -> dict[str, float | np.ndarray]:
+    """``JointResult.sigmas`` of a covariance (23, 23) over ``GLOBAL_PARAMS``."""
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    sigmas: dict[str, float | np.ndarray] = {
+        name: float(sd[i]) for i, name in enumerate(CAMERA_PARAMS)}
+    sigmas.update(hand_eye_rot_rad=sd[11:14], hand_eye_trans_m=sd[14:17],
+                  target_pose_rot_rad=sd[17:20], target_pose_trans_m=sd[20:23])
+    return sigmas
 
 
 def _distance(delta: np.ndarray, noise: RobotNoise) -> np.ndarray:

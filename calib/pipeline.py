@@ -20,7 +20,7 @@ the per-image camera poses of the intrinsic stage (κ = 1, no joint stage).
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -32,6 +32,7 @@ from calib.chain import (
     check_setup,
     robot_chain,
 )
+from calib.evidence import JointChoice, Trust, choose_joint, method_cross_validation
 from calib.geometry import check_ur_poses
 from calib.handeye import POSE_METHODS, calibrate_hand_eye
 from calib.intrinsics import IntrinsicsOptions, calibrate_intrinsics
@@ -43,8 +44,11 @@ from calib.joint import (
     JointResult,
     solve_joint,
 )
+from calib.jointfit import JointData, JointModel
 from calib.nu import NuSearch, nu_from_extrinsics
+from calib.quality import QualityInputs, assess, irreconcilable
 from calib.refine import RefineOptions, scale_translations
+from calib.selection import KAPPA_MODES
 from calib.stations import (
     Observation,
     StationInputs,
@@ -107,7 +111,8 @@ class CalibrationResult:
     frame named first; joint only). ``rejected`` lists ``(station id, reason)``.
     ``validation`` holds E_R, E_t (eq. 21-22), the leave-one-out prediction errors (eq. 23)
     and the chain reprojection RMS. ``variance_factor`` (joint) is the reduced χ² by which the
-    covariance was scaled.
+    covariance was scaled. ``trust`` holds the cross-validation, model selection, honest
+    uncertainty and verdict (``calib.evidence``); ``sigmas`` are the honest σ.
     """
 
     setup: str
@@ -127,6 +132,7 @@ class CalibrationResult:
     options: dict[str, Any] = field(default_factory=dict)
     sigma_px: float = float("nan")
     variance_factor: float | None = None
+    trust: Trust | None = None
 
 
 @dataclass(frozen=True)
@@ -138,13 +144,17 @@ class PipelineOptions:
     nominal-size calibration. ``nu_method``: ``images`` (Method #1) or ``extrinsics`` (Method
     #2; ``joint`` only), then ν is held at the Method #2 value in the joint stage. ``noise``:
     the robot reading noise, the joint prior. ``outlier_sigma``: joint stage: drop stations
-    whose robot correction lies beyond this many σ (Mahalanobis); None keeps all.
+    whose robot correction lies beyond this many σ (Mahalanobis); None keeps all. ``kappa``:
+    ``auto`` (κ estimated only when that predicts held-out stations clearly better,
+    ``calib.selection``), ``estimate``, or ``fixed`` (held at exactly 1: the entered square
+    size was measured); ``estimate_kappa=False`` means ``fixed``.
     """
 
     setup: str = "eye_in_hand"
     method: str = "joint"
     estimate_nu: bool = True
     estimate_kappa: bool = True
+    kappa: str = "auto"
     nu_method: str = "images"
     noise: RobotNoise = field(default_factory=RobotNoise)
     outlier_sigma: float | None = OUTLIER_SIGMA
@@ -154,6 +164,9 @@ class PipelineOptions:
         if self.method not in METHODS:
             raise ValueError(f"unknown method '{self.method}': choose one of "
                              f"{', '.join(METHODS)}")
+        if self.kappa not in KAPPA_MODES:
+            raise ValueError(f"unknown kappa mode '{self.kappa}': choose one of "
+                             f"{', '.join(KAPPA_MODES)}")
         if self.nu_method not in NU_METHODS:
             raise ValueError(f"unknown nu_method '{self.nu_method}': choose one of "
                              f"{NU_METHODS}")
@@ -161,10 +174,16 @@ class PipelineOptions:
             raise ValueError("nu_method 'extrinsics' (Method #2) needs method 'joint' and "
                              "estimate_nu")
 
+    @property
+    def kappa_mode(self) -> str:
+        """``kappa``, or ``fixed`` when ``estimate_kappa`` is off."""
+        return self.kappa if self.estimate_kappa else "fixed"
+
     def record(self, known_intrinsics: bool) -> dict[str, Any]:
         """The options as the result document lists them."""
         return dict(method=self.method, estimate_nu=self.estimate_nu,
-                    estimate_kappa=self.estimate_kappa, nu_method=self.nu_method,
+                    estimate_kappa=self.kappa_mode != "fixed", kappa=self.kappa_mode,
+                    nu_method=self.nu_method,
                     robot_noise_rot_rad=self.noise.rot_rad,
                     robot_noise_trans_m=self.noise.trans_m, outlier_sigma=self.outlier_sigma,
                     known_intrinsics=known_intrinsics)
@@ -187,6 +206,10 @@ class _Stage:
     target_pose: np.ndarray | None = None
     keep: np.ndarray | None = None
     joint: JointResult | None = None
+    fix: tuple[str, ...] = ()
+    choice: JointChoice | None = None
+    image_size: tuple[int, int] = (0, 0)
+    pose_residuals: np.ndarray | None = None  # (n, 2) of the pose-level fit, rad and m
 
 
 def calibrate_stations(stations: StationInputs, board: Board,
@@ -211,6 +234,7 @@ def calibrate_stations(stations: StationInputs, board: Board,
     ids, usable, rejected, size = usable_stations(detections, stations)
     corners = [detections[k][0].corners for k in usable]
     stage = _camera_stage(corners, board, size, stations.intrinsics, options)
+    stage.image_size = size
     common = dict(setup=options.setup, image_size=size, options=options.record(
         stations.intrinsics is not None))
     if stations.tcp_poses is None or all(p is None for p in stations.tcp_poses):
@@ -222,18 +246,24 @@ def calibrate_stations(stations: StationInputs, board: Board,
             stations=tuple(StationReport(ids[k], len(corners[i]), float(stage.rms_img[i]),
                                          corners_px=corners[i], residuals_px=res[i])
                            for i, k in enumerate(usable)),
-            rejected=tuple(rejected), validation={}, **common)
+            rejected=tuple(rejected), validation={}, trust=Trust(
+                cross_validation=None, model_selection=None, uncertainty=None,
+                quality=assess(QualityInputs(
+                    setup=options.setup, T_base_tcp=None, corrections=None, cv=None,
+                    square_size_m=board.square_size, corners=tuple(corners),
+                    image_size=size))), **common)
 
     T_base_tcp = check_ur_poses([stations.tcp_poses[k] for k in usable], "tcp_pose")
     if any(d.ambiguous for d, _ in (detections[k] for k in usable)):
         stage.C, corners = resolve_symmetric_origin(robot_chain(T_base_tcp, options.setup),
                                                      stage.C, corners, board.points(), stage.nu)
-    _hand_eye_stage(stage, CornerStations(corners, T_base_tcp, board), size, options,
-                    stations.intrinsics is not None)
+    measured = CornerStations(corners, T_base_tcp, board)
+    _hand_eye_stage(stage, measured, size, options, stations.intrinsics is not None)
+    station_ids = [ids[k] for k in usable]
     if stage.joint is not None:
+        _choose_model(stage, measured, station_ids, options)
         rejected += [(ids[usable[i]], reason) for i, reason in stage.joint.rejected]
-    reports, validation = _validate(stage, CornerStations(corners, T_base_tcp, board),
-                                    [ids[k] for k in usable], options.setup)
+    reports, validation = _validate(stage, measured, station_ids, options.setup)
     joint = stage.joint
     rms = (joint.rms_px if joint is not None
            else float(np.sqrt(np.mean(stage.rms_img[stage.keep] ** 2))))
@@ -242,7 +272,8 @@ def calibrate_stations(stations: StationInputs, board: Board,
         nu=stage.nu, kappa=stage.kappa, hand_eye=stage.hand_eye, target_pose=stage.target_pose,
         sigmas=stage.sigmas, stations=tuple(reports), rejected=tuple(rejected),
         validation=validation, variance_factor=None if joint is None
-        else joint.variance_factor, **common)
+        else joint.variance_factor,
+        trust=_trust(stage, measured, station_ids, options, rejected), **common)
 
 
 def _camera_stage(corners: list[np.ndarray], board: Board, size: tuple[int, int],
@@ -268,14 +299,16 @@ def _hand_eye_stage(stage: _Stage, stations: CornerStations, size: tuple[int, in
     fit = calibrate_hand_eye(stations.T_base_tcp, stage.C, setup=options.setup,
                              method=pose_method, options=RefineOptions(
                                  noise=noise,
-                                 estimate_kappa=pose_method == "refine" and options.estimate_kappa))
+                                 estimate_kappa=pose_method == "refine"
+                                 and options.kappa_mode != "fixed"))
     stage.hand_eye, stage.target_pose, stage.kappa = fit.hand_eye, fit.target_pose, fit.kappa
+    stage.pose_residuals = fit.station_residuals
     stage.keep = np.arange(len(stations.image_points))
     if method == "refine":
         stage.sigmas.update(fit.sigmas)
     if method != "joint":
         return
-    fix = ("kappa",) * (not options.estimate_kappa) + ("nu",) * (not options.estimate_nu)
+    fix = ("kappa",) * (options.kappa_mode == "fixed") + ("nu",) * (not options.estimate_nu)
     if known_intrinsics:
         fix += ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
     if options.nu_method == "extrinsics":
@@ -285,14 +318,69 @@ def _hand_eye_stage(stage: _Stage, stations: CornerStations, size: tuple[int, in
     joint = solve_joint(stations, CellParameters(stage.K, stage.dist, stage.nu, stage.kappa,
                                                  stage.hand_eye, stage.target_pose),
                         JointOptions(sigma_px=stage.sigma_px, setup=options.setup, noise=noise,
-                                     fix=fix, outlier_sigma=options.outlier_sigma))
+                                     fix=fix, outlier_sigma=None if irreconcilable(
+                                         fit.station_residuals) else options.outlier_sigma))
     stage.K, stage.dist, stage.nu, stage.kappa = joint.K, joint.dist, joint.nu, joint.kappa
     stage.hand_eye, stage.target_pose, stage.keep = joint.hand_eye, joint.target_pose, \
         joint.stations
     stage.sigmas = dict(joint.sigmas)
     if options.nu_method == "extrinsics":
         stage.sigmas["nu"] = sigma_nu
-    stage.joint = joint
+    stage.joint, stage.fix = joint, fix
+
+
+def _choose_model(stage: _Stage, stations: CornerStations, ids: list[str],
+                  options: PipelineOptions) -> None:
+    """Model selection by cross-validation on the joint stage's stations (``calib.evidence``):
+    the chosen model's result, with honest σ, replaces the joint stage's."""
+    first = stage.joint
+    assert first is not None
+    kept = first.stations
+    data = JointData(replace(stations, image_points=[stations.image_points[i] for i in kept],
+                             T_base_tcp=stations.T_base_tcp[kept]), options.setup,
+                     stage.sigma_px)
+    stage.choice = choose_joint(data, [ids[i] for i in kept],
+                                JointModel("all estimated", stage.fix, options.noise), first,
+                                kappa=options.kappa_mode)
+    joint = stage.choice.result
+    stage.K, stage.dist, stage.nu, stage.kappa = joint.K, joint.dist, joint.nu, joint.kappa
+    stage.hand_eye, stage.target_pose, stage.joint = joint.hand_eye, joint.target_pose, joint
+    sigmas = dict(stage.choice.uncertainty.sigmas)
+    if options.nu_method == "extrinsics":
+        sigmas["nu"] = stage.sigmas["nu"]
+    stage.sigmas = sigmas
+
+
+def _trust(stage: _Stage, stations: CornerStations, ids: list[str],
+           options: PipelineOptions, rejected: list[tuple[str, str]]) -> Trust:
+    """Cross-validation, selection, uncertainty and the verdict of the finished stages."""
+    keep = stage.keep
+    data = JointData(replace(stations, image_points=[stations.image_points[i] for i in keep],
+                             T_base_tcp=stations.T_base_tcp[keep]), options.setup,
+                     stage.sigma_px)
+    kept_ids = [ids[i] for i in keep]
+    if stage.choice is None:
+        cell = CellParameters(stage.K, stage.dist, stage.nu, stage.kappa, stage.hand_eye,
+                              stage.target_pose)
+        cv = method_cross_validation(data, kept_ids, cell, stage.C[keep], options.method)
+        selection, uncertainty, corrections = None, None, stage.pose_residuals
+        kappa_sigma = stage.sigmas.get("kappa") if options.method == "refine" else None
+    else:
+        selection, uncertainty = stage.choice.selection, stage.choice.uncertainty
+        cv = selection.chosen.cv
+        delta = stage.choice.result.corrections
+        corrections = np.column_stack([np.linalg.norm(delta[:, :3], axis=1),
+                                       np.linalg.norm(delta[:, 3:], axis=1)])
+        held = "kappa" in (selection.chosen.model.fix if selection.chosen.model else ())
+        kappa_sigma = None if held else stage.sigmas.get("kappa")
+    quality = assess(QualityInputs(
+        setup=options.setup, T_base_tcp=data.stations.T_base_tcp, corrections=corrections,
+        cv=cv, square_size_m=stations.board.square_size, kappa=stage.kappa,
+        kappa_sigma=None if kappa_sigma is None else float(kappa_sigma),
+        sigma_px=stage.sigma_px, corners=tuple(data.stations.image_points),
+        image_size=stage.image_size, rejected=tuple(rejected)))
+    return Trust(cross_validation=cv, model_selection=selection, uncertainty=uncertainty,
+                 quality=quality)
 
 
 def _validate(stage: _Stage, stations: CornerStations, ids: list[str], setup: str

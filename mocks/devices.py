@@ -12,7 +12,9 @@ arm's calibration error for that configuration, not by fresh noise on every read
 draws one noise transform (``calib.geometry.perturb``: Gaussian angle of sigma
 ``robot_rot_deg`` about a random axis, Gaussian length of sigma ``robot_trans_mm`` in a random
 direction) each time a motion ends, and ``tcp_pose()`` returns ``true @ noise`` until the next
-motion ends.
+motion ends. A scene with ``kinematics`` (UR5e DH offsets) also gives the arm systematic
+errors: the camera sees from the commanded pose moved by the arm's kinematic error there,
+while the reading stays the commanded pose with its noise.
 
 Kinematics. The mock is a Cartesian robot: ``move_linear`` accepts any pose inside the
 workspace box. Joint space is a UR5e (``mocks.ur_kinematics``, TCP = flange): ``move_joint``
@@ -23,6 +25,7 @@ default scene's stations reach about 1.2 m from the base.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -139,7 +142,12 @@ class MockRobot(RobotSession):
         self._rng = np.random.default_rng([scene.seed if seed is None else seed, 1])
         self._lock = threading.Lock()
         self._stop = threading.Event()
-        self._T = scene.start_pose()
+        self._T = scene.start_pose()  # where the controller believes the tcp is
+        self._kin = np.eye(4)  # T_tcp_truetcp: the arm's kinematic error at rest there
+        if scene.kinematics is not None:
+            # a start beyond the UR5e's reach: no kinematic error until the first move
+            with contextlib.suppress(ValueError):
+                self._kin = kin.kinematic_error(self._T, scene.kinematics.offsets())
         self._noise = self._draw_noise()
         self._q: np.ndarray | None = None  # joints, when known from a joint move
         self._q_seed = kin.HOME_Q.copy()
@@ -182,9 +190,12 @@ class MockRobot(RobotSession):
 
     @property
     def true_pose(self) -> np.ndarray:
-        """The true (noise-free) T_base_tcp, shape (4, 4): what the camera sees from."""
+        """The true (noise-free) T_base_tcp, shape (4, 4): what the camera sees from.
+
+        The commanded pose moved by the scene's kinematic error (``MockScene.kinematics``).
+        """
         with self._lock:
-            return self._T.copy()
+            return self._T @ self._kin
 
     def inject_fault(self, name: str, value: float | None = None) -> None:
         """Make the next move fail or misbehave.
@@ -326,6 +337,18 @@ class MockRobot(RobotSession):
             extra_settle = _DEFAULT_SLOW_S if value is None else max(value, 0.0)
         return fault, extra_settle
 
+    def _kinematic_error(self, pose: np.ndarray) -> np.ndarray:
+        """T_tcp_truetcp at rest at UR pose ``pose`` (6,); identity without kinematics."""
+        if self.scene.kinematics is None:
+            return np.eye(4)
+        try:
+            return kin.kinematic_error(check_ur_pose(pose, "pose"),
+                                       self.scene.kinematics.offsets(), self._q_seed)
+        except ValueError:
+            raise RobotError("The target is beyond the reach of the simulated UR5e, whose "
+                             "kinematic errors the scene defines; the robot was not moved.",
+                             code="motion_failed") from None
+
     def _draw_noise(self) -> np.ndarray:
         """One reading-error transform (4, 4) from the scene's robot noise."""
         n = self.scene.noise
@@ -345,6 +368,7 @@ class MockRobot(RobotSession):
                 raise ProtectiveStopError(
                     "The robot is in a protective stop. Unlock it, then retry.")
             self.workspace.check(target)
+            kin_error = self._kinematic_error(target)
             fault, extra_settle = self._take_move_faults()
             self._moving = True
             self._stop.clear()
@@ -358,7 +382,7 @@ class MockRobot(RobotSession):
                     s = min(s, 0.5)
                 T, q = path(s)
                 with self._lock:
-                    self._T, self._q = T, q
+                    self._T, self._q, self._kin = T, q, kin_error
                     if q is not None:
                         self._q_seed = q
                 if fault and s >= 0.5:

@@ -39,6 +39,7 @@ from calib import (
     robot_from_camera,
 )
 from drivers.config_files import describe_validation_error
+from mocks.ur_kinematics import DHOffsets, kinematic_error
 
 #: Fraction of the image the pattern spans (along its tighter axis) at the working distance.
 WORKING_FILL = 0.65
@@ -112,6 +113,43 @@ class Noise(_Strict):
     blur_px: float = Field(0.0, ge=0.0, le=20.0, description="sigma of Gaussian blur, pixels")
 
 
+class Kinematics(_Strict):
+    """Systematic kinematic errors of the simulated arm, a UR5e (``mocks.ur_kinematics``).
+
+    Offsets of its true DH parameters from the nominal table its controller computes poses
+    with: the reported pose of a configuration is then off by the same (configuration-
+    dependent) transform at every visit, as on a real arm, besides the per-reading noise.
+    """
+
+    dh_theta_deg: list[float] = Field(default_factory=lambda: [0.0] * 6, min_length=6,
+                                      max_length=6, description="joint zero offsets")
+    dh_d_mm: list[float] = Field(default_factory=lambda: [0.0] * 6, min_length=6,
+                                 max_length=6, description="link offset errors")
+    dh_a_mm: list[float] = Field(default_factory=lambda: [0.0] * 6, min_length=6,
+                                 max_length=6, description="link length errors")
+    dh_alpha_deg: list[float] = Field(default_factory=lambda: [0.0] * 6, min_length=6,
+                                      max_length=6, description="link twist errors")
+
+    @field_validator("dh_theta_deg", "dh_alpha_deg")
+    @classmethod
+    def _small_angles(cls, v: list[float]) -> list[float]:
+        if not np.isfinite(v).all() or np.abs(v).max() > 1.0:
+            raise ValueError("DH angle offsets must be finite and within ±1 deg")
+        return v
+
+    @field_validator("dh_d_mm", "dh_a_mm")
+    @classmethod
+    def _small_lengths(cls, v: list[float]) -> list[float]:
+        if not np.isfinite(v).all() or np.abs(v).max() > 10.0:
+            raise ValueError("DH length offsets must be finite and within ±10 mm")
+        return v
+
+    def offsets(self) -> DHOffsets:
+        """The offsets in metres and radians."""
+        return DHOffsets(theta=np.deg2rad(self.dh_theta_deg), d=np.array(self.dh_d_mm) * 1e-3,
+                         a=np.array(self.dh_a_mm) * 1e-3, alpha=np.deg2rad(self.dh_alpha_deg))
+
+
 class MockScene(_Strict):
     """A complete simulated cell (see ``product.md``, "Mock scene")."""
 
@@ -124,6 +162,9 @@ class MockScene(_Strict):
         description="true T_base_target (eye-in-hand) or T_tcp_target, 4x4")
     noise: Noise = Field(default_factory=Noise)
     seed: int = 0
+    kinematics: Kinematics | None = Field(
+        None, description="systematic kinematic errors of the arm (UR5e DH offsets); "
+                          "default none")
     start_tcp_pose: list[float] | None = Field(
         None, min_length=6, max_length=6,
         description="[x, y, z, rx, ry, rz]; default: camera square to the target centre")
@@ -180,6 +221,22 @@ class MockScene(_Strict):
         c = self.pattern_centre()
         T_cam_target = make_transform(np.eye(3), [-c[0], -c[1], self.working_distance()])
         return tcp_pose_for_camera(self, T_cam_target)
+
+
+def true_tcp_pose(scene: MockScene, T_base_tcp: np.ndarray) -> np.ndarray:
+    """Where the flange really is when the controller reports T_base_tcp ``T_base_tcp``.
+
+    Shapes (..., 4, 4). The scene's ``kinematics`` offsets move it by the arm's kinematic error
+    (``mocks.ur_kinematics.kinematic_error``); without them it is where it is reported.
+    Raises ``ValueError`` for poses beyond the UR5e's reach when there are offsets.
+    """
+    T = np.asarray(T_base_tcp, dtype=float)
+    if scene.kinematics is None:
+        return T.copy()
+    offsets = scene.kinematics.offsets()
+    flat = T.reshape(-1, 4, 4)
+    out = np.stack([P @ kinematic_error(P, offsets) for P in flat])
+    return out.reshape(T.shape)
 
 
 def camera_pose_for_tcp(scene: MockScene, T_base_tcp: np.ndarray) -> np.ndarray:

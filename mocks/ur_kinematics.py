@@ -5,12 +5,17 @@ Standard Denavit-Hartenberg parameters published by Universal Robots for the UR5
 flange, as on a controller with a zero TCP set. Poses follow ``docs/conventions.md``
 (``[x, y, z, rx, ry, rz]``, T_base_tcp, metres and radians).
 
+``DHOffsets`` give the simulated arm systematic kinematic errors: its true DH table differs from
+the nominal one its controller computes poses with (``kinematic_error``).
+
 The inverse is numerical (damped least squares on the geometric Jacobian) rather than the closed
 form: the emulator only needs the solution nearest a seed (the current joints), which is what the
 real controller's ``get_inverse_kin(x, qnear)`` returns too.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -26,11 +31,29 @@ DH_ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
 HOME_Q = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
 
 
-def _frames(q: np.ndarray) -> list[np.ndarray]:
+@dataclass(frozen=True)
+class DHOffsets:
+    """Differences of an arm's true DH parameters from the nominal table, each shape (6,).
+
+    ``theta`` (rad) adds to the joint angle (a zero offset), ``d``, ``a`` (m) and ``alpha``
+    (rad) to the link parameters: the systematic errors a real arm's controller does not know
+    (tenths of a millimetre, hundredths of a degree on a UR), which bend every reading of a
+    configuration the same way.
+    """
+
+    theta: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    d: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    a: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    alpha: np.ndarray = field(default_factory=lambda: np.zeros(6))
+
+
+def _frames(q: np.ndarray, offsets: DHOffsets | None = None) -> list[np.ndarray]:
     """T_base_i for i = 0..6 (base, then each link frame), each shape (4, 4)."""
+    o = offsets or DHOffsets()
     T = np.eye(4)
     out = [T]
-    for theta, d, a, alpha in zip(q, DH_D, DH_A, DH_ALPHA, strict=True):
+    for theta, d, a, alpha in zip(q + o.theta, DH_D + o.d, DH_A + o.a, DH_ALPHA + o.alpha,
+                                  strict=True):
         ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
         link = np.array([[ct, -st * ca, st * sa, a * ct],
                          [st, ct * ca, -ct * sa, a * st],
@@ -41,9 +64,26 @@ def _frames(q: np.ndarray) -> list[np.ndarray]:
     return out
 
 
-def fk_matrix(q: np.ndarray) -> np.ndarray:
-    """T_base_tcp, shape (4, 4), for joint angles ``q`` shape (6,)."""
-    return _frames(np.asarray(q, dtype=float))[-1]
+def fk_matrix(q: np.ndarray, offsets: DHOffsets | None = None) -> np.ndarray:
+    """T_base_tcp, shape (4, 4), for joint angles ``q`` shape (6,) (of the arm with
+    ``offsets`` from the nominal DH table, default none)."""
+    return _frames(np.asarray(q, dtype=float), offsets)[-1]
+
+
+def kinematic_error(T_base_tcp: np.ndarray, offsets: DHOffsets,
+                    q_seed: np.ndarray = HOME_Q) -> np.ndarray:
+    """T_tcp_truetcp of an arm with ``offsets`` commanded to T_base_tcp ``T_base_tcp`` (4, 4).
+
+    The controller solves the nominal inverse kinematics and reports the nominal forward
+    kinematics of the joints it reached, while the flange is where the true parameters put
+    it: ``inv(fk(q)) @ fk(q, offsets)`` with ``q = ik(T_base_tcp)``. Raises ``ValueError``
+    beyond the UR5e's reach.
+    """
+    q = ik(ur_pose_from_matrix(T_base_tcp), q_seed, iterations=500)
+    if q is None:
+        raise ValueError("pose beyond the reach of the UR5e model: its kinematic error is "
+                         "undefined")
+    return np.linalg.inv(fk_matrix(q)) @ fk_matrix(q, offsets)
 
 
 def fk_pose(q: np.ndarray) -> np.ndarray:

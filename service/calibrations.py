@@ -161,6 +161,7 @@ def solve_calibration(payload: dict[str, Any]) -> dict[str, Any]:
         Board(tuple(target["inner_corners"]), target["square_size_m"]),
         PipelineOptions(setup=payload["setup"], method=opts["method"],
                         estimate_nu=opts["estimate_nu"], estimate_kappa=opts["estimate_kappa"],
-                        nu_method=opts["nu_method"], noise=noise))
+                        kappa=opts.get("kappa", "auto"), nu_method=opts["nu_method"],
+                        noise=noise))
     return calibration_result_json(
         result, command=f"POST /runs/{payload['run_id']}/calibrations")

@@ -11,9 +11,14 @@ import numpy as np
 
 from calib import (
     CAMERA_PARAMS,
+    SELECTION_RULE,
     CalibrationResult,
+    Candidate,
+    CrossValidation,
     HandEyeResult,
+    Selection,
     StationReport,
+    Trust,
     ur_pose_from_matrix,
 )
 
@@ -30,11 +35,14 @@ def _transform(T: np.ndarray) -> dict[str, Any]:
 
 
 def hand_eye_result_json(result: HandEyeResult, station_ids: list[str], *,
-                         options: dict[str, Any], command: str | None = None) -> dict[str, Any]:
+                         options: dict[str, Any], command: str | None = None,
+                         trust: Trust | None = None) -> dict[str, Any]:
     """The result document of a pose-only hand-eye calibration (no camera model)."""
+    sigmas = result.sigmas if trust is None or trust.uncertainty is None \
+        else trust.uncertainty.sigmas
     uncertainty = {k: (np.asarray(v).tolist() if np.ndim(v) else float(v))
-                   for k, v in result.sigmas.items()}
-    return {
+                   for k, v in sigmas.items()}
+    return _plain({
         "format": "cellcal/result@1",
         "setup": result.setup,
         "camera": None,
@@ -45,6 +53,7 @@ def hand_eye_result_json(result: HandEyeResult, station_ids: list[str], *,
             "note": "1-sigma; rotations as small angles (rad) about the axes of the frame "
                     "named first (tcp for hand_eye eye-in-hand), translations in metres",
             **uncertainty,
+            **uncertainty_extras(trust),
         },
         "noise_estimate": result.noise,
         "stations": [
@@ -54,9 +63,10 @@ def hand_eye_result_json(result: HandEyeResult, station_ids: list[str], *,
         "motions": {"used": result.motions_used, "skipped": result.motions_skipped},
         "method": result.method,
         "options": options,
+        **trust_json(trust),
         "software": {"name": "cellcal", "version": software_version(), "command": command},
         "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-    }
+    })
 
 
 def _plain(value: Any) -> Any:
@@ -95,12 +105,14 @@ def calibration_result_json(result: CalibrationResult, *,
             "variance_factor": result.variance_factor,
             "camera": camera_sigmas,
             **pose_sigmas,
+            **uncertainty_extras(result.trust),
         },
         "stations": [_station_json(s) for s in result.stations],
         "rejected": [{"id": sid, "reason": reason} for sid, reason in result.rejected],
         "validation": result.validation,
         "method": result.method,
         "options": result.options,
+        **trust_json(result.trust),
         "software": {"name": "cellcal", "version": software_version(), "command": command},
         "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
     })
@@ -114,3 +126,79 @@ def _station_json(station: StationReport) -> dict[str, Any]:
         if doc[key] is not None:
             doc[key] = np.round(doc[key], 3)
     return doc
+
+
+# ---- evidence (product.md "Trust"): every field below is built here and only here ----------
+
+def trust_json(trust: Trust | None) -> dict[str, Any]:
+    """``cross_validation``, ``model_selection``, ``quality`` and the ``uncertainty`` extras.
+
+    Data in metres and radians like the rest of the document, plus millimetre and degree
+    figures (names ending in ``_mm``, ``_deg``) for people reading the file.
+    """
+    if trust is None:
+        return {}
+    out: dict[str, Any] = {
+        "cross_validation": None if trust.cross_validation is None
+        else cross_validation_json(trust.cross_validation),
+        "model_selection": None if trust.model_selection is None
+        else _selection_json(trust.model_selection),
+        "quality": None if trust.quality is None else {
+            "verdict": trust.quality.verdict,
+            "findings": [{"code": f.code, "severity": f.severity, "message": f.message,
+                          **f.values} for f in trust.quality.findings]},
+    }
+    return out
+
+
+def uncertainty_extras(trust: Trust | None) -> dict[str, Any]:
+    """Fields merged into ``uncertainty``: the note saying which σ is reported, both figures."""
+    if trust is None or trust.uncertainty is None:
+        return {}
+    u = trust.uncertainty
+    return {"note": u.note, "jackknife_folds": u.folds, "source": u.source,
+            "formal": u.formal, "jackknife": u.jackknife}
+
+
+def cross_validation_json(cv: CrossValidation) -> dict[str, Any]:
+    def mm(v: float | None) -> float | None:
+        return None if v is None else 1e3 * v
+
+    def deg(v: float | None) -> float | None:
+        return None if v is None else float(np.degrees(v))
+
+    return {
+        "kind": cv.kind, "folds": cv.folds,
+        "rms_px": cv.rms_px, "rms_mm": mm(cv.rms_m),
+        "rot_deg": deg(cv.rot_rad), "trans_mm": mm(cv.trans_m),
+        "stations": [{"id": s.id, "fold": s.fold, "rms_px": s.rms_px, "max_px": s.max_px,
+                      "rms_mm": mm(s.rms_m), "rot_deg": deg(s.rot_rad),
+                      "trans_mm": mm(s.trans_m)} for s in cv.stations],
+        "note": "each station predicted from its robot pose alone by the estimator fitted on "
+                "the other folds; rms_mm: corner error on the board plane; rot_deg/trans_mm: "
+                "predicted vs observed cam_T_target",
+    }
+
+
+def _candidate_json(c: Candidate, chosen: Candidate) -> dict[str, Any]:
+    cv = c.cv
+    out: dict[str, Any] = {"name": c.name, "chosen": c is chosen, "cv_rms_px": cv.rms_px,
+                           "cv_rms_mm": None if cv.rms_m is None else 1e3 * cv.rms_m,
+                           "cv_trans_mm": None if cv.trans_m is None else 1e3 * cv.trans_m,
+                           "cv_rot_deg": None if cv.rot_rad is None
+                           else float(np.degrees(cv.rot_rad))}
+    m, fit = c.model, c.fit
+    if m is not None and fit is not None:
+        out.update(kappa="held at 1" if "kappa" in m.fix else "estimated",
+                   nu="held at 1" if "nu" in m.fix else "estimated",
+                   robot_noise="estimated" if m.estimate_noise else "assumed",
+                   kappa_value=fit.cell.kappa, nu_value=fit.cell.nu,
+                   robot_noise_rot_rad=fit.noise.rot_rad,
+                   robot_noise_trans_m=fit.noise.trans_m, sigma_px=fit.sigma_px)
+    return out
+
+
+def _selection_json(sel: Selection) -> dict[str, Any]:
+    return {"chosen": sel.chosen.name, "decisions": list(sel.decisions),
+            "rule": SELECTION_RULE,
+            "candidates": [_candidate_json(c, sel.chosen) for c in sel.candidates]}

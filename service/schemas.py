@@ -123,6 +123,10 @@ class CalibrationOptions(_Input):
 
     method: Literal[METHODS] = "joint"  # type: ignore[valid-type]
     estimate_kappa: bool = True
+    kappa: Literal["auto", "estimate", "fixed"] = Field(
+        "auto", description="board scale: auto (estimated only when that predicts held-out "
+                            "stations clearly better), estimate, or fixed at exactly 1 (the "
+                            "entered square size was measured); estimate_kappa false = fixed")
     estimate_nu: bool = True
     nu_method: Literal["images", "extrinsics"] = "images"
     robot_noise_rot_deg: Annotated[float, Field(gt=0.0, le=5.0)] | None = Field(

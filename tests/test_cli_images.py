@@ -43,7 +43,7 @@ def test_image_set_gives_the_full_result(tmp_path, capsys):
     (d / "003.png").write_text("not an image")
     (d / "004.png").unlink()
     out = tmp_path / "result.json"
-    assert main(["calibrate", str(d), "--out", str(out)]) == 0
+    assert main(["calibrate", str(d), "--out", str(out), "--kappa", "estimate"]) == 0
     doc = json.loads(out.read_text())
     rejected = {r["id"]: r["reason"] for r in doc["rejected"]}
     assert rejected == {

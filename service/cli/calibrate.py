@@ -4,7 +4,11 @@ With images: corners are detected, then intrinsics with the board aspect ratio n
 screw motions (SM), the board scale kappa, and by default ('joint') a maximum-likelihood estimate
 over all corners and robot poses with standard deviations; images that cannot be used are listed
 with the reason. Pose-only sets (stations with target_pose): by default ('refine') SM, then a
-weighted least-squares refinement over all stations.
+weighted least-squares refinement over all stations, kept only when it predicts held-out
+stations no worse than SM. Every result carries a cross-validation (held-out stations predicted
+from their robot poses), the model selection and a verdict (pass/warn/fail with findings),
+printed as one line on stderr. Exit status: 0 pass or warn, 3 fail (the result is still
+written), 2 refused input.
 """
 
 # ``cellcal calibrate STATION_DIR``: a station set directory -> result JSON document.
@@ -19,14 +23,17 @@ from pathlib import Path
 from typing import Any
 
 from calib import (
+    KAPPA_MODES,
     METHODS,
     Board,
     PipelineOptions,
+    PoseStations,
     RefineOptions,
     StationInputs,
-    calibrate_hand_eye,
     calibrate_stations,
+    choose_pose_only,
 )
+from service.cli.exit_codes import EXIT_VERDICT_FAIL
 from service.image_files import DEFAULT_MAX_PIXELS, read_station_image
 from service.stationset import DEFAULT_MAX_STATIONS, StationSet, load_station_set
 
@@ -43,6 +50,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--estimate-kappa", action="store_true",
                         help="pose-only sets: also estimate the board scale kappa (refine only; "
                              "always estimated from images)")
+    parser.add_argument("--kappa", default="auto", choices=KAPPA_MODES,
+                        help="board scale kappa (true / entered square size): auto (default) "
+                             "estimates it only when that predicts held-out stations clearly "
+                             "better; estimate: always; fixed: held at exactly 1 (you measured "
+                             "the board and entered its true square size)")
     parser.add_argument("--nu-method", default="images", choices=("images", "extrinsics"),
                         help="images: board aspect ratio nu from the corner residuals (Method #1, "
                              "default); extrinsics: from the hand-eye residuals (Method #2)")
@@ -71,19 +83,40 @@ def run(args: argparse.Namespace) -> int:
                              "pose-only station sets use 'refine' (the default) or another "
                              "pose solver")
         options = {"estimate_kappa": args.estimate_kappa}
-        result = calibrate_hand_eye(P, C, setup=stations.setup, method=method,
-                                    options=RefineOptions(estimate_kappa=args.estimate_kappa))
-        doc = hand_eye_result_json(result, [s.id for s in stations.stations], options=options,
-                                   command=command)
+        ids = [s.id for s in stations.stations]
+        result, trust = choose_pose_only(
+            PoseStations(P, C, stations.setup), ids, method=method,
+            options=RefineOptions(estimate_kappa=args.estimate_kappa),
+            square_size_m=None if stations.target is None else stations.target.square_size_m)
+        doc = hand_eye_result_json(result, ids, options=options, command=command, trust=trust)
     else:
         doc = _calibrate_images(args, stations, command)
     text = json.dumps(doc, indent=2)
+    print(verdict_line(doc), file=sys.stderr)
     if args.out in (None, "-"):
         print(text)
     else:
         Path(args.out).write_text(text + "\n")
         print(f"wrote {args.out}", file=sys.stderr)
-    return 0
+    failed = (doc.get("quality") or {}).get("verdict") == "fail"
+    return EXIT_VERDICT_FAIL if failed else 0
+
+
+def verdict_line(doc: dict[str, Any]) -> str:
+    """One line for people: the verdict, the cross-validated error and the findings' codes."""
+    quality = doc.get("quality") or {"verdict": "pass", "findings": []}
+    cv = doc.get("cross_validation")
+    if cv is None:
+        figure = "no cross-validation (no robot poses)"
+    elif cv.get("rms_px") is not None:
+        figure = (f"cross-validated error {cv['rms_px']:.2f} px ({cv['rms_mm']:.2f} mm at the "
+                  f"board), {cv['kind']} over {len(cv['stations'])} stations")
+    else:
+        figure = (f"cross-validated error {cv['trans_mm']:.2f} mm / {cv['rot_deg']:.3f} deg, "
+                  f"{cv['kind']} over {len(cv['stations'])} stations")
+    codes = [f["code"] for f in quality["findings"]]
+    return (f"cellcal: verdict {quality['verdict']}: {figure}"
+            + (f"; findings: {', '.join(codes)}" if codes else ""))
 
 
 def _calibrate_images(args: argparse.Namespace, stations: StationSet,
@@ -114,5 +147,5 @@ def _calibrate_images(args: argparse.Namespace, stations: StationSet,
     result = calibrate_stations(
         inputs, Board(tuple(target.inner_corners), target.square_size_m),
         PipelineOptions(setup=stations.setup, method=args.method or "joint",
-                           nu_method=args.nu_method), progress=progress)
+                        nu_method=args.nu_method, kappa=args.kappa), progress=progress)
     return calibration_result_json(result, command=command)

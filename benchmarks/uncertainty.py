@@ -1,0 +1,158 @@
+"""Is the reported 1-sigma honest on an arm with systematic kinematic errors? (issue 8, part 3)
+
+A simulated UR5e whose true DH parameters differ from the nominal ones by a few 0.01 deg and
+0.1 mm (``mocks/scenes/ur5e_kinematic_errors.json``) besides per-reading noise: every seed
+draws new stations, projects the board from the *true* flange poses (0.15 px corner noise),
+records the *nominal* poses with reading noise, and runs the default calibration. Over the
+seeds, the spread of the hand-eye estimates (Monte Carlo) is compared with the mean reported σ,
+the formal σ alone and the fold jackknife. The same scene without kinematic errors is the
+control.
+
+    python -m benchmarks.uncertainty            # 60 seeds per scene, about 5 min on 2 cores
+    python -m benchmarks.uncertainty --quick    # 12 seeds
+
+Prints a table and writes benchmarks/results/uncertainty.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+from scipy.spatial.transform import Rotation
+from tqdm import tqdm
+
+from calib import (
+    Board,
+    Pinhole,
+    PipelineOptions,
+    StationInputs,
+    calibrate_stations,
+    perturb,
+    ur_pose_from_matrix,
+)
+from mocks.scene import (
+    MockScene,
+    camera_pose_for_tcp,
+    load_scene,
+    sample_station_poses,
+    true_tcp_pose,
+)
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+
+OUT = Path(__file__).parent / "results"
+SCENE = Path(__file__).resolve().parents[1] / "mocks" / "scenes" / "ur5e_kinematic_errors.json"
+PIXEL_NOISE = 0.15
+#: hand-eye parameters compared: (name, unit factor for the table)
+PARAMS = (("hand_eye_rot_rad", np.degrees(1.0), "deg"), ("hand_eye_trans_m", 1e3, "mm"))
+
+
+def simulate(scene: MockScene, n: int, rng: np.random.Generator
+             ) -> tuple[list[np.ndarray], list[list[float]]]:
+    """Corners seen from the true flange poses and the nominal readings with noise."""
+    P_cmd, P_true = [], []
+    while len(P_cmd) < n:  # keep the stations the UR5e reaches
+        for P in sample_station_poses(scene, n, rng):
+            try:
+                P_true.append(true_tcp_pose(scene, P))
+            except ValueError:
+                continue
+            P_cmd.append(P)
+    P_cmd, P_true = np.array(P_cmd[:n]), np.array(P_true[:n])
+    grid = scene.true_board_points()
+    cam = scene.camera
+    pinhole = Pinhole(cam.k_matrix, cam.dist_coeffs)
+    corners = [pinhole.project(grid @ C[:3, :3].T + C[:3, 3])
+               + rng.normal(0.0, PIXEL_NOISE, (len(grid), 2))
+               for C in camera_pose_for_tcp(scene, P_true)]
+    noise = scene.noise
+    P = perturb(P_cmd, np.deg2rad(noise.robot_rot_deg), noise.robot_trans_mm * 1e-3, rng)
+    return corners, ur_pose_from_matrix(P).tolist()
+
+
+def monte_carlo(scene: MockScene, seeds: int, n: int = 20) -> dict[str, np.ndarray]:
+    """Per seed: hand-eye (rotation vector relative to the truth, translation) and σ's."""
+    X_true = scene.hand_eye_matrix
+    out: dict[str, list] = {k: [] for k in ("rot", "trans", "sigma_rot", "sigma_trans",
+                                            "formal_rot", "formal_trans", "jk_rot", "jk_trans")}
+    t = scene.target
+    label = "control" if scene.kinematics is None else "kinematic errors"
+    for seed in tqdm(range(seeds), desc=label, leave=False):
+        rng = np.random.default_rng(1000 + seed)
+        corners, poses = simulate(scene, n, rng)
+        r = calibrate_stations(
+            StationInputs(corners, poses, image_size=tuple(scene.camera.image_size)),
+            Board(tuple(t.inner_corners), t.square_size_m), PipelineOptions(setup=scene.setup))
+        u = r.trust.uncertainty
+        out["rot"].append(Rotation.from_matrix(r.hand_eye[:3, :3] @ X_true[:3, :3].T)
+                          .as_rotvec())
+        out["trans"].append(r.hand_eye[:3, 3])
+        for key, name in (("rot", "hand_eye_rot_rad"), ("trans", "hand_eye_trans_m")):
+            out[f"sigma_{key}"].append(u.sigmas[name])
+            out[f"formal_{key}"].append(u.formal[name])
+            out[f"jk_{key}"].append(u.jackknife.get(name, np.full(3, np.nan)))
+    return {k: np.array(v) for k, v in out.items()}
+
+
+def ratios(mc: dict[str, np.ndarray]) -> dict[str, float]:
+    """Reported σ / Monte-Carlo spread (RMS over seeds and the 3 components), per block."""
+    r = {}
+    for key in ("rot", "trans"):
+        spread = np.sqrt(np.mean(np.var(mc[key], axis=0, ddof=1)))
+        for kind in ("sigma", "formal", "jk"):
+            r[f"{kind}_{key}"] = float(np.sqrt(np.nanmean(mc[f"{kind}_{key}"] ** 2)) / spread)
+        r[f"spread_{key}"] = float(spread)
+        r[f"sigma_over_jk_{key}"] = float(np.nanmedian(
+            np.linalg.norm(mc[f"sigma_{key}"], axis=1) / np.linalg.norm(mc[f"jk_{key}"], axis=1)))
+    return r
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="12 seeds per scene")
+    ap.add_argument("--seeds", type=int, default=60, help="seeds per scene (default 60)")
+    args = ap.parse_args()
+    seeds = 12 if args.quick else args.seeds
+    scene = load_scene(SCENE)
+    rows = {"kinematic errors": ratios(monte_carlo(scene, seeds)),
+            "control (no kinematic errors)": ratios(monte_carlo(
+                scene.model_copy(update={"kinematics": None}), seeds))}
+    print(f"{seeds} seeds, 20 stations each; ratios of RMS sigma to the Monte-Carlo spread")
+    head = ("scene", "MC rot deg", "MC trans mm", "reported/MC rot", "reported/MC trans",
+            "formal/MC rot", "formal/MC trans", "jackknife/MC rot", "jackknife/MC trans",
+            "reported/jk rot", "reported/jk trans")
+    print(" | ".join(head))
+    for name, r in rows.items():
+        print(" | ".join([name, f"{np.degrees(r['spread_rot']):.4f}",
+                          f"{1e3 * r['spread_trans']:.3f}",
+                          *(f"{r[k]:.2f}" for k in ("sigma_rot", "sigma_trans", "formal_rot",
+                                                    "formal_trans", "jk_rot", "jk_trans",
+                                                    "sigma_over_jk_rot",
+                                                    "sigma_over_jk_trans"))]))
+    OUT.mkdir(exist_ok=True)
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    kinds = ("sigma", "formal", "jk")
+    labels = ("reported", "formal", "jackknife")
+    x = np.arange(len(rows))
+    for k, (kind, label) in enumerate(zip(kinds, labels, strict=True)):
+        for j, block in enumerate(("rot", "trans")):
+            ax.bar(x * 3 + j * 1.4 + k * 0.4, [r[f"{kind}_{block}"] for r in rows.values()],
+                   0.38, label=f"{label} ({block})" if True else None,
+                   color=f"C{k}", alpha=1.0 if block == "rot" else 0.55)
+    ax.axhspan(0.8, 1.25, color="green", alpha=0.12, label="target 0.8-1.25")
+    ax.axhline(1.0, color="k", lw=0.8)
+    ax.set_xticks(x * 3 + 1.1, list(rows))
+    ax.set_ylabel("sigma / Monte-Carlo spread")
+    ax.set_title(f"Hand-eye 1-sigma vs spread over {seeds} simulated calibrations")
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(OUT / "uncertainty.png", dpi=110)
+    print(f"wrote {OUT / 'uncertainty.png'}")
+
+
+if __name__ == "__main__":
+    main()

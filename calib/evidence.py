@@ -1,0 +1,135 @@
+"""The evidence every result carries (``product.md``, "Trust"), computed in one place.
+
+* image stations, joint estimator: model selection by cross-validation
+  (``calib.selection``), the chosen model's cross-validation, its honest uncertainty
+  (``calib.uncertainty``);
+* image stations, another hand-eye method: cross-validation of that method;
+* pose-only stations: SM against its refinement (``refine``), chosen by cross-validation, so
+  the refinement is never returned when it predicts held-out stations worse than the SM it
+  starts from;
+* every result: the quality verdict (``calib.quality``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib.crossval import (
+    CrossValidation,
+    FoldEstimate,
+    PoseStations,
+    cross_validate_fixed_camera,
+    cross_validate_poses,
+)
+from calib.handeye import HandEyeResult, calibrate_hand_eye
+from calib.joint import CellParameters, JointResult
+from calib.jointfit import JointData, JointModel
+from calib.quality import Quality, QualityInputs, assess, irreconcilable
+from calib.refine import RefineOptions, scale_translations
+from calib.selection import Candidate, Modes, Selection, select_joint_model
+from calib.uncertainty import Uncertainty, honest
+
+#: Leading names of the pose-only candidates (``calib.handeye`` methods).
+POSE_CANDIDATES = ("sm", "refine")
+
+
+@dataclass(frozen=True)
+class Trust:
+    """Cross-validation, model selection, uncertainty and verdict of one result."""
+
+    cross_validation: CrossValidation | None
+    model_selection: Selection | None
+    uncertainty: Uncertainty | None
+    quality: Quality
+
+
+@dataclass(frozen=True)
+class JointChoice:
+    """The joint result to return (the chosen model) and its evidence."""
+
+    result: JointResult
+    selection: Selection
+    uncertainty: Uncertainty
+
+
+def choose_joint(data: JointData, station_ids: Sequence[str], base: JointModel,
+                 first: JointResult, *, kappa: str = "auto") -> JointChoice:
+    """Select the joint model by cross-validation, starting from ``first`` (the base fit).
+
+    ``data`` and ``station_ids`` cover the stations ``first`` kept (``first.stations``).
+    """
+    if irreconcilable(np.linalg.norm(first.corrections.reshape(-1, 2, 3), axis=2)):
+        # the robot poses contradict the images (calib.quality): no model can be chosen
+        # by prediction, and refitting nonsense would only cost time
+        selection = select_joint_model(data, station_ids, base, first, Modes(
+            kappa="estimate", nu="estimate", noise="assumed"))
+    else:
+        selection = select_joint_model(data, station_ids, base, first, Modes(kappa=kappa))
+    fit = selection.chosen.fit
+    assert fit is not None  # joint candidates always carry their fit
+    # the noise levels the data show: those of the candidate that estimated them
+    estimated = next((c.fit for c in selection.candidates
+                      if c.model is not None and c.model.estimate_noise and c.fit), None)
+    result = fit.result(first.stations, first.rejected, noise=None if estimated is None else (
+        estimated.sigma_px, estimated.noise.rot_rad, estimated.noise.trans_m))
+    return JointChoice(result=result, selection=selection,
+                       uncertainty=honest(result.sigmas, selection.chosen.cv.estimates,
+                                          FoldEstimate.of(result)))
+
+
+def method_cross_validation(data: JointData, station_ids: Sequence[str],
+                            cell: CellParameters, T_cam_target: np.ndarray,
+                            method: str) -> CrossValidation:
+    """Cross-validation of a pose-level hand-eye ``method`` on image stations, the camera
+    (and κ) held at ``cell``; ``T_cam_target`` (n, 4, 4) the per-image poses, nominal scale."""
+    def solve(train: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        C = scale_translations(T_cam_target[train], cell.kappa)
+        fit = calibrate_hand_eye(data.stations.T_base_tcp[train], C, setup=data.setup,
+                                 method=method)
+        return fit.hand_eye, fit.target_pose
+
+    return cross_validate_fixed_camera(data, station_ids, cell, solve)
+
+
+def choose_pose_only(stations: PoseStations, station_ids: Sequence[str], *, method: str,
+                     options: RefineOptions, square_size_m: float | None
+                     ) -> tuple[HandEyeResult, Trust]:
+    """Pose-only hand-eye with evidence. ``method='refine'`` returns the refinement only when
+    it predicts held-out stations at least as well as the SM it starts from, else SM."""
+    T_base_tcp, setup = stations.T_base_tcp, stations.setup
+
+    def fit(name: str, train: np.ndarray | slice = slice(None)) -> HandEyeResult:
+        opts = options if name == "refine" else RefineOptions(noise=options.noise)
+        return calibrate_hand_eye(T_base_tcp[train], stations.T_cam_target[train],
+                                  setup=setup, method=name, options=opts)
+
+    def solver(name: str) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, float]]:
+        def solve(train: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+            res = fit(name, train)
+            return res.hand_eye, res.target_pose, res.kappa
+        return solve
+
+    names = POSE_CANDIDATES if method == "refine" else (method,)
+    cvs = {name: cross_validate_poses(stations, station_ids, solver(name)) for name in names}
+    chosen, selection = names[-1], None
+    if method == "refine":
+        never_worse = (cvs["refine"].trans_m or 0.0) <= (cvs["sm"].trans_m or 0.0)
+        chosen = "refine" if never_worse else "sm"
+        candidates = tuple(Candidate(name=n, cv=cvs[n]) for n in names)
+        verdict = "no worse" if never_worse else "worse"
+        selection = Selection(candidates=candidates, chosen=candidates[names.index(chosen)],
+                              decisions=(f"pose-only: {chosen} (the refinement predicts "
+                                         f"held-out stations {verdict} than SM)",))
+    result = fit(chosen)
+    uncertainty = honest(result.sigmas, cvs[chosen].estimates, FoldEstimate(
+        hand_eye=result.hand_eye, target_pose=result.target_pose, kappa=result.kappa))
+    kappa_sigma = uncertainty.sigmas.get("kappa") if options.estimate_kappa else None
+    quality = assess(QualityInputs(
+        setup=setup, T_base_tcp=T_base_tcp, corrections=result.station_residuals,
+        cv=cvs[chosen], square_size_m=square_size_m, kappa=result.kappa,
+        kappa_sigma=None if kappa_sigma is None else float(kappa_sigma)))
+    return result, Trust(cross_validation=cvs[chosen], model_selection=selection,
+                         uncertainty=uncertainty, quality=quality)

@@ -1,0 +1,215 @@
+"""A verdict on every calibration: pass, warn or fail, with findings a person can act on.
+
+Each check looks at one thing a user cannot see in the numbers alone and says what to do:
+
+* ``setup_mismatch`` (fail) — the robot readings need corrections no real arm needs before the
+  images fit them: wrong ``setup``, poses that are not base_T_tcp in metres and radians, or
+  images that do not belong to their poses.
+* ``board_scale`` (warn) — the board's true size differs from the entered one (κ ≠ 1 beyond
+  3σ and ``BOARD_SCALE_MIN``); the message names the measured square size.
+* ``few_stations``, ``weak_rotation``, ``poor_coverage`` (warn) — the stations cannot pin the
+  model down well: too few, rotations too small or about nearly one axis, corners covering
+  little of the image or none of its corners (where distortion is largest).
+* ``outlier_stations`` (warn) — stations dropped by the outlier rule or predicted far worse
+  than the others.
+* ``high_prediction_error`` (warn) — the cross-validated error is far above the corner noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from calib.crossval import CrossValidation
+
+#: κ must differ from 1 by more than this (and 3σ) for ``board_scale``.
+BOARD_SCALE_MIN = 0.002
+#: Median robot correction beyond which poses and images are irreconcilable (rad, m): real
+#: arms are accurate to a few 0.1 deg and mm, a wrong setup needs tens of degrees.
+MISMATCH_ROT_RAD, MISMATCH_TRANS_M = np.deg2rad(2.0), 0.02
+#: Fewer usable stations than this: ``few_stations`` (cross-validation is leave-one-out).
+FEW_STATIONS = 10
+#: Spread of the station orientations (deg): largest below the first, second below the other.
+WEAK_ROTATION_DEG, WEAK_SECOND_AXIS_DEG = 10.0, 4.0
+#: Coverage grid (cells per side); warn below this fraction of cells hit or image corners empty.
+COVERAGE_GRID, MIN_COVERAGE = 3, 0.6
+#: A station predicted this many times worse than the median is an outlier (and > 1 px).
+OUTLIER_FACTOR = 4.0
+#: Cross-validated error above this many times the corner noise (and 2 px) is high.
+HIGH_ERROR_FACTOR, HIGH_ERROR_MIN_PX = 10.0, 2.0
+
+SEVERITIES = ("info", "warn", "fail")
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One finding: a stable ``code``, its severity, a message for people, and its figures."""
+
+    code: str
+    severity: str
+    message: str
+    values: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Quality:
+    findings: tuple[Finding, ...]
+
+    @property
+    def verdict(self) -> str:
+        worst = max((SEVERITIES.index(f.severity) for f in self.findings), default=0)
+        return ("pass", "warn", "fail")[worst]
+
+
+@dataclass(frozen=True)
+class QualityInputs:
+    """What the checks look at (metres, radians, pixels).
+
+    ``T_base_tcp`` (n, 4, 4) the used stations' readings (None: intrinsics only).
+    ``corrections`` (n, 2): per-station robot correction (rotation angle, translation length)
+    the fit needed, or the pose-prediction residuals of a pose-only fit. ``corners`` and
+    ``image_size`` are None for pose-only sets. ``kappa_sigma`` None when κ was held.
+    """
+
+    setup: str
+    T_base_tcp: np.ndarray | None
+    corrections: np.ndarray | None
+    cv: CrossValidation | None
+    square_size_m: float | None
+    kappa: float = 1.0
+    kappa_sigma: float | None = None
+    sigma_px: float | None = None
+    corners: tuple[np.ndarray, ...] | None = None
+    image_size: tuple[int, int] | None = None
+    rejected: tuple[tuple[str, str], ...] = ()
+
+
+def assess(ev: QualityInputs) -> Quality:
+    """All checks on ``ev``; a mismatch makes the others moot, so it is reported alone."""
+    mismatch = _setup_mismatch(ev)
+    if mismatch is not None:
+        return Quality(findings=(mismatch,))
+    checks = (_board_scale, _few_stations, _weak_rotation, _poor_coverage, _outliers,
+              _high_prediction_error)
+    return Quality(findings=tuple(f for check in checks if (f := check(ev)) is not None))
+
+
+def irreconcilable(corrections: np.ndarray) -> bool:
+    """True when the median robot correction (n, 2: angle rad, length m) is beyond any arm."""
+    rot, trans = np.median(corrections, axis=0)
+    return bool(rot > MISMATCH_ROT_RAD or trans > MISMATCH_TRANS_M)
+
+
+def _setup_mismatch(ev: QualityInputs) -> Finding | None:
+    if ev.corrections is None or not irreconcilable(ev.corrections):
+        return None
+    rot, trans = (float(v) for v in np.median(ev.corrections, axis=0))
+    return Finding("setup_mismatch", "fail", (
+        f"robot poses and images cannot be reconciled: the readings need a median correction "
+        f"of {np.degrees(rot):.1f} deg / {trans * 1e3:.0f} mm to fit the images (a robot is "
+        f"accurate to about 0.1 deg / 1 mm). Check the setup (now {ev.setup}; eye_in_hand: "
+        f"camera on the tool, eye_to_hand: camera fixed), that every tcp_pose is base_T_tcp in "
+        f"metres and radians, and that each image was taken at its pose."),
+        {"median_correction_rot_rad": rot, "median_correction_trans_m": trans,
+         "setup": ev.setup})
+
+
+def _board_scale(ev: QualityInputs) -> Finding | None:
+    if ev.kappa_sigma is None or not np.isfinite(ev.kappa_sigma):
+        return None
+    off = abs(ev.kappa - 1.0)
+    if off <= max(3.0 * ev.kappa_sigma, BOARD_SCALE_MIN):
+        return None
+    size = ev.square_size_m
+    measured = None if size is None else ev.kappa * size
+    what = ("the board is" if measured is None else
+            f"the board's squares measure {measured * 1e3:.2f} mm, not the {size * 1e3:g} mm "
+            f"entered,")
+    return Finding("board_scale", "warn", (
+        f"{what} {100 * (ev.kappa - 1):+.1f} % off its nominal size (kappa {ev.kappa:.4f} ± "
+        f"{ev.kappa_sigma:.4f}). The result is corrected for it; to make it exact, measure the "
+        f"printed squares (e.g. 10 squares with a calliper), enter the true square size and "
+        f"calibrate with kappa 'fixed'."),
+        {"kappa": ev.kappa, "kappa_sigma": ev.kappa_sigma,
+         "square_size_m": size, "measured_square_size_m": measured})
+
+
+def _few_stations(ev: QualityInputs) -> Finding | None:
+    n = len(ev.T_base_tcp if ev.T_base_tcp is not None else ev.corners or ())
+    if n >= FEW_STATIONS:
+        return None
+    return Finding("few_stations", "warn", (
+        f"only {n} usable stations: the estimate and its check (leave-one-out) rest on few "
+        f"views; capture at least {FEW_STATIONS}, better 15-25."),
+        {"stations": n, "recommended": FEW_STATIONS})
+
+
+def _weak_rotation(ev: QualityInputs) -> Finding | None:
+    """Spread of the tool orientations about their mean: principal angles (deg)."""
+    if ev.T_base_tcp is None:
+        return None
+    R = Rotation.from_matrix(ev.T_base_tcp[:, :3, :3])
+    dev = (R.mean().inv() * R).as_rotvec()
+    spread = np.degrees(np.sqrt(np.linalg.eigvalsh(np.cov(dev.T) + 1e-18)[::-1]))
+    if spread[0] >= WEAK_ROTATION_DEG and spread[1] >= WEAK_SECOND_AXIS_DEG:
+        return None
+    return Finding("weak_rotation", "warn", (
+        f"the tool orientations vary little (spread {spread[0]:.1f} / {spread[1]:.1f} / "
+        f"{spread[2]:.1f} deg about their principal axes): the hand-eye rotation and its "
+        f"translation are poorly determined. Tilt the tool 15-35 deg about at least two "
+        f"different axes between stations."),
+        {"orientation_spread_rad": np.deg2rad(spread).tolist()})
+
+
+def _poor_coverage(ev: QualityInputs) -> Finding | None:
+    if ev.corners is None or ev.image_size is None:
+        return None
+    w, h = ev.image_size
+    uv = np.concatenate(ev.corners)
+    g = COVERAGE_GRID
+    cell = np.clip((uv / [w, h] * g).astype(int), 0, g - 1)
+    hit = np.zeros((g, g), bool)
+    hit[cell[:, 1], cell[:, 0]] = True
+    fraction = float(hit.mean())
+    empty_corners = int(4 - hit[0, 0] - hit[0, -1] - hit[-1, 0] - hit[-1, -1])
+    if fraction >= MIN_COVERAGE and empty_corners == 0:
+        return None
+    return Finding("poor_coverage", "warn", (
+        f"the corners cover {100 * fraction:.0f} % of the image ({g}x{g} cells) and "
+        f"{empty_corners} of its 4 corner regions are empty: lens distortion there is "
+        f"extrapolated. Add stations that put the board near the image corners and edges."),
+        {"covered_fraction": fraction, "empty_image_corners": empty_corners})
+
+
+def _outliers(ev: QualityInputs) -> Finding | None:
+    ids = [sid for sid, reason in ev.rejected if "robot pose inconsistent" in reason]
+    if ev.cv is not None:
+        err = ev.cv.station_errors()
+        med = float(np.nanmedian(err))
+        floor = 1.0 if ev.cv.rms_px is not None else 1e-3
+        ids += [s.id for s, e in zip(ev.cv.stations, err, strict=True)
+                if e > max(OUTLIER_FACTOR * med, floor)]
+    if not ids:
+        return None
+    return Finding("outlier_stations", "warn", (
+        f"stations {', '.join(ids)} disagree with the others (dropped, or predicted more than "
+        f"{OUTLIER_FACTOR:g}x worse than the median): check their images and poses (motion "
+        f"blur, robot not settled, board moved)."),
+        {"stations": ids})
+
+
+def _high_prediction_error(ev: QualityInputs) -> Finding | None:
+    if ev.cv is None or ev.cv.rms_px is None or ev.sigma_px is None:
+        return None
+    px = ev.cv.rms_px
+    if px <= max(HIGH_ERROR_FACTOR * ev.sigma_px, HIGH_ERROR_MIN_PX):
+        return None
+    mm = ev.cv.rms_m * 1e3 if ev.cv.rms_m is not None else float("nan")
+    return Finding("high_prediction_error", "warn", (
+        f"held-out stations are predicted from their robot poses to {px:.2f} px "
+        f"({mm:.2f} mm at the board), {px / ev.sigma_px:.0f}x the corner noise: the robot's "
+        f"own accuracy limits the result. Expect errors of this size in use."),
+        {"cv_rms_px": px, "cv_rms_m": ev.cv.rms_m, "sigma_px": ev.sigma_px})

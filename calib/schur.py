@@ -1,0 +1,160 @@
+"""Levenberg-Marquardt for the joint problem with the station blocks eliminated (Schur complement).
+
+The joint problem (``calib.joint``) has 23 global unknowns and 6 per station; every corner row
+touches the globals and its own station only, every prior row one station parameter. Its
+normal equations are therefore an arrow matrix::
+
+    [ U    W ] [dg]   [b_g]        U: globals (g x g), W_i: globals x station i (g x 6),
+    [ Wᵀ   V ] [dv] = [b_v]        V = diag(V_1 .. V_n), each 6 x 6
+
+and the globals follow from the reduced system ``(U - Σ W_i V_i⁻¹ W_iᵀ) dg = b_g - Σ W_i V_i⁻¹
+b_vi`` (bundle adjustment's classical elimination; Triggs et al., "Bundle adjustment — a modern
+synthesis", section 6.1). Each iteration costs one residual/Jacobian evaluation and a g x g
+solve, where ``scipy.optimize.least_squares`` with its iterative ``lsmr`` trust-region solver
+needs hundreds of sparse products. Cross-validation and model selection solve the joint
+problem many times from a nearby start, so this is what makes them cheap enough to run on
+every calibration. The minimum is that of :func:`calib.joint.solve_joint` (same residuals).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+
+class BlockProblem(Protocol):
+    """What the solver needs of ``calib.joint._Problem``.
+
+    ``evaluate(x)`` returns the normalised residuals (2m + 6n,) — corner rows first, station
+    by station, then 6 prior rows per station — and the corner Jacobian blocks (m, 2, g + 6):
+    the free globals, then the corner's station parameters. Prior rows are ``δ / prior_sigma``.
+    """
+
+    n_free_global: int
+    n_stations: int
+    starts: np.ndarray  # shape (n,), first corner of each station
+    prior_sigma: np.ndarray  # shape (6,)
+
+    def evaluate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+@dataclass(frozen=True)
+class BlockSolution:
+    """Result of :func:`solve_blocks`: ``x``, final cost ``Σ r²``, evaluations, convergence."""
+
+    x: np.ndarray
+    cost: float
+    nfev: int
+    converged: bool
+
+    @property
+    def status(self) -> int:
+        """``least_squares``-style status: > 0 converged, 0 evaluation budget exhausted."""
+        return 1 if self.converged else 0
+
+
+@dataclass(frozen=True)
+class _Normal:
+    """Blocks of JᵀJ and Jᵀr at one point (see module docstring)."""
+
+    cost: float
+    U: np.ndarray  # (g, g)
+    W: np.ndarray  # (n, g, 6)
+    V: np.ndarray  # (n, 6, 6)
+    b_g: np.ndarray  # (g,)
+    b_v: np.ndarray  # (n, 6)
+
+
+def _normal_equations(problem: BlockProblem, x: np.ndarray) -> _Normal:
+    r, blocks = problem.evaluate(x)
+    g, n = problem.n_free_global, problem.n_stations
+    m = blocks.shape[0]
+    Jg = blocks[:, :, :g].reshape(2 * m, g)
+    Js = blocks[:, :, g:].reshape(2 * m, 6)
+    rc, rp = r[:2 * m], r[2 * m:].reshape(n, 6)
+    starts = 2 * np.asarray(problem.starts)
+    w = 1.0 / np.asarray(problem.prior_sigma)
+    V = np.add.reduceat(Js[:, :, None] * Js[:, None, :], starts, axis=0) + np.diag(w * w)
+    return _Normal(
+        cost=float(r @ r), U=Jg.T @ Jg,
+        W=np.add.reduceat(Jg[:, :, None] * Js[:, None, :], starts, axis=0), V=V,
+        b_g=Jg.T @ rc, b_v=np.add.reduceat(Js * rc[:, None], starts, axis=0) + rp * w)
+
+
+def _reduced(ne: _Normal, damping: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Damped reduced system: S (g, g), its right side (g,), and V⁻¹ (n, 6, 6)."""
+    U = ne.U + damping * np.diag(np.diag(ne.U))
+    V = ne.V + damping * ne.V * np.eye(6)
+    V_inv = np.linalg.inv(V)
+    WV = ne.W @ V_inv
+    S = U - np.einsum("nij,nkj->ik", WV, ne.W)
+    b = ne.b_g - np.einsum("nij,nj->i", WV, ne.b_v)
+    return S, b, V_inv
+
+
+def _solve_scaled(S: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``S⁻¹ b`` with Jacobi scaling (the globals span pixels to radians)."""
+    d = np.sqrt(np.clip(np.diag(S), 1e-300, None))
+    if not (np.isfinite(S).all() and np.isfinite(b).all()):
+        raise np.linalg.LinAlgError("non-finite normal equations")
+    return np.linalg.lstsq(S / d[:, None] / d[None, :], b / d, rcond=1e-14)[0] / d
+
+
+def _step(ne: _Normal, damping: float) -> np.ndarray:
+    S, b, V_inv = _reduced(ne, damping)
+    dg = _solve_scaled(S, b)
+    dv = np.einsum("nij,nj->ni", V_inv, ne.b_v - np.einsum("nij,i->nj", ne.W, dg))
+    return -np.concatenate([dg, dv.ravel()])
+
+
+def solve_blocks(problem: BlockProblem, x0: np.ndarray, *, max_nfev: int = 50,
+                 ftol: float = 1e-10) -> BlockSolution:
+    """Minimise ``Σ r(x)²`` from ``x0`` by Levenberg-Marquardt on the reduced system.
+
+    Marquardt's damping (the diagonal scaled by ``1 + λ``); λ shrinks after a successful step
+    and grows after a failed one. Converged when a step lowers the cost by less than ``ftol``
+    relative (the ``ftol`` of ``least_squares``) or the step is negligible.
+    """
+    x = np.asarray(x0, dtype=float).copy()
+    ne = _normal_equations(problem, x)
+    nfev, damping = 1, 1e-4
+    while nfev < max_nfev:
+        try:
+            dx = _step(ne, damping)
+        except np.linalg.LinAlgError:
+            break
+        x_new = x + dx
+        trial = _normal_equations(problem, x_new)
+        nfev += 1
+        if np.isfinite(trial.cost) and trial.cost <= ne.cost:
+            small = (ne.cost - trial.cost) <= ftol * ne.cost or \
+                np.abs(dx).max() <= 1e-14 * (1.0 + np.abs(x).max())
+            x, ne = x_new, trial
+            damping = max(damping / 5.0, 1e-9)
+            if small:
+                return BlockSolution(x=x, cost=ne.cost, nfev=nfev, converged=True)
+        else:
+            damping *= 8.0
+            if damping > 1e8:
+                return BlockSolution(x=x, cost=ne.cost, nfev=nfev, converged=True)
+    return BlockSolution(x=x, cost=ne.cost, nfev=nfev, converged=False)
+
+
+def prior_redundancy(problem: BlockProblem, x: np.ndarray) -> tuple[float, float]:
+    """Redundancy of the rotation and translation prior rows at ``x`` (Förstner's r_g).
+
+    ``r_g = Σ_rows (1 - h_jj)``, with ``h_jj = w_j² [(JᵀJ)⁻¹]_pp`` the hat-matrix diagonal of
+    the prior row on station parameter p (weight ``w_j = 1/σ``). The station blocks of the
+    inverse are ``V_i⁻¹ + V_i⁻¹ W_iᵀ S⁻¹ W_i V_i⁻¹``. Variance-component estimation divides each
+    group's squared residuals by its redundancy.
+    """
+    ne = _normal_equations(problem, x)
+    S, _, V_inv = _reduced(ne, 0.0)
+    d = np.sqrt(np.clip(np.diag(S), 1e-300, None))
+    S_inv = np.linalg.pinv(S / d[:, None] / d[None, :], rcond=1e-14) / d[:, None] / d[None, :]
+    WV = ne.W @ V_inv  # (n, g, 6)
+    cov = V_inv + np.einsum("nji,jk,nkl->nil", WV, S_inv, WV)  # (n, 6, 6)
+    h = np.diagonal(cov, axis1=1, axis2=2) / np.asarray(problem.prior_sigma) ** 2
+    return float(np.sum(1.0 - h[:, :3])), float(np.sum(1.0 - h[:, 3:]))

@@ -1,0 +1,156 @@
+"""Cross-validation, model selection, honest uncertainty and the verdict (issue 8, product.md
+"Trust"), on projected corners of the mock scene and on the real UR sets."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from functools import cache
+
+import numpy as np
+import pytest
+
+from calib import (
+    Board,
+    CornerStations,
+    JointOptions,
+    Pinhole,
+    PipelineOptions,
+    RobotNoise,
+    StationInputs,
+    calibrate_stations,
+    matrix_from_ur_pose,
+    perturb,
+    solve_joint,
+    ur_pose_from_matrix,
+)
+from calib.crossval import fold_indices
+from calib.jointfit import JointData, JointModel, fit_joint
+from mocks.scene import Noise, Target, camera_pose_for_tcp, default_scene, sample_station_poses
+from service.cli.main import main
+from tests.helpers import SHARED
+
+ROT, TRANS = np.deg2rad(0.05), 0.25e-3
+BOARD = Board((11, 8), 0.03)
+UR_SETS = [SHARED / "data" / name for name in ("ur-kinect-highR_highT", "ur-kinect-lowR_highT")]
+
+
+def scene(kappa: float = 1.0, nu: float = 1.0):
+    s = default_scene()
+    return s.model_copy(update={
+        "target": Target(inner_corners=(11, 8), square_size_m=0.03, kappa=kappa, nu=nu),
+        "noise": Noise(robot_rot_deg=0.05, robot_trans_mm=0.25)})
+
+
+@cache
+def stations(kappa: float = 1.0, n: int = 16, seed: int = 3, pixel_noise: float = 0.15):
+    """Corners (projected, Gaussian noise) and noisy tcp poses of a scene with this κ."""
+    sc = scene(kappa)
+    rng = np.random.default_rng(seed)
+    P_true = sample_station_poses(sc, n, rng)
+    grid = sc.true_board_points()
+    cam = sc.camera
+    corners = [Pinhole(cam.k_matrix, cam.dist_coeffs).project(grid @ C[:3, :3].T + C[:3, 3])
+               + rng.normal(0.0, pixel_noise, (len(grid), 2))
+               for C in camera_pose_for_tcp(sc, P_true)]
+    P = perturb(P_true, ROT, TRANS, rng)
+    return corners, ur_pose_from_matrix(P).tolist()
+
+
+def calibrate(true_kappa: float = 1.0, **options):
+    corners, poses = stations(true_kappa)
+    sc = scene(true_kappa)
+    return calibrate_stations(
+        StationInputs(corners, poses, image_size=tuple(sc.camera.image_size)), BOARD,
+        PipelineOptions(**options))
+
+
+def test_folds_are_interleaved_and_leave_one_out_below_ten():
+    five = fold_indices(23)
+    assert len(five) == 5 and sorted(np.concatenate(five).tolist()) == list(range(23))
+    assert five[1].tolist() == [1, 6, 11, 16, 21]
+    assert [f.tolist() for f in fold_indices(7)] == [[k] for k in range(7)]
+
+
+def test_block_solver_reaches_the_minimum_of_solve_joint():
+    res = calibrate(true_kappa=1.004)
+    corners, poses = stations(1.004)
+    P = matrix_from_ur_pose(np.array(poses))
+    train = np.arange(0, 16, 2)
+    data = JointData(CornerStations(corners, P, BOARD), "eye_in_hand", res.sigma_px)
+    start = res.trust.model_selection.chosen.fit.cell
+    fast = fit_joint(data.subset(train), JointModel("all", (), RobotNoise()), start)
+    ref = solve_joint(CornerStations([corners[i] for i in train], P[train], BOARD), start,
+                      JointOptions(sigma_px=res.sigma_px, outlier_sigma=None))
+    assert fast.solution.converged and ref.converged
+    assert abs(fast.cell.kappa - ref.kappa) < 1e-7
+    assert np.abs(fast.cell.hand_eye - ref.hand_eye).max() < 1e-7
+
+
+def test_nominal_board_passes_with_kappa_held_and_cross_validation_in_the_result():
+    res = calibrate(true_kappa=1.0)
+    trust = res.trust
+    cv = trust.cross_validation
+    assert cv.kind == "k-fold" and cv.folds == 5 and len(cv.stations) == 16
+    # held-out prediction error is dominated by the robot noise: about 0.25 mm at the board
+    assert 0.05e-3 < cv.rms_m < 1.5e-3 and cv.rms_px > 0.15
+    assert trust.quality.verdict == "pass", trust.quality.findings
+    assert "kappa" in trust.model_selection.chosen.model.fix and res.kappa == 1.0
+    names = [c.model.name for c in trust.model_selection.candidates]
+    assert {"all estimated", "kappa = 1", "nu = 1", "robot noise estimated"} <= set(names)
+
+
+def test_oversized_board_warns_with_the_measured_square_size():
+    res = calibrate(true_kappa=1.08)
+    assert abs(res.kappa - 1.08) < 0.002
+    found = {f.code: f for f in res.trust.quality.findings}
+    assert res.trust.quality.verdict == "warn"
+    assert re.search(r"squares measure 32\.[34]\d mm", found["board_scale"].message)
+    assert abs(found["board_scale"].values["measured_square_size_m"] - 0.0324) < 1e-4
+    fixed = calibrate(true_kappa=1.08, kappa="fixed")
+    assert fixed.kappa == 1.0 and "board_scale" not in {f.code for f in
+                                                          fixed.trust.quality.findings}
+    assert fixed.trust.cross_validation.rms_px > 3 * res.trust.cross_validation.rms_px
+
+
+def test_wrong_setup_fails_with_setup_mismatch():
+    res = calibrate(true_kappa=1.0, setup="eye_to_hand")
+    assert res.trust.quality.verdict == "fail"
+    assert [f.code for f in res.trust.quality.findings] == ["setup_mismatch"]
+
+
+def test_reported_sigma_is_never_below_the_fold_jackknife():
+    u = calibrate(true_kappa=1.0).trust.uncertainty
+    assert u.folds == 5 and set(u.source) >= {"hand_eye_rot_rad", "hand_eye_trans_m"}
+    for name, jk in u.jackknife.items():
+        if name in u.source:
+            assert np.all(np.asarray(u.sigmas[name]) >= np.asarray(jk) - 1e-15)
+    assert "jackknife" in u.note
+
+
+@pytest.mark.parametrize("directory", UR_SETS, ids=lambda p: p.name)
+def test_real_ur_set_warns_about_a_33_mm_board(tmp_path, capsys, directory):
+    out = tmp_path / "r.json"
+    assert main(["calibrate", str(directory), "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    found = {f["code"]: f for f in doc["quality"]["findings"]}
+    assert doc["quality"]["verdict"] == "warn"
+    assert abs(found["board_scale"]["measured_square_size_m"] - 0.033) < 0.0005
+    assert "verdict warn" in capsys.readouterr().err
+    cv = doc["cross_validation"]
+    assert cv["folds"] == 5 and len(cv["stations"]) == 21 and cv["rms_px"] < 8.0
+
+
+def test_wrong_setup_on_a_real_set_exits_3_and_still_writes(tmp_path, capsys):
+    src = json.loads((UR_SETS[0] / "stations.json").read_text())
+    src["setup"] = "eye_to_hand"
+    for s in src["stations"]:
+        shutil.copy(UR_SETS[0] / s["image"], tmp_path / s["image"])
+    (tmp_path / "stations.json").write_text(json.dumps(src))
+    out = tmp_path / "r.json"
+    assert main(["calibrate", str(tmp_path), "--out", str(out)]) == 3
+    doc = json.loads(out.read_text())
+    assert doc["quality"]["verdict"] == "fail"
+    assert doc["quality"]["findings"][0]["code"] == "setup_mismatch"
+    assert "verdict fail" in capsys.readouterr().err
