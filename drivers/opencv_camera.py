@@ -123,6 +123,7 @@ class OpenCVCamera(CameraSession):
         self._frames_read = 0
         self._stall = StallCounter(stall_after)
         self._lost: CameraError | None = None  # why the device was closed behind our back
+        self._releasing: Future | None = None  # a release queued by a loss, not yet awaited
 
     @property
     def live(self) -> bool:
@@ -174,17 +175,20 @@ class OpenCVCamera(CameraSession):
         if release is not None:
             with contextlib.suppress(FutureTimeout, cv2.error):
                 release.result(self.open_timeout)
-        self._lost = None
+        self._releasing = self._lost = None
 
     def _release(self) -> Future | None:
         """Forget the capture at once; its release, queued on the capture thread, runs when a
-        call stuck there returns. Returns that release (None if nothing was open)."""
+        call stuck there returns. Returns that release (None if nothing was open), or the one a
+        loss queued earlier, so that ``open()`` after a loss waits for the device to be let go
+        before opening it again, as a real V4L2 device requires."""
         worker, cap = self._worker, self._cap
         self._worker = self._cap = None
         if worker is None:
-            return None
+            return self._releasing
         release = worker.submit(cap.release) if cap is not None else None
         worker.shutdown(wait=False)  # queued calls still run
+        self._releasing = release
         return release
 
     def grab(self, *, timeout: float = 2.0) -> np.ndarray:

@@ -192,6 +192,7 @@ class FakeV4L2:
         self.blocked = threading.Event()  # a grab is waiting on ``stuck``
         self.supported_exposure = True
         self.releases = 0
+        self.release_delay = 0.0  # a device that takes this long to let go
 
     def arrival(self, k: int) -> float:
         return self.t0 + (k + 1) * self.period
@@ -234,6 +235,7 @@ class FakeV4L2:
         return True
 
     def release(self) -> None:
+        time.sleep(self.release_delay)
         self.releases += 1
 
 
@@ -282,6 +284,7 @@ def test_live_camera_unplugged_then_replugged(live: tuple[FakeV4L2, Path]) -> No
         with pytest.raises(CameraTimeoutError, match=r"delivered no frame within 0\.2 s"):
             cam.grab(timeout=0.2)
         assert cam.opened  # one timeout is not a loss
+        fake.release_delay = 0.5  # the lost device is let go late: reopen must wait for it
         device.unlink()  # unplugged
         with pytest.raises(CameraError, match="was disconnected") as err:
             cam.grab(timeout=0.5)
