@@ -73,35 +73,37 @@ class FoldEstimate:
                    nu=cell.nu, cell=cell)
 
 
+class _HeldOutRms:
+    """RMS over the held-out stations of one ``HeldOut`` field (None where it does not apply),
+    read as an attribute of ``CrossValidation`` of the same name."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    def __get__(self, cv: CrossValidation | None, owner: type) -> float | None:
+        return _rms([getattr(s, self.name) for s in cv.stations]) if cv is not None else None
+
+
 @dataclass(frozen=True)
 class CrossValidation:
-    """Held-out prediction errors of every station and the estimates of every fold."""
+    """Held-out prediction errors of every station and the estimates of every fold.
+
+    ``rms_px`` is the RMS over held-out stations of each station's RMS pixel error, ``rms_m``
+    the same on the board plane (metres), ``rot_rad``/``trans_m`` of the camera poses.
+    """
 
     kind: str  # "k-fold" or "leave-one-out"
     stations: tuple[HeldOut, ...]
     estimates: tuple[FoldEstimate, ...]
 
+    rms_px = _HeldOutRms()
+    rms_m = _HeldOutRms()
+    rot_rad = _HeldOutRms()
+    trans_m = _HeldOutRms()
+
     @property
     def folds(self) -> int:
         return len(self.estimates)
-
-    @property
-    def rms_px(self) -> float | None:
-        """RMS over held-out stations of each station's RMS pixel error."""
-        return _rms([s.rms_px for s in self.stations])
-
-    @property
-    def rms_m(self) -> float | None:
-        """The same on the board plane, metres."""
-        return _rms([s.rms_m for s in self.stations])
-
-    @property
-    def rot_rad(self) -> float | None:
-        return _rms([s.rot_rad for s in self.stations])
-
-    @property
-    def trans_m(self) -> float | None:
-        return _rms([s.trans_m for s in self.stations])
 
     def station_errors(self) -> np.ndarray:
         """The figure models are compared by, per station (n,): pixels, or metres pose-only."""
