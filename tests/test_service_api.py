@@ -79,6 +79,17 @@ def station_indices(client: TestClient, run_id: str) -> list[int]:
     return [s["index"] for s in client.get(f"/runs/{run_id}/stations").json()]
 
 
+def gated_opener(tmp_path: Path, index: int, gate: threading.Event) -> DeviceOpener:
+    """The mock devices of ``settings(tmp_path)`` with the camera held at grab ``index``."""
+    mocks = settings_opener(settings(tmp_path))
+
+    def gated() -> tuple[Robot, Camera]:
+        robot, camera = mocks()
+        return robot, GatedCamera(camera, index, gate)  # type: ignore[return-value]
+
+    return gated
+
+
 class GatedCamera:
     """A camera whose grabs after the first ``free`` wait for ``gate`` (a hung device)."""
 
@@ -330,14 +341,8 @@ def test_connection_lost_mid_run_fails_it_and_resume_finishes(client: TestClient
 @pytest.mark.timeout(40)
 def test_restart_mid_run_then_resume_loses_and_duplicates_nothing(tmp_path: Path) -> None:
     gate = threading.Event()
-    mocks = settings_opener(settings(tmp_path))
-
-    def hanging() -> tuple[Robot, Camera]:
-        robot, camera = mocks()
-        return robot, GatedCamera(camera, 2, gate)  # type: ignore[return-value]
-
-    opener: DeviceOpener = hanging
-    with TestClient(create_app(settings(tmp_path), open_devices=opener)) as old:
+    with TestClient(create_app(settings(tmp_path),
+                               open_devices=gated_opener(tmp_path, 2, gate))) as old:
         old.headers.update(AUTH)
         run_id = start_run(old, 6)
         wait_run(old, run_id, lambda r: r["stations_captured"] == 2)

@@ -15,13 +15,11 @@ import pytest
 from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
-from drivers.base import Camera, Robot
 from service.app import create_app
-from service.devices import DeviceOpener, settings_opener
 from service.metrics import CONTENT_TYPE_LATEST
 from service.models import Calibration, Run, Station
 from tests.test_exports import full_result
-from tests.test_service_api import AUTH, GatedCamera, finished, settings, start_run, wait_run
+from tests.test_service_api import AUTH, finished, gated_opener, settings, start_run, wait_run
 
 Event = tuple[int, str, dict[str, Any]]
 
@@ -63,14 +61,8 @@ def stations_of(events: list[Event]) -> list[int]:
 @pytest.mark.timeout(60)
 def test_reconnect_with_last_event_id_misses_and_repeats_nothing(tmp_path: Path) -> None:
     gate = threading.Event()
-    mocks = settings_opener(settings(tmp_path))
-
-    def gated() -> tuple[Robot, Camera]:
-        robot, camera = mocks()
-        return robot, GatedCamera(camera, 0, gate)  # type: ignore[return-value]
-
-    opener: DeviceOpener = gated
-    with TestClient(create_app(settings(tmp_path), open_devices=opener)) as client:
+    with TestClient(create_app(settings(tmp_path),
+                               open_devices=gated_opener(tmp_path, 0, gate))) as client:
         client.headers.update(AUTH)
         run_id = start_run(client, 6)  # held at its first grab until the gate opens
 
