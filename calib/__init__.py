@@ -30,6 +30,7 @@ from calib.chain import (
 from calib.crossval import CrossValidation, PoseStations
 from calib.evidence import Trust, choose_pose_only
 from calib.geometry import (
+    PoseError,
     check_joint_positions,
     check_transforms,
     check_ur_pose,
@@ -111,6 +112,7 @@ __all__ = [
     "PipelineOptions",
     "Plan",
     "PlanOptions",
+    "PoseError",
     "PoseStations",
     "RefineOptions",
     "RobotNoise",

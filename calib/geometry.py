@@ -8,6 +8,8 @@ or a stack: shapes ``(..., 6)`` and ``(..., 4, 4)``.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from calib import so3
@@ -61,6 +63,13 @@ def invert(T: np.ndarray) -> np.ndarray:
 def rotation_angle(R: np.ndarray) -> np.ndarray:
     """Rotation angle(s) in radians of rotation matrices, shape (..., 3, 3) -> (...)."""
     return np.linalg.norm(so3.log(R), axis=-1)
+
+
+class PoseError(NamedTuple):
+    """How far apart two poses are: rotation angle (rad) and translation distance (m)."""
+
+    rot_rad: float
+    trans_m: float
 
 
 def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

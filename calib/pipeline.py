@@ -33,7 +33,7 @@ from calib.chain import (
     robot_chain,
 )
 from calib.evidence import JointChoice, Trust, choose_joint, method_cross_validation
-from calib.geometry import check_ur_poses
+from calib.geometry import PoseError, check_ur_poses
 from calib.handeye import POSE_METHODS, calibrate_hand_eye
 from calib.intrinsics import IntrinsicsOptions, calibrate_intrinsics
 from calib.joint import (
@@ -77,26 +77,27 @@ MAX_HELD_OUT = 15
 class StationReport:
     """Per-station residuals of a calibration.
 
-    ``rms_px`` is the reprojection RMS of the fitted model (the joint model with the robot
-    correction, or the intrinsic stage's own pose); ``chain_rms_px`` predicts the image from
-    the uncorrected robot reading through X and Y (validation, includes the robot's noise).
-    ``correction_*`` and ``mahalanobis`` are the joint estimate's robot-pose correction;
-    ``loo_*`` the eq. (23) leave-one-out prediction error (NaN if not held out).
     ``corners_px`` holds the detected corners (N, 2) and ``residuals_px`` the fitted model's
-    projection minus them (N, 2), pixels, in the order of ``board_points``.
+    projection minus them (N, 2), pixels, in the order of ``board_points``. ``rms_px`` is the
+    reprojection RMS of the fitted model (the joint model with the robot correction, or the
+    intrinsic stage's own pose); ``chain_rms_px`` predicts the image from the uncorrected robot
+    reading through X and Y (validation, includes the robot's noise). ``correction`` and
+    ``mahalanobis`` are the joint estimate's robot-pose correction; ``loo`` the eq. (23)
+    leave-one-out prediction error (NaN if not held out).
     """
 
     id: str
-    n_corners: int
+    corners_px: np.ndarray
+    residuals_px: np.ndarray
     rms_px: float
     chain_rms_px: float | None = None
-    correction_rot_rad: float | None = None
-    correction_trans_m: float | None = None
+    correction: PoseError | None = None
     mahalanobis: float | None = None
-    loo_rot_rad: float | None = None
-    loo_trans_m: float | None = None
-    corners_px: np.ndarray | None = None
-    residuals_px: np.ndarray | None = None
+    loo: PoseError | None = None
+
+    @property
+    def n_corners(self) -> int:
+        return len(self.corners_px)
 
 
 @dataclass(frozen=True)
@@ -243,8 +244,7 @@ def calibrate_stations(stations: StationInputs, board: Board,
             method="intrinsics", K=stage.K, dist=stage.dist, sigma_px=stage.sigma_px,
             rms_px=float(np.sqrt(np.mean(stage.rms_img ** 2))), nu=stage.nu, kappa=1.0,
             hand_eye=None, target_pose=None, sigmas=stage.sigmas,
-            stations=tuple(StationReport(ids[k], len(corners[i]), float(stage.rms_img[i]),
-                                         corners_px=corners[i], residuals_px=res[i])
+            stations=tuple(StationReport(ids[k], corners[i], res[i], float(stage.rms_img[i]))
                            for i, k in enumerate(usable)),
             rejected=tuple(rejected), validation={}, trust=Trust(
                 cross_validation=None, model_selection=None, uncertainty=None,
@@ -407,14 +407,13 @@ def _validate(stage: _Stage, stations: CornerStations, ids: list[str], setup: st
     reports = []
     for j, i in enumerate(keep):
         extra = {} if joint is None else dict(
-            correction_rot_rad=float(np.linalg.norm(joint.corrections[j, :3])),
-            correction_trans_m=float(np.linalg.norm(joint.corrections[j, 3:])),
+            correction=PoseError(float(np.linalg.norm(joint.corrections[j, :3])),
+                                 float(np.linalg.norm(joint.corrections[j, 3:]))),
             mahalanobis=float(joint.mahalanobis[j]))
-        reports.append(StationReport(ids[i], len(pts[j]), float(fit_rms[j]),
+        reports.append(StationReport(ids[i], pts[j], fit_res[j], float(fit_rms[j]),
                                      chain_rms_px=float(chain[j]),
-                                     loo_rot_rad=float(loo_rot[j]),
-                                     loo_trans_m=float(loo_trans[j]),
-                                     corners_px=pts[j], residuals_px=fit_res[j], **extra))
+                                     loo=PoseError(float(loo_rot[j]), float(loo_trans[j])),
+                                     **extra))
     validation = {
         "E_R": motion.E_R, "E_t": motion.E_t, "n_motions": motion.n_motions,
         "loo_rot_rad_mean": float(np.nanmean(loo.rot_rad)),

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import datetime as dt
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
@@ -16,6 +15,7 @@ from calib import (
     Candidate,
     CrossValidation,
     HandEyeResult,
+    PoseError,
     Selection,
     StationReport,
     Trust,
@@ -121,11 +121,18 @@ def calibration_result_json(result: CalibrationResult, *,
 def _station_json(station: StationReport) -> dict[str, Any]:
     """A station's report; corner positions and residuals to 0.001 px (far below their noise)
     to keep the file small."""
-    doc = dataclasses.asdict(station)
-    for key in ("corners_px", "residuals_px"):
-        if doc[key] is not None:
-            doc[key] = np.round(doc[key], 3)
-    return doc
+    return {"id": station.id, "n_corners": station.n_corners, "rms_px": station.rms_px,
+            "chain_rms_px": station.chain_rms_px,
+            **_pose_error_json("correction", station.correction),
+            "mahalanobis": station.mahalanobis, **_pose_error_json("loo", station.loo),
+            "corners_px": np.round(station.corners_px, 3),
+            "residuals_px": np.round(station.residuals_px, 3)}
+
+
+def _pose_error_json(name: str, error: PoseError | None) -> dict[str, float | None]:
+    """``NAME_rot_rad`` and ``NAME_trans_m`` of a pose difference (None when there is none)."""
+    return {f"{name}_rot_rad": None if error is None else error.rot_rad,
+            f"{name}_trans_m": None if error is None else error.trans_m}
 
 
 # ---- evidence (product.md "Trust"): every field below is built here and only here ----------

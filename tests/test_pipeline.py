@@ -152,7 +152,7 @@ def test_other_hand_eye_methods_use_the_per_image_poses(method):
 def test_refine_is_the_pose_level_estimate_without_the_joint_stage():
     res = calibrate(detections(), rendered_stations()[1], method="refine")
     assert res.method == "refine" and res.variance_factor is None
-    assert res.stations[0].correction_rot_rad is None  # no robot corrections: not joint
+    assert res.stations[0].correction is None  # no robot corrections: not joint
     assert res.sigmas["kappa"] > 0 and res.sigmas["hand_eye_trans_m"].shape == (3,)
     assert abs(res.kappa - SCENE.target.kappa) < 4 * res.sigmas["kappa"]
     rot, _ = pose_error(res.hand_eye, SCENE.hand_eye_matrix)
