@@ -20,6 +20,7 @@ from typing import Annotated, Literal
 import cv2
 import numpy as np
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
@@ -113,6 +114,20 @@ class Noise(_Strict):
     blur_px: float = Field(0.0, ge=0.0, le=20.0, description="sigma of Gaussian blur, pixels")
 
 
+def _small(what: str, limit: float, unit: str) -> AfterValidator:
+    """A check that a DH offset is finite and within ±``limit`` (as a real arm's are)."""
+    def check(v: float) -> float:
+        if not abs(v) <= limit:  # NaN fails too
+            raise ValueError(f"DH {what} offsets must be finite and within ±{limit:g} {unit}")
+        return v
+
+    return AfterValidator(check)
+
+
+_AngleOffset = Annotated[float, _small("angle", 1.0, "deg")]
+_LengthOffset = Annotated[float, _small("length", 10.0, "mm")]
+
+
 class Kinematics(_Strict):
     """Systematic kinematic errors of the simulated arm, a UR5e (``mocks.ur_kinematics``).
 
@@ -121,28 +136,14 @@ class Kinematics(_Strict):
     dependent) transform at every visit, as on a real arm, besides the per-reading noise.
     """
 
-    dh_theta_deg: list[float] = Field(default_factory=lambda: [0.0] * 6, min_length=6,
-                                      max_length=6, description="joint zero offsets")
-    dh_d_mm: list[float] = Field(default_factory=lambda: [0.0] * 6, min_length=6,
-                                 max_length=6, description="link offset errors")
-    dh_a_mm: list[float] = Field(default_factory=lambda: [0.0] * 6, min_length=6,
-                                 max_length=6, description="link length errors")
-    dh_alpha_deg: list[float] = Field(default_factory=lambda: [0.0] * 6, min_length=6,
-                                      max_length=6, description="link twist errors")
-
-    @field_validator("dh_theta_deg", "dh_alpha_deg")
-    @classmethod
-    def _small_angles(cls, v: list[float]) -> list[float]:
-        if not np.isfinite(v).all() or np.abs(v).max() > 1.0:
-            raise ValueError("DH angle offsets must be finite and within ±1 deg")
-        return v
-
-    @field_validator("dh_d_mm", "dh_a_mm")
-    @classmethod
-    def _small_lengths(cls, v: list[float]) -> list[float]:
-        if not np.isfinite(v).all() or np.abs(v).max() > 10.0:
-            raise ValueError("DH length offsets must be finite and within ±10 mm")
-        return v
+    dh_theta_deg: list[_AngleOffset] = Field(default_factory=lambda: [0.0] * 6, min_length=6,
+                                             max_length=6, description="joint zero offsets")
+    dh_d_mm: list[_LengthOffset] = Field(default_factory=lambda: [0.0] * 6, min_length=6,
+                                         max_length=6, description="link offset errors")
+    dh_a_mm: list[_LengthOffset] = Field(default_factory=lambda: [0.0] * 6, min_length=6,
+                                         max_length=6, description="link length errors")
+    dh_alpha_deg: list[_AngleOffset] = Field(default_factory=lambda: [0.0] * 6, min_length=6,
+                                             max_length=6, description="link twist errors")
 
     def offsets(self) -> DHOffsets:
         """The offsets in metres and radians."""
