@@ -10,6 +10,7 @@ import re
 import threading
 import time
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -45,10 +46,18 @@ def settings(tmp_path: Path, **overrides: Any) -> Settings:
     return Settings(data_dir=tmp_path, api_key=KEY, **overrides)
 
 
+@contextmanager
+def service(tmp_path: Path, open_devices: DeviceOpener | None = None) -> Iterator[TestClient]:
+    """An authorised client of a service on ``tmp_path`` (its database and images), with the
+    mock devices of ``settings(tmp_path)`` unless ``open_devices`` says otherwise."""
+    with TestClient(create_app(settings(tmp_path), open_devices=open_devices)) as c:
+        c.headers.update(AUTH)
+        yield c
+
+
 @pytest.fixture
 def client(tmp_path: Path) -> Iterator[TestClient]:
-    with TestClient(create_app(settings(tmp_path))) as c:
-        c.headers.update(AUTH)
+    with service(tmp_path) as c:
         yield c
 
 
@@ -311,8 +320,7 @@ def test_unreachable_robot_fails_the_run(tmp_path: Path) -> None:
         raise RobotConnectionError("Cannot reach the robot controller at 10.0.0.2 "
                                    "(connection refused).")
 
-    with TestClient(create_app(settings(tmp_path), open_devices=unreachable)) as c:
-        c.headers.update(AUTH)
+    with service(tmp_path, unreachable) as c:
         run = wait_run(c, start_run(c, 3), finished)
         devices = c.get("/devices").json()
     assert run["state"] == "failed"
@@ -341,14 +349,11 @@ def test_connection_lost_mid_run_fails_it_and_resume_finishes(client: TestClient
 @pytest.mark.timeout(40)
 def test_restart_mid_run_then_resume_loses_and_duplicates_nothing(tmp_path: Path) -> None:
     gate = threading.Event()
-    with TestClient(create_app(settings(tmp_path),
-                               open_devices=gated_opener(tmp_path, 2, gate))) as old:
-        old.headers.update(AUTH)
+    with service(tmp_path, gated_opener(tmp_path, 2, gate)) as old:
         run_id = start_run(old, 6)
         wait_run(old, run_id, lambda r: r["stations_captured"] == 2)
         # The old service hangs at station 2; a new one starts on the same database.
-        with TestClient(create_app(settings(tmp_path))) as new:
-            new.headers.update(AUTH)
+        with service(tmp_path) as new:
             run = new.get(f"/runs/{run_id}").json()
             assert (run["state"], run["stations_captured"]) == ("interrupted", 2)
             assert run["error"]["code"] == "interrupted"

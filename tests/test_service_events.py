@@ -15,19 +15,23 @@ import pytest
 from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
-from service.app import create_app
 from service.metrics import CONTENT_TYPE_LATEST
 from service.models import Calibration, Run, Station
 from tests.test_exports import full_result
-from tests.test_service_api import AUTH, finished, gated_opener, settings, start_run, wait_run
+from tests.test_service_api import (
+    finished,
+    gated_opener,
+    service,
+    start_run,
+    wait_run,
+)
 
 Event = tuple[int, str, dict[str, Any]]
 
 
 @pytest.fixture
 def client(tmp_path: Path) -> Iterator[TestClient]:
-    with TestClient(create_app(settings(tmp_path))) as c:
-        c.headers.update(AUTH)
+    with service(tmp_path) as c:
         yield c
 
 
@@ -61,9 +65,7 @@ def stations_of(events: list[Event]) -> list[int]:
 @pytest.mark.timeout(60)
 def test_reconnect_with_last_event_id_misses_and_repeats_nothing(tmp_path: Path) -> None:
     gate = threading.Event()
-    with TestClient(create_app(settings(tmp_path),
-                               open_devices=gated_opener(tmp_path, 0, gate))) as client:
-        client.headers.update(AUTH)
+    with service(tmp_path, gated_opener(tmp_path, 0, gate)) as client:
         run_id = start_run(client, 6)  # held at its first grab until the gate opens
 
         def two_stations(events: list[Event]) -> bool:
@@ -85,14 +87,12 @@ def test_reconnect_with_last_event_id_misses_and_repeats_nothing(tmp_path: Path)
 
 @pytest.mark.timeout(60)
 def test_ids_survive_a_restart_and_bad_ids_start_afresh(tmp_path: Path) -> None:
-    with TestClient(create_app(settings(tmp_path))) as client:
-        client.headers.update(AUTH)
+    with service(tmp_path) as client:
         run_id = start_run(client, 4)
         wait_run(client, run_id, finished)
         everything = read_events(client, run_id, last_event_id="0")
     assert [kind for _, kind, _ in everything] == ["station"] * 4 + ["state"]
-    with TestClient(create_app(settings(tmp_path))) as client:  # a new service, same database
-        client.headers.update(AUTH)
+    with service(tmp_path) as client:  # a new service, same database
         after_two = read_events(client, run_id, last_event_id=str(everything[1][0]))
         assert after_two == everything[2:]
         for header in ("not-a-number", "-3", ""):

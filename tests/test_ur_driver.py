@@ -13,6 +13,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -53,6 +54,16 @@ def robot(emulator: EmulatorProcess) -> Iterator[URRobot]:
     bot.close()
 
 
+@contextmanager
+def faults_cleared(emulator: EmulatorProcess) -> Iterator[None]:
+    """The emulator's faults cleared before the block and after it, however it ends."""
+    emulator.command("emulator clear")
+    try:
+        yield
+    finally:
+        emulator.command("emulator clear")
+
+
 def assert_pose_close(actual: np.ndarray, expected: np.ndarray, *, rot: float = 1e-6,
                       trans: float = 1e-6) -> None:
     angle, dist = pose_error(matrix_from_ur_pose(actual), matrix_from_ur_pose(expected))
@@ -77,19 +88,12 @@ def test_reads_pose_consistent_with_joints(robot: URRobot) -> None:
 
 @pytest.mark.timeout(30)
 def test_connect_waits_for_the_program_on_the_status_stream(emulator: EmulatorProcess) -> None:
-    """The receive stream shows a (re)started program late: connect waits for it, or fails."""
-    emulator.command("emulator clear")
-    try:
+    """The receive stream shows a (re)started program late: connect waits for it."""
+    with faults_cleared(emulator):
         emulator.command("emulator fault program_status_lag=0.5")
         with URRobot(emulator.host, connect_timeout=10.0) as bot:
             status = bot.status()  # read at once: connect returned only when it shows running
             assert status.program_running and status.ready
-        emulator.command("emulator fault program_status_lag=60")
-        with pytest.raises(RobotError, match="did not report the remote-control program") as info:
-            URRobot(emulator.host, connect_timeout=5.0).connect()
-        assert info.value.code == "program_not_started"
-    finally:
-        emulator.command("emulator clear")
 
 
 @pytest.mark.timeout(20)
@@ -197,21 +201,24 @@ def test_stop_during_move(robot: URRobot) -> None:
 
 
 @pytest.mark.timeout(20)
-def test_not_in_remote_control(emulator: EmulatorProcess) -> None:
-    emulator.command("emulator clear")
-    emulator.command("emulator fault local_control")
-    try:
-        with pytest.raises(RobotError, match="Remote Control") as info:
-            URRobot(emulator.host, connect_timeout=10.0).connect()
-        assert info.value.code == "not_in_remote_control"
-    finally:
-        emulator.command("emulator clear")
+@pytest.mark.parametrize(("fault", "match", "code", "connect_timeout"), [
+    ("program_status_lag=60", "did not report the remote-control program",
+     "program_not_started", 5.0),
+    ("local_control", "Remote Control", "not_in_remote_control", 10.0),
+])
+def test_connect_refused_with_the_reason(emulator: EmulatorProcess, fault: str, match: str,
+                                         code: str, connect_timeout: float) -> None:
+    """A program that never shows on the status stream, or a controller in local control."""
+    with faults_cleared(emulator):
+        emulator.command(f"emulator fault {fault}")
+        with pytest.raises(RobotError, match=match) as info:
+            URRobot(emulator.host, connect_timeout=connect_timeout).connect()
+        assert info.value.code == code
 
 
 @pytest.mark.timeout(20)
 def test_slow_controller(emulator: EmulatorProcess) -> None:
-    emulator.command("emulator clear")
-    try:
+    with faults_cleared(emulator):
         emulator.command("emulator fault slow_replies=0.5")
         # Refused up front by the probe (only it says "too slowly"), not after the 40 slow
         # round trips of the ur-rtde constructors (20 s, past this test's timeout).
@@ -220,8 +227,6 @@ def test_slow_controller(emulator: EmulatorProcess) -> None:
         emulator.command("emulator fault slow_replies=0.01")
         with URRobot(emulator.host, connect_timeout=10.0, settle_dwell=0.05) as bot:
             assert bot.status().ready
-    finally:
-        emulator.command("emulator clear")
 
 
 @pytest.mark.timeout(20)
