@@ -72,7 +72,7 @@ from calib.refine import RefineOptions
 from calib.screw import solve_sm
 from calib.selection import KAPPA_MODES, Candidate, Selection
 from calib.selection import RULE as SELECTION_RULE
-from calib.stations import StationInputs
+from calib.stations import Station, StationInputs, Stations
 from calib.target import (
     MIN_CONTRAST,
     Board,
@@ -117,8 +117,10 @@ __all__ = [
     "RefineOptions",
     "RobotNoise",
     "Selection",
+    "Station",
     "StationInputs",
     "StationReport",
+    "Stations",
     "Trust",
     "board_points",
     "calibrate_hand_eye",

@@ -10,14 +10,15 @@ from __future__ import annotations
 
 import os
 from collections import deque
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from calib.camera import solve_pnp
-from calib.geometry import invert, make_transform, rotation_angle
+from calib.geometry import check_ur_poses, invert, make_transform, rotation_angle
 from calib.intrinsics import MIN_IMAGES
 from calib.target import Detection, detect_checkerboard
 
@@ -44,6 +45,66 @@ class StationInputs:
     ids: Sequence[str] | None = None
     image_size: Sequence[int] | None = None
     intrinsics: tuple[np.ndarray, np.ndarray] | None = None
+
+
+@dataclass(frozen=True)
+class Station:
+    """One calibration station, the same from capture to solver, storage and API.
+
+    ``id`` names it in reports (``000``, ``001``, ...). ``T_base_tcp``: the TCP pose read at the
+    image, a UR pose vector (6,) ``[x, y, z, rx, ry, rz]`` (m, rad); None when unknown.
+    ``image``: its pixels (grey or BGR uint8, as captured) or its file, a path relative to the
+    directory that holds the station (the station set's, or the service's data directory);
+    ``image_size`` (width, height) when known.
+    ``detection``: what the board detection saw (None until detected). ``T_cam_target``: the
+    measured camera pose (6,) of a pose-only station. ``rejected``: why the station cannot be
+    used, None when it can.
+    """
+
+    id: str
+    T_base_tcp: np.ndarray | None = None
+    image: str | np.ndarray | None = None
+    image_size: tuple[int, int] | None = None
+    detection: Detection | None = None
+    T_cam_target: np.ndarray | None = None
+    rejected: str | None = None
+
+
+@dataclass(frozen=True)
+class Stations:
+    """A station set: the setup, the board, known intrinsics (K (3, 3), dist) and the stations.
+
+    ``target`` describes the board as the station-set file and the REST API do (``type``,
+    ``inner_corners`` [cols, rows], nominal ``square_size_m``); None for pose-only sets.
+    """
+
+    setup: str
+    stations: tuple[Station, ...]
+    target: Mapping[str, Any] | None = None
+    intrinsics: tuple[np.ndarray, np.ndarray] | None = None
+
+    @property
+    def pose_only(self) -> bool:
+        return all(s.T_cam_target is not None for s in self.stations)
+
+    def pose_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """T_base_tcp and T_cam_target, each (n, 4, 4), of a pose-only set; validated."""
+        missing = [s.id for s in self.stations if s.T_base_tcp is None]
+        if missing:
+            raise ValueError(f"station {missing[0]} has no tcp_pose: hand-eye needs one per "
+                             "station")
+        return (check_ur_poses([s.T_base_tcp for s in self.stations], "tcp_pose"),
+                check_ur_poses([s.T_cam_target for s in self.stations], "target_pose"))
+
+    def inputs(self, images: Callable[[Station], Observation] | None = None) -> StationInputs:
+        """The solver's input: each station's stored detection, or ``images(station)`` (read
+        one at a time as the solver consumes them) when given."""
+        sizes = [s.image_size for s in self.stations if s.image_size is not None]
+        observations = (s.detection if images is None else images(s) for s in self.stations)
+        return StationInputs(observations, [s.T_base_tcp for s in self.stations],
+                             ids=[s.id for s in self.stations],
+                             image_size=sizes[0] if sizes else None,
+                             intrinsics=self.intrinsics)
 
 
 def usable_stations(detections: list[tuple[Detection, tuple[int, int] | None]],

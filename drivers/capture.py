@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib import check_ur_pose, matrix_from_ur_pose, pose_error
+from calib import Station, check_ur_pose, matrix_from_ur_pose, pose_error
 from drivers.base import Camera, Robot
 from drivers.errors import RobotError
 
@@ -30,6 +30,12 @@ class CapturedStation:
     settled_at: float  # robot at rest
     grabbed_at: float  # frame returned by the camera
     pose_read_at: float  # tcp_pose read
+
+    def station(self, station_id: str) -> Station:
+        """The one station model of this capture (the pixels as its image)."""
+        height, width = self.image.shape[:2]
+        return Station(id=station_id, T_base_tcp=self.tcp_pose, image=self.image,
+                       image_size=(width, height))
 
 
 @dataclass(frozen=True)

@@ -19,10 +19,8 @@ import numpy as np
 from calib import (
     MIN_IMAGES,
     Board,
-    Detection,
     PipelineOptions,
     RobotNoise,
-    StationInputs,
     calibrate_stations,
 )
 from service import store
@@ -31,6 +29,7 @@ from service.errors import ConflictError, QueueFullError, UnprocessableError
 from service.models import Calibration
 from service.schemas import CalibrationOptions
 from service.settings import Settings
+from service.station_rows import captured_station_set
 from service.workers import CalibrationPool
 
 log = logging.getLogger("cellcal.service")
@@ -80,20 +79,12 @@ class Calibrations:
             if run.state == "capturing":
                 raise ConflictError(f"Run {run_id} is still capturing; pause it or wait until "
                                     "it is done.", code="invalid_state")
-            captured = store.captured_stations(s, run_id=run_id)
-            if len(captured) < MIN_IMAGES:
+            stations = captured_station_set(s, run_id=run_id)
+            if len(stations.stations) < MIN_IMAGES:
                 raise UnprocessableError(
-                    f"Run {run_id} has {len(captured)} captured stations; a calibration needs "
-                    f"at least {MIN_IMAGES}.", code="too_few_stations")
-            payload = {
-                "run_id": run_id, "setup": run.setup, "target": run.target,
-                "ids": [f"{st.index:03d}" for st in captured],
-                "tcp_poses": [st.tcp_pose for st in captured],
-                "corners": [st.detection["corners"] for st in captured],
-                "ambiguous": [st.detection["ambiguous"] for st in captured],
-                "image_size": captured[0].image_size,
-                "options": options.model_dump(),
-            }
+                    f"Run {run_id} has {len(stations.stations)} captured stations; a "
+                    f"calibration needs at least {MIN_IMAGES}.", code="too_few_stations")
+            payload = {"run_id": run_id, "stations": stations, "options": options.model_dump()}
             cal = Calibration(run_id=run_id, state="running", options=options.model_dump())
             s.add(cal)
             s.commit()
@@ -139,27 +130,24 @@ class Calibrations:
 
 
 def solve_calibration(payload: dict[str, Any]) -> dict[str, Any]:
-    """Worker-process entry: stored detections and robot poses -> result JSON document.
+    """Worker-process entry: the run's captured stations (``calib.Stations``: stored detections
+    and robot poses) and the options -> result JSON document.
 
     Top level (picklable) and self-contained: it imports the pipeline in the worker.
     """
     from service.results import calibration_result_json
 
-    opts = payload["options"]
-    observations = [Detection(ok=True, corners=np.asarray(c, dtype=float), ambiguous=a)
-                    for c, a in zip(payload["corners"], payload["ambiguous"], strict=True)]
+    opts, stations = payload["options"], payload["stations"]
     default = RobotNoise()
     noise = RobotNoise(
         default.rot_rad if opts["robot_noise_rot_deg"] is None
         else float(np.deg2rad(opts["robot_noise_rot_deg"])),
         default.trans_m if opts["robot_noise_trans_mm"] is None
         else opts["robot_noise_trans_mm"] * 1e-3)
-    target = payload["target"]
+    target = stations.target
     result = calibrate_stations(
-        StationInputs(observations, payload["tcp_poses"], ids=payload["ids"],
-                      image_size=payload["image_size"]),
-        Board(tuple(target["inner_corners"]), target["square_size_m"]),
-        PipelineOptions(setup=payload["setup"], method=opts["method"],
+        stations.inputs(), Board(tuple(target["inner_corners"]), target["square_size_m"]),
+        PipelineOptions(setup=stations.setup, method=opts["method"],
                         estimate_nu=opts["estimate_nu"], estimate_kappa=opts["estimate_kappa"],
                         kappa=opts.get("kappa", "auto"), nu_method=opts["nu_method"],
                         noise=noise))

@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
+import tempfile
+import zipfile
 from collections import Counter
-from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -26,8 +28,7 @@ from pydantic import (
     model_validator,
 )
 
-from calib import check_ur_pose, check_ur_poses
-from drivers.capture import CapturedStation
+from calib import Station, Stations, check_ur_pose
 from drivers.config_files import describe_validation_error
 
 STATIONS_FILE = "stations.json"
@@ -60,7 +61,7 @@ class Intrinsics(BaseModel):
     dist: Annotated[list[FiniteFloat], Field(min_length=4, max_length=14)]
 
 
-class Station(BaseModel):
+class StationEntry(BaseModel):
     model_config = ConfigDict(extra="forbid")
     id: str
     tcp_pose: PoseVector | None = None
@@ -77,7 +78,7 @@ class Station(BaseModel):
         return pose
 
     @model_validator(mode="after")
-    def _one_observation(self) -> Station:
+    def _one_observation(self) -> StationEntry:
         if (self.image is None) == (self.target_pose is None):
             raise ValueError("a station carries either an 'image' or a 'target_pose'")
         return self
@@ -89,7 +90,7 @@ class StationSet(BaseModel):
     setup: Literal["eye_in_hand", "eye_to_hand"] = "eye_in_hand"
     target: Target | None = None
     intrinsics: Intrinsics | None = None
-    stations: Annotated[list[Station], Field(min_length=1)]
+    stations: Annotated[list[StationEntry], Field(min_length=1)]
 
     @model_validator(mode="after")
     def _consistent(self) -> StationSet:
@@ -100,19 +101,20 @@ class StationSet(BaseModel):
             raise ValueError("stations with images need a 'target' description")
         return self
 
-    @property
-    def pose_only(self) -> bool:
-        return all(s.target_pose is not None for s in self.stations)
+    def model(self) -> Stations:
+        """The file's stations as the one station model (``calib.Stations``); images stay
+        references relative to the set's directory."""
+        return Stations(
+            setup=self.setup, target=None if self.target is None else self.target.model_dump(),
+            intrinsics=None if self.intrinsics is None else (np.asarray(self.intrinsics.K),
+                                                             np.asarray(self.intrinsics.dist)),
+            stations=tuple(Station(id=s.id, T_base_tcp=_vector(s.tcp_pose), image=s.image,
+                                   T_cam_target=_vector(s.target_pose))
+                           for s in self.stations))
 
-    def pose_arrays(self) -> tuple[np.ndarray, np.ndarray]:
-        """T_base_tcp and T_cam_target, each (n, 4, 4), of a pose-only set; validated."""
-        missing = [s.id for s in self.stations if s.tcp_pose is None]
-        if missing:
-            raise ValueError(f"station {missing[0]} has no tcp_pose: hand-eye needs one per "
-                             "station")
-        P = check_ur_poses([s.tcp_pose for s in self.stations], "tcp_pose")
-        C = check_ur_poses([s.target_pose for s in self.stations], "target_pose")
-        return P, C
+
+def _vector(pose: list[float] | None) -> np.ndarray | None:
+    return None if pose is None else np.asarray(pose, dtype=float)
 
 
 def load_station_set(directory: str | Path, *,
@@ -146,32 +148,36 @@ def load_station_set(directory: str | Path, *,
         raise ValueError(f"{path}: {describe_validation_error(exc)}") from None
 
 
-def station_record(station: CapturedStation, image_name: str) -> dict[str, Any]:
-    """The ``stations.json`` entry of a captured station; its id is the image name's stem."""
-    return {"id": Path(image_name).stem, "tcp_pose": [float(v) for v in station.tcp_pose],
-            "image": image_name}
+def station_record(station: Station, image_name: str) -> dict[str, Any]:
+    """The ``stations.json`` entry of a station with an image (``tcp_pose`` when known)."""
+    record: dict[str, Any] = {"id": station.id}
+    if station.T_base_tcp is not None:
+        record["tcp_pose"] = [float(v) for v in station.T_base_tcp]
+    return {**record, "image": image_name}
 
 
-def write_station_set(directory: str | Path, setup: str, target: Mapping[str, Any],
-                      stations: Sequence[CapturedStation], *,
-                      intrinsics: Mapping[str, Any] | None = None) -> Path:
-    """Write ``stations`` as a station set in ``directory``; return the ``stations.json`` path.
+def write_station_set(directory: str | Path, stations: Stations, *,
+                      source: str | Path | None = None) -> Path:
+    """Write ``stations`` (each with an image) as a station set in ``directory``; return the
+    ``stations.json`` path.
 
-    Images are ``000.png``, ``001.png``, ...; ``target`` is the station-set target
-    (``type``, ``inner_corners`` [cols, rows], nominal ``square_size_m``); ``intrinsics``
-    (``K``, ``dist``) is optional. The document is validated before anything is written
-    (``ValueError``), an existing ``stations.json`` is never overwritten (``FileExistsError``),
-    and ``stations.json`` is written last, atomically, so an interrupted write never leaves a
-    readable but incomplete set.
+    Images are ``000.png``, ``001.png``, ... in station order: a station's ``image`` is either
+    its pixels (written as PNG) or a PNG file relative to ``source`` (copied byte for byte, so
+    a calibration of the set detects exactly what the service detected). The document is
+    validated before anything is written (``ValueError``), an existing ``stations.json`` is
+    never overwritten (``FileExistsError``), and ``stations.json`` is written last,
+    atomically, so an interrupted write never leaves a readable but incomplete set.
     """
     directory = Path(directory)
     path = directory / STATIONS_FILE
-    names = [f"{k:03d}.png" for k in range(len(stations))]
-    doc: dict[str, Any] = {"format": "cellcal/stations@1", "setup": setup,
-                           "target": dict(target)}
-    if intrinsics is not None:
-        doc["intrinsics"] = dict(intrinsics)
-    doc["stations"] = [station_record(s, n) for s, n in zip(stations, names, strict=True)]
+    names = [f"{k:03d}.png" for k in range(len(stations.stations))]
+    doc: dict[str, Any] = {"format": "cellcal/stations@1", "setup": stations.setup,
+                           "target": None if stations.target is None else dict(stations.target)}
+    if stations.intrinsics is not None:
+        K, dist = stations.intrinsics
+        doc["intrinsics"] = {"K": np.asarray(K).tolist(), "dist": np.asarray(dist).tolist()}
+    doc["stations"] = [station_record(s, n)
+                       for s, n in zip(stations.stations, names, strict=True)]
     try:
         StationSet.model_validate(doc)
     except ValidationError as exc:
@@ -180,10 +186,33 @@ def write_station_set(directory: str | Path, setup: str, target: Mapping[str, An
     if path.exists():
         raise FileExistsError(f"{path} already exists; choose a new directory for the capture")
     directory.mkdir(parents=True, exist_ok=True)
-    for station, name in zip(stations, names, strict=True):
-        if not cv2.imwrite(str(directory / name), station.image):
-            raise OSError(f"could not write {directory / name}")
+    for station, name in zip(stations.stations, names, strict=True):
+        _write_image(directory / name, station, source)
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(doc, indent=2) + "\n")
     os.replace(tmp, path)
+    return path
+
+
+def _write_image(path: Path, station: Station, source: str | Path | None) -> None:
+    """A station's image at ``path``: its pixels as PNG, or its PNG file copied."""
+    if isinstance(station.image, str):
+        if source is None:
+            raise ValueError(f"station {station.id}: its image is a file, {station.image!r}, "
+                             "but no source directory was given")
+        shutil.copyfile(Path(source) / station.image, path)
+    elif station.image is None or not cv2.imwrite(str(path), station.image):
+        raise OSError(f"could not write {path}" + (f": station {station.id} has no image"
+                                                    if station.image is None else ""))
+
+
+def zip_station_set(path: str | Path, stations: Stations, *, source: str | Path) -> Path:
+    """Write ``stations`` as a station set into the zip file ``path`` (``stations.json`` and
+    the images at its top level; see :func:`write_station_set`); return ``path``."""
+    path = Path(path)
+    with tempfile.TemporaryDirectory(dir=path.parent) as tmp:
+        written = write_station_set(Path(tmp) / "set", stations, source=source).parent
+        with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as archive:  # PNGs are compressed
+            for file in sorted(written.iterdir()):
+                archive.write(file, file.name)
     return path

@@ -13,6 +13,7 @@ import pytest
 from calib.geometry import matrix_from_ur_pose, pose_error, ur_pose_from_matrix
 from calib.handeye import calibrate_hand_eye
 from calib.refine import RefineOptions
+from calib.stations import Stations
 from calib.target import board_points, detect_checkerboard
 from drivers.capture import CapturedStation, capture_station
 from drivers.errors import RobotError
@@ -92,20 +93,21 @@ def _station(tcp_pose: list[float]) -> CapturedStation:
 
 def test_station_record() -> None:
     pose = [0.5, 0.1, 0.4, 3.1, 0.0, 0.0]
-    assert station_record(_station(pose), "007.png") == {
+    assert station_record(_station(pose).station("007"), "007.png") == {
         "id": "007", "tcp_pose": pose, "image": "007.png"}
 
 
 def test_write_station_set_refuses_bad_input_and_overwrites(tmp_path: Path) -> None:
-    stations = [_station([0.5, 0.1, 0.4, 3.1, 0.0, 0.0])]
+    stations = (_station([0.5, 0.1, 0.4, 3.1, 0.0, 0.0]).station("000"),)
     with pytest.raises(ValueError, match="inner_corners"):
-        write_station_set(tmp_path / "a", "eye_in_hand", {"square_size_m": 0.03}, stations)
+        write_station_set(tmp_path / "a", Stations("eye_in_hand", stations,
+                                                   target={"square_size_m": 0.03}))
     with pytest.raises(ValueError, match="setup"):
-        write_station_set(tmp_path / "a", "eye_on_head", TARGET, stations)
+        write_station_set(tmp_path / "a", Stations("eye_on_head", stations, target=TARGET))
     assert not (tmp_path / "a").exists()  # nothing written for an invalid set
-    write_station_set(tmp_path / "a", "eye_in_hand", TARGET, stations)
+    write_station_set(tmp_path / "a", Stations("eye_in_hand", stations, target=TARGET))
     with pytest.raises(FileExistsError, match="already exists"):
-        write_station_set(tmp_path / "a", "eye_in_hand", TARGET, stations)
+        write_station_set(tmp_path / "a", Stations("eye_in_hand", stations, target=TARGET))
 
 
 def pnp_observations(station_dir: Path, nu: float) -> tuple[np.ndarray, np.ndarray]:
@@ -138,8 +140,9 @@ def captured_set(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[C
     robot = open_robot("mock://", config=SCENE)
     camera = open_camera("mock://", robot=robot)
     captured = [capture_station(robot, camera, p) for p in station_targets(10, 5)]
-    path = write_station_set(tmp_path_factory.mktemp("capture") / "run", SCENE.setup, TARGET,
-                             captured)
+    stations = tuple(c.station(f"{k:03d}") for k, c in enumerate(captured))
+    path = write_station_set(tmp_path_factory.mktemp("capture") / "run",
+                             Stations(SCENE.setup, stations, target=TARGET))
     return path, captured
 
 

@@ -22,20 +22,24 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from calib import (
     KAPPA_MODES,
     METHODS,
     Board,
+    Detection,
     PipelineOptions,
     PoseStations,
     RefineOptions,
-    StationInputs,
+    Station,
+    Stations,
     calibrate_stations,
     choose_pose_only,
 )
 from service.cli.exit_codes import EXIT_VERDICT_FAIL
 from service.image_files import DEFAULT_MAX_PIXELS, read_station_image
-from service.stationset import DEFAULT_MAX_STATIONS, StationSet, load_station_set
+from service.stationset import DEFAULT_MAX_STATIONS, load_station_set
 
 #: The command's line in ``cellcal --help``.
 HELP = "calibrate a station set directory (stations.json)"
@@ -71,7 +75,7 @@ PROGRESS_MIN_IMAGES = 10
 
 def run(args: argparse.Namespace) -> int:
     """Calibrate ``args.station_dir`` and write the result document."""
-    stations = load_station_set(args.station_dir, max_stations=args.max_stations)
+    stations = load_station_set(args.station_dir, max_stations=args.max_stations).model()
     command = " ".join(["cellcal", *sys.argv[1:]])
     if stations.pose_only:
         from service.results import hand_eye_result_json
@@ -87,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         result, trust = choose_pose_only(
             PoseStations(P, C, stations.setup), ids, method=method,
             options=RefineOptions(estimate_kappa=args.estimate_kappa),
-            square_size_m=None if stations.target is None else stations.target.square_size_m)
+            square_size_m=None if stations.target is None else stations.target["square_size_m"])
         doc = hand_eye_result_json(result, ids, options=options, command=command, trust=trust)
     else:
         doc = _calibrate_images(args, stations, command)
@@ -119,33 +123,32 @@ def verdict_line(doc: dict[str, Any]) -> str:
             + (f"; findings: {', '.join(codes)}" if codes else ""))
 
 
-def _calibrate_images(args: argparse.Namespace, stations: StationSet,
+def _calibrate_images(args: argparse.Namespace, stations: Stations,
                       command: str) -> dict[str, Any]:
     """Result document of a station set with images (``calib.pipeline``)."""
     from tqdm import tqdm
 
     from service.results import calibration_result_json
 
-    posed = [s.id for s in stations.stations if s.target_pose is not None]
+    posed = [s.id for s in stations.stations if s.T_cam_target is not None]
     if posed:
         raise ValueError(f"{args.station_dir}: station {posed[0]} has a target_pose while others "
                          "have images; a station set is either pose-only or image-based")
     target = stations.target
+    assert target is not None  # the file's schema: stations with images need a target
     directory = Path(args.station_dir)
-    images = (read_station_image(directory, s.image, max_pixels=args.max_image_pixels)
-              for s in stations.stations)
     n = len(stations.stations)
+
+    def image(station: Station) -> np.ndarray | Detection:
+        assert isinstance(station.image, str)
+        return read_station_image(directory, station.image, max_pixels=args.max_image_pixels)
 
     def progress(items: Iterable[Any]) -> Iterable[Any]:
         return tqdm(items, total=n, desc="detecting corners", unit="image", file=sys.stderr,
                     disable=n < PROGRESS_MIN_IMAGES, leave=False)
 
-    intrinsics = None if stations.intrinsics is None else (
-        stations.intrinsics.K, stations.intrinsics.dist)
-    inputs = StationInputs(images, [s.tcp_pose for s in stations.stations],
-                           ids=[s.id for s in stations.stations], intrinsics=intrinsics)
     result = calibrate_stations(
-        inputs, Board(tuple(target.inner_corners), target.square_size_m),
+        stations.inputs(image), Board(tuple(target["inner_corners"]), target["square_size_m"]),
         PipelineOptions(setup=stations.setup, method=args.method or "joint",
                         nu_method=args.nu_method, kappa=args.kappa), progress=progress)
     return calibration_result_json(result, command=command)

@@ -38,7 +38,7 @@ import numpy as np
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from calib import Detection, detect_checkerboard
+from calib import detect_checkerboard
 from drivers.capture import CaptureOptions, capture_station
 from drivers.errors import (
     CameraError,
@@ -53,6 +53,7 @@ from service.db import DatabaseUnavailableError, retry_transient
 from service.events import EventBus, state_event
 from service.models import Run, Station
 from service.motion import Motion
+from service.station_rows import detection_json
 
 log = logging.getLogger("cellcal.service")
 T = TypeVar("T")
@@ -92,13 +93,6 @@ class _Shot:
     error: str | None = None
     error_code: str | None = None
     joints: list[float] | None = None
-
-
-def _detection_json(det: Detection) -> dict[str, Any]:
-    return {"ok": det.ok, "reason": det.reason, "sharpness": det.sharpness,
-            "coverage": det.coverage, "mean_contrast": det.mean_contrast,
-            "ambiguous": det.ambiguous,
-            "corners": None if det.corners is None else det.corners.tolist()}
 
 
 def _stops_run(exc: DeviceError) -> bool:
@@ -328,12 +322,12 @@ class Capture:
         else:
             det = detect_checkerboard(shot.image, self.inner)
             if det.ok:
-                visit = _Visit("captured", shot.tcp_pose, shot.image, _detection_json(det),
+                visit = _Visit("captured", shot.tcp_pose, shot.image, detection_json(det),
                                None, None, shot.attempt)
             elif shot.attempt < ATTEMPTS:
                 return _RETRY
             else:
-                visit = _Visit("skipped", shot.tcp_pose, shot.image, _detection_json(det),
+                visit = _Visit("skipped", shot.tcp_pose, shot.image, detection_json(det),
                                f"Checkerboard not found: {det.reason}.", "not_detected",
                                shot.attempt)
         return _STORED if self._store(shot, visit) else _LOST

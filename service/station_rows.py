@@ -1,0 +1,63 @@
+"""The stored station (``models.Station`` row, its ``detection`` JSON) and the one station model
+(``calib.Station``): the service's converter at its storage boundary, written once.
+
+A row keeps what the capture loop knows besides the station (state, commanded pose, attempts,
+error code, time); the model keeps what the solver, a station-set file and a report need.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from sqlalchemy.orm import Session
+
+from calib import Detection, Station, Stations
+from service import store
+from service.models import Run
+from service.models import Station as StationRow
+
+
+def detection_json(det: Detection) -> dict[str, Any]:
+    """A detection as the ``detection`` column stores it (corners (N, 2) as lists)."""
+    return {"ok": det.ok, "reason": det.reason, "sharpness": det.sharpness,
+            "coverage": det.coverage, "mean_contrast": det.mean_contrast,
+            "ambiguous": det.ambiguous,
+            "corners": None if det.corners is None else det.corners.tolist()}
+
+
+def detection_of(doc: dict[str, Any]) -> Detection:
+    """The stored ``detection`` column as a :class:`calib.Detection`."""
+    corners = doc.get("corners")
+    return Detection(ok=bool(doc["ok"]), reason=doc.get("reason"),
+                     corners=None if corners is None else np.asarray(corners, dtype=float),
+                     sharpness=doc.get("sharpness"), coverage=doc.get("coverage", 0.0),
+                     mean_contrast=doc.get("mean_contrast"),
+                     ambiguous=bool(doc.get("ambiguous", False)))
+
+
+def station_of(row: StationRow) -> Station:
+    """A stored station as the one station model; its id is the index, ``000``, ``001``, ...;
+    ``image`` is relative to the data directory."""
+    return Station(
+        id=f"{row.index:03d}",
+        T_base_tcp=None if row.tcp_pose is None else np.asarray(row.tcp_pose, dtype=float),
+        image=row.image_path,
+        image_size=None if row.image_size is None else (int(row.image_size[0]),
+                                                        int(row.image_size[1])),
+        detection=None if row.detection is None else detection_of(row.detection),
+        rejected=row.error)
+
+
+def stations_of(run: Run, rows: Sequence[StationRow]) -> Stations:
+    """A run's stations ``rows`` as a station set of the run's setup and target."""
+    return Stations(setup=run.setup, target=dict(run.target),
+                    stations=tuple(station_of(r) for r in rows))
+
+
+def captured_station_set(s: Session, *, run_id: str) -> Stations:
+    """The run's captured stations, the ones a calibration of the run solves with (404 for an
+    unknown run)."""
+    return stations_of(store.get_run(s, run_id=run_id),
+                       store.captured_stations(s, run_id=run_id))
