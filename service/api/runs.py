@@ -4,18 +4,25 @@ from __future__ import annotations
 
 import asyncio
 import json
+import shutil
+import tempfile
 from collections.abc import AsyncIterator
+from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, Query, status
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import StreamingResponse
+from fastapi.responses import FileResponse, StreamingResponse
+from starlette.background import BackgroundTask
 
 from service import store
-from service.api.deps import RunsDep, SessionDep
+from service.api.deps import RunsDep, SessionDep, SettingsDep
+from service.errors import ConflictError, NotFoundError
 from service.events import EventBus, ends_stream
 from service.models import Run
 from service.schemas import Created, ErrorInfo, RunCreate, RunPublic, StationError
+from service.station_rows import captured_station_set
+from service.stationset import zip_station_set
 
 router = APIRouter(prefix="/runs", tags=["runs"])
 
@@ -138,3 +145,29 @@ async def _event_stream(events: EventBus, run_id: str, after: int | None) -> Asy
 def _sse(event: dict[str, Any]) -> str:
     data = {k: v for k, v in event.items() if k != "id"}
     return f"id: {event['id']}\nevent: {event['type']}\ndata: {json.dumps(data)}\n\n"
+
+
+@router.get("/{run_id}/stationset", response_class=FileResponse, responses={
+    200: {"content": {"application/zip": {}},
+          "description": "stations.json and the PNGs: unzip and run cellcal calibrate on it"},
+    404: {"description": "no such run, no captured station, or an image file is missing"},
+    409: {"description": "the run is still capturing"}})
+def get_station_set(run_id: str, session: SessionDep, settings: SettingsDep) -> FileResponse:
+    """The run's captured stations as a station set (``cellcal/stations@1``, images included,
+    zipped): ``cellcal calibrate`` on it solves what ``POST /runs/{id}/calibrations`` solves."""
+    if store.get_run(session, run_id=run_id).state == "capturing":
+        raise ConflictError(f"Run {run_id} is still capturing; pause it or wait until it is "
+                            "done.", code="invalid_state")
+    stations = captured_station_set(session, run_id=run_id)
+    if not stations.stations:
+        raise NotFoundError(f"Run {run_id} has no captured station.")
+    missing = [st.id for st in stations.stations
+               if not (settings.data_dir / str(st.image)).is_file()]
+    if missing:
+        raise NotFoundError(f"The image of station {missing[0]} of run {run_id} is missing "
+                            "from the data directory.")
+    tmp = Path(tempfile.mkdtemp(prefix="stationset-", dir=settings.data_dir))
+    path = zip_station_set(tmp / f"run-{run_id}-stations.zip", stations,
+                           source=settings.data_dir)
+    return FileResponse(path, media_type="application/zip", filename=path.name,
+                        background=BackgroundTask(shutil.rmtree, tmp, ignore_errors=True))

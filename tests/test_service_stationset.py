@@ -1,0 +1,93 @@
+"""A service run as a station set (``GET /runs/{id}/stationset``): ``cellcal calibrate`` on it
+gives the service's calibration (issue 9), and the download refuses what it cannot give."""
+
+from __future__ import annotations
+
+import io
+import json
+import threading
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.cli.main import main
+from tests.test_service_api import (  # noqa: F401 (client: the fixture)
+    client,
+    finished,
+    gated_opener,
+    service,
+    start_run,
+    wait_run,
+)
+from tests.test_service_external import wait_calibration
+
+
+def assert_same_calibration(a: dict[str, Any], b: dict[str, Any], atol: float = 1e-9) -> None:
+    """Two result documents agree on the camera, κ, ν, the hand-eye and the target pose."""
+    for key in ("K", "dist"):
+        np.testing.assert_allclose(a["camera"][key], b["camera"][key], rtol=0, atol=atol)
+    for key in ("kappa", "nu"):
+        assert a["target"][key] == pytest.approx(b["target"][key], rel=0, abs=atol)
+    for key in ("hand_eye", "target_pose"):
+        np.testing.assert_allclose(a[key]["matrix"], b[key]["matrix"], rtol=0, atol=atol)
+
+
+@pytest.mark.timeout(300)
+def test_cellcal_calibrate_on_an_exported_run_gives_the_service_result(
+        client: TestClient, tmp_path: Path) -> None:  # noqa: F811
+    run_id = start_run(client, 10)
+    assert wait_run(client, run_id, finished)["state"] == "done"
+    r = client.post(f"/runs/{run_id}/calibrations", json={})
+    assert r.status_code == 202, r.text
+    cal = wait_calibration(client, r.json()["id"], timeout=240.0)
+    assert cal["state"] == "done", cal["error"]
+    served = cal["result"]
+
+    r = client.get(f"/runs/{run_id}/stationset")
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"] == "application/zip"
+    station_dir = tmp_path / "set"
+    with zipfile.ZipFile(io.BytesIO(r.content)) as archive:
+        archive.extractall(station_dir)
+    doc = json.loads((station_dir / "stations.json").read_text())
+    stored = client.get(f"/runs/{run_id}/stations").json()
+    assert doc["format"] == "cellcal/stations@1"
+    assert [s["id"] for s in doc["stations"]] == [f"{s['index']:03d}" for s in stored]
+    assert [s["tcp_pose"] for s in doc["stations"]] == [s["tcp_pose"] for s in stored]
+    for s, st in zip(doc["stations"], stored, strict=True):  # the stored PNGs, byte for byte
+        image = client.get(f"/runs/{run_id}/stations/{st['index']}/image").content
+        assert (station_dir / s["image"]).read_bytes() == image
+
+    out = tmp_path / "cli.json"
+    assert main(["calibrate", str(station_dir), "--out", str(out)]) in (0, 3)
+    cli = json.loads(out.read_text())
+    assert [s["id"] for s in cli["stations"]] == [s["id"] for s in served["stations"]]
+    assert (cli["method"], cli["setup"], cli["options"]) == (
+        served["method"], served["setup"], served["options"])
+    assert_same_calibration(served, cli)
+    assert cli["quality"]["verdict"] == served["quality"]["verdict"]
+
+
+@pytest.mark.timeout(60)
+def test_station_set_of_a_run_being_captured_unknown_or_empty(tmp_path: Path) -> None:
+    gate = threading.Event()
+    with service(tmp_path, gated_opener(tmp_path, 1, gate)) as c:
+        run_id = start_run(c, 3)  # held at its second grab until the gate opens
+        wait_run(c, run_id, lambda run: run["stations_captured"] == 1)
+        r = c.get(f"/runs/{run_id}/stationset")
+        assert (r.status_code, r.json()["code"]) == (409, "invalid_state")
+        gate.set()
+        assert wait_run(c, run_id, finished)["state"] == "done"
+        r = c.get("/runs/nope/stationset")
+        assert (r.status_code, r.json()["code"]) == (404, "not_found")
+        r = c.post("/runs", json={"mode": "external"})
+        assert r.status_code == 201, r.text
+        empty = r.json()["id"]
+        c.post(f"/runs/{empty}/finish")
+        r = c.get(f"/runs/{empty}/stationset")
+        assert (r.status_code, r.json()["code"]) == (404, "not_found")
+        assert "no captured station" in r.json()["detail"]
