@@ -45,7 +45,10 @@ class HeldOut:
 
     ``rms_px``/``max_px`` over its corners and ``rms_m`` (corner error on the board plane) for
     image stations, None for pose-only ones; ``rot_rad``/``trans_m`` between the predicted and
-    the observed camera pose (PnP with the fold's camera for images).
+    the observed camera pose (PnP with the fold's camera for images); ``range_m`` the error of
+    the predicted camera-to-board distance alone, the one figure a wrong board scale (κ) moves
+    directly: PnP reads the distance from the board's apparent size, the robot from its
+    translations.
     """
 
     id: str
@@ -55,6 +58,7 @@ class HeldOut:
     rms_px: float | None = None
     max_px: float | None = None
     rms_m: float | None = None
+    range_m: float | None = None
 
 
 @dataclass(frozen=True)
@@ -89,7 +93,8 @@ class CrossValidation:
     """Held-out prediction errors of every station and the estimates of every fold.
 
     ``rms_px`` is the RMS over held-out stations of each station's RMS pixel error, ``rms_m``
-    the same on the board plane (metres), ``rot_rad``/``trans_m`` of the camera poses.
+    the same on the board plane (metres), ``rot_rad``/``trans_m`` of the camera poses,
+    ``range_m`` of their distances to the board.
     """
 
     kind: str  # "k-fold" or "leave-one-out"
@@ -98,6 +103,7 @@ class CrossValidation:
 
     rms_px = _HeldOutRms()
     rms_m = _HeldOutRms()
+    range_m = _HeldOutRms()
     rot_rad = _HeldOutRms()
     trans_m = _HeldOutRms()
 
@@ -109,6 +115,10 @@ class CrossValidation:
         """The figure models are compared by, per station (n,): pixels, or metres pose-only."""
         px = [s.rms_px for s in self.stations]
         return np.array(px if px and px[0] is not None else [s.trans_m for s in self.stations])
+
+    def range_errors(self) -> np.ndarray:
+        """Per station (n,) the camera-to-board distance error (m): the scale figure."""
+        return np.array([np.nan if s.range_m is None else s.range_m for s in self.stations])
 
 
 def _rms(values: Sequence[float | None]) -> float | None:
@@ -230,11 +240,12 @@ def predict_image_station(state: CellParameters, data: JointData, k: int, statio
     try:
         observed, _ = solve_pnp(true, detected, K, dist, guess=C)
         rot, trans = (float(v) for v in pose_error(C, observed))
+        rng = float(abs(np.linalg.norm(C[:3, 3]) - np.linalg.norm(observed[:3, 3])))
     except ValueError:
-        rot = trans = float("nan")
+        rot = trans = rng = float("nan")
     return HeldOut(id=station_id, fold=fold, rot_rad=rot, trans_m=trans,
                    rms_px=float(np.sqrt(np.mean(err ** 2))), max_px=float(err.max()),
-                   rms_m=rms_m)
+                   rms_m=rms_m, range_m=rng)
 
 
 def _board_plane_points(uv: np.ndarray, T_cam_target: np.ndarray, K: np.ndarray,

@@ -4,9 +4,9 @@ Richer models fit the calibration stations better by construction; whether they 
 shows only on stations they have not seen. Each choice is a pair — κ estimated or held at 1,
 ν estimated or held at 1, robot noise levels estimated from the data (variance components,
 ``calib.jointfit``) or assumed — and the simpler side wins unless the richer one predicts the
-held-out stations clearly better (``clearly_better``), or, for ν, predicts no worse while
-the corners put it many σ away from 1 (``_estimate_reason``). Every
-candidate's cross-validated figure is kept, so the choice can be checked.
+held-out stations clearly better (``clearly_better``; for κ also their distances), or
+predicts no worse while the data put the parameter many σ away from 1 (``_estimate_reason``).
+Every candidate's cross-validated figure is kept, so the choice can be checked.
 
 ``kappa`` modes: ``auto`` (chosen by prediction), ``estimate`` (always estimated), ``fixed``
 (held at exactly 1: the user measured the board and entered its true square size).
@@ -22,6 +22,7 @@ import numpy as np
 from calib.crossval import CrossValidation, FoldEstimate, cross_validate_joint
 from calib.joint import CellParameters
 from calib.jointfit import JointData, JointFit, JointModel, fit_joint, held_at_one
+from calib.quality import BOARD_SCALE_MIN
 from calib.uncertainty import jackknife_sigmas
 
 KAPPA_MODES = ("auto", "estimate", "fixed")
@@ -30,12 +31,14 @@ MIN_IMPROVEMENT = 0.05
 #: ... and the mean paired per-station improvement must exceed this many standard errors
 #: (one-sided: about 84 % confidence; with 8-20 held-out stations 2 would hide real gains).
 MIN_SIGNIFICANCE = 1.0
-#: ν this many σ away from 1 is estimated when it does not predict worse.
+#: κ or ν this many σ away from 1 is estimated when it does not predict worse.
 SIGNIFICANT_SIGMAS = 3.0
 RULE = (f"the simpler model unless the richer one lowers the cross-validated RMS by at least "
         f"{100 * MIN_IMPROVEMENT:g} % with a paired per-station improvement beyond "
-        f"{MIN_SIGNIFICANCE:g} standard error(s); nu is also estimated when that predicts no "
-        f"worse and it lies beyond {SIGNIFICANT_SIGMAS:g} sigma of 1")
+        f"{MIN_SIGNIFICANCE:g} standard error(s) (for kappa in pixels or in camera-to-board "
+        f"distance); kappa and nu are also estimated when that predicts no worse and they lie "
+        f"beyond {SIGNIFICANT_SIGMAS:g} sigma of 1 (kappa also beyond "
+        f"{100 * BOARD_SCALE_MIN:g} %)")
 NOT_WARRANTED = ("estimating it neither predicts clearly better nor finds it significantly "
                  "different from 1")
 
@@ -67,7 +70,12 @@ def clearly_better(rich: CrossValidation, simple: CrossValidation) -> bool:
     per-station errors must be positive beyond ``MIN_SIGNIFICANCE`` standard errors: a
     one-station fluke is not evidence.
     """
-    a, b = simple.station_errors() ** 2, rich.station_errors() ** 2
+    return clearly_lower(rich.station_errors(), simple.station_errors())
+
+
+def clearly_lower(rich: np.ndarray, simple: np.ndarray) -> bool:
+    """``clearly_better`` on per-station errors (n,) of any one figure, paired by station."""
+    a, b = simple ** 2, rich ** 2
     ok = np.isfinite(a) & np.isfinite(b)
     if ok.sum() < 2:
         return False
@@ -80,24 +88,41 @@ def clearly_better(rich: CrossValidation, simple: CrossValidation) -> bool:
 def _estimate_reason(rich: Candidate, simple: Candidate, name: str) -> str | None:
     """Why to estimate ``name`` (κ or ν) rather than hold it at 1, or None: not warranted.
 
-    Estimated when that predicts clearly better. ν also when it predicts no worse and
-    differs from 1 by more than ``SIGNIFICANT_SIGMAS`` σ (the larger of the formal σ and the
-    fold jackknife): the corners alone pin ν down (Method #1), far better than robot-pose
-    predictions can show. Not κ: it is seen only through the robot's translations (eq. 6), so
-    an arm's systematic errors fake a significant κ on an exact board.
+    Estimated when that predicts the held-out corners clearly better. κ also when it predicts
+    the held-out camera-to-board distances clearly better (``HeldOut.range_m``): the pixel
+    figure is dominated by the robot's lateral errors and barely moves with a board 0.5 %
+    off, the distance figure is the scale itself (PnP's distance from the board's apparent
+    size against the robot's translations). Otherwise estimated when it predicts no worse —
+    pixels for ν, distances for κ — and differs from 1 by more than ``SIGNIFICANT_SIGMAS``
+    σ (the larger of the formal σ and the fold jackknife), for κ also by more than
+    ``BOARD_SCALE_MIN`` (an arm's systematic errors bias κ by a few 0.1 % on an exact
+    board, and the jackknife then widens its σ).
     """
     if clearly_better(rich.cv, simple.cv):
         return "predicts held-out stations clearly better than held at 1"
-    if name == "kappa" or clearly_better(simple.cv, rich.cv) or rich.fit is None:
+    if clearly_better(simple.cv, rich.cv) or rich.fit is None:
         return None
+    rich_range, simple_range = rich.cv.range_errors(), simple.cv.range_errors()
+    if name == "kappa":
+        if clearly_lower(rich_range, simple_range):
+            return ("predicts the held-out camera-to-board distances clearly better than "
+                    "held at 1")
+        if not _rms(rich_range) <= _rms(simple_range):
+            return None
     value = getattr(rich.fit.cell, name)
     formal = float(rich.fit.result(np.arange(len(rich.cv.stations))).sigmas[name])
     jackknife = jackknife_sigmas(rich.cv.estimates, FoldEstimate.of(rich.fit.cell))
     sigma = max(formal, float(jackknife.get(name, 0.0)))
-    if abs(value - 1.0) > SIGNIFICANT_SIGMAS * sigma:  # see RULE
+    floor = BOARD_SCALE_MIN if name == "kappa" else 0.0
+    if abs(value - 1.0) > max(SIGNIFICANT_SIGMAS * sigma, floor):  # see RULE
         return (f"predicts no worse, and {name} = {value:.5f} differs from 1 by "
                 f"{abs(value - 1.0) / sigma:.0f} sigma")
     return None
+
+
+def _rms(errors: np.ndarray) -> float:
+    ok = np.isfinite(errors)
+    return float(np.sqrt(np.mean(errors[ok] ** 2))) if ok.any() else float("nan")
 
 
 @dataclass(frozen=True)

@@ -192,6 +192,7 @@ def _candidate_json(c: Candidate, chosen: Candidate) -> dict[str, Any]:
     out: dict[str, Any] = {"name": c.name, "chosen": c is chosen, "cv_rms_px": cv.rms_px,
                            "cv_rms_mm": None if cv.rms_m is None else 1e3 * cv.rms_m,
                            "cv_trans_mm": None if cv.trans_m is None else 1e3 * cv.trans_m,
+                           "cv_range_mm": None if cv.range_m is None else 1e3 * cv.range_m,
                            "cv_rot_deg": None if cv.rot_rad is None
                            else float(np.degrees(cv.rot_rad))}
     m, fit = c.model, c.fit

@@ -41,10 +41,8 @@ def calibrated(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str, str
         assert r.status_code == 201, r.text
         run_id = r.json()["id"]
         assert wait_run(c, run_id, finished)["state"] == "done"
-        # the mock board is 0.5 % oversized; what is under test here is the dot-hit run, so κ
-        # is estimated outright (whether 'auto' picks it on 8 stations is issue 8's open point)
-        body = {"options": {"kappa": "estimate"}}
-        cal_id = c.post(f"/runs/{run_id}/calibrations", json=body).json()["id"]
+        # default options: 'auto' must see the mock board's 0.5 % oversize on 8 stations
+        cal_id = c.post(f"/runs/{run_id}/calibrations", json={}).json()["id"]
         cal = wait_for(c, f"/calibrations/{cal_id}", timeout=180)
         assert cal["state"] == "done", cal["error"]
     return data, run_id, cal_id
