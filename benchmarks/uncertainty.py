@@ -24,22 +24,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from calib import (
-    Board,
-    Pinhole,
-    PipelineOptions,
-    StationInputs,
-    calibrate_stations,
-    perturb,
-    ur_pose_from_matrix,
-)
-from mocks.scene import (
-    MockScene,
-    camera_pose_for_tcp,
-    load_scene,
-    sample_station_poses,
-    true_tcp_pose,
-)
+from calib import Board, PipelineOptions, StationInputs, calibrate_stations
+from mocks.cornersim import simulate_corners
+from mocks.scene import MockScene, load_scene
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -51,29 +38,6 @@ PIXEL_NOISE = 0.15
 PARAMS = (("hand_eye_rot_rad", np.degrees(1.0), "deg"), ("hand_eye_trans_m", 1e3, "mm"))
 
 
-def simulate(scene: MockScene, n: int, rng: np.random.Generator
-             ) -> tuple[list[np.ndarray], list[list[float]]]:
-    """Corners seen from the true flange poses and the nominal readings with noise."""
-    P_cmd, P_true = [], []
-    while len(P_cmd) < n:  # keep the stations the UR5e reaches
-        for P in sample_station_poses(scene, n, rng):
-            try:
-                P_true.append(true_tcp_pose(scene, P))
-            except ValueError:
-                continue
-            P_cmd.append(P)
-    P_cmd, P_true = np.array(P_cmd[:n]), np.array(P_true[:n])
-    grid = scene.true_board_points()
-    cam = scene.camera
-    pinhole = Pinhole(cam.k_matrix, cam.dist_coeffs)
-    corners = [pinhole.project(grid @ C[:3, :3].T + C[:3, 3])
-               + rng.normal(0.0, PIXEL_NOISE, (len(grid), 2))
-               for C in camera_pose_for_tcp(scene, P_true)]
-    noise = scene.noise
-    P = perturb(P_cmd, np.deg2rad(noise.robot_rot_deg), noise.robot_trans_mm * 1e-3, rng)
-    return corners, ur_pose_from_matrix(P).tolist()
-
-
 def monte_carlo(scene: MockScene, seeds: int, n: int = 20) -> dict[str, np.ndarray]:
     """Per seed: hand-eye (rotation vector relative to the truth, translation) and σ's."""
     X_true = scene.hand_eye_matrix
@@ -83,7 +47,7 @@ def monte_carlo(scene: MockScene, seeds: int, n: int = 20) -> dict[str, np.ndarr
     label = "control" if scene.kinematics is None else "kinematic errors"
     for seed in tqdm(range(seeds), desc=label, leave=False):
         rng = np.random.default_rng(1000 + seed)
-        corners, poses = simulate(scene, n, rng)
+        corners, poses = simulate_corners(scene, n, rng, PIXEL_NOISE)
         r = calibrate_stations(
             StationInputs(corners, poses, image_size=tuple(scene.camera.image_size)),
             Board(tuple(t.inner_corners), t.square_size_m), PipelineOptions(setup=scene.setup))
