@@ -112,6 +112,19 @@ def test_report_of_a_real_calibration(ur_result, capsys) -> None:
     assert f"{result['target']['kappa']:.5f}" in text
     t_mm = np.asarray(result["hand_eye"]["pose"][:3]) * 1e3
     assert all(f"{v:.2f}" in text for v in t_mm)
+    # the cross-validated error in the verdict box, then every candidate, why, and the rule
+    cv = result["cross_validation"]
+    box = html[html.index("class=\"verdict\""):html.index("<h2>Result")]
+    assert f"predicted to {cv['rms_px']:.2f} px ({cv['rms_mm']:.2f} mm at the board)" in box
+    selection = result["model_selection"]
+    table = html[html.index("<h2>Model selection"):html.index("<h2>Stations")]
+    for c in selection["candidates"]:
+        row = table[table.index(f"<td class=\"l\">{c['name']}</td>"):]
+        row = row[:row.index("</tr>")]
+        assert f"{c['cv_rms_px']:.3f}" in row and f"{c['cv_range_mm']:.3f}" in row
+    chosen = table[table.index("class=\"chosen\""):]
+    assert chosen[:chosen.index("</tr>")].count(selection["chosen"]) == 1
+    assert all(d in text for d in selection["decisions"]) and selection["rule"] in text
 
 
 def test_bad_report_input_is_one_line(tmp_path, capsys) -> None:
