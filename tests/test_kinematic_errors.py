@@ -49,3 +49,21 @@ def test_mock_robot_reports_the_commanded_pose_while_the_camera_sees_the_true_on
 def test_offsets_are_validated():
     with pytest.raises(ValueError, match="within"):
         Kinematics(dh_theta_deg=[2.0, 0, 0, 0, 0, 0])
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("kinematic_errors", [True, False], ids=["kinematic-errors", "control"])
+def test_reported_sigma_matches_the_monte_carlo_spread(kinematic_errors):
+    """30 simulated calibrations of 20 stations (``benchmarks.uncertainty``): the hand-eye
+    errors are the size the reported 1σ says (RMS of error / σ within 0.8-1.25) and the σ is
+    never far below the fold jackknife (>= 0.7)."""
+    from benchmarks.uncertainty import monte_carlo, ratios
+
+    scene = load_scene(SCENE)
+    if not kinematic_errors:
+        scene = scene.model_copy(update={"kinematics": None})
+    r = ratios(monte_carlo(scene, seeds=30))
+    for block in ("rot", "trans"):
+        assert 0.8 <= r[f"z_sigma_{block}"] <= 1.25, r
+        assert r[f"sigma_over_jk_{block}"] >= 0.7, r
