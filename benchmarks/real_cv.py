@@ -26,6 +26,10 @@ Intrinsics only (``opencv-left``): k-fold over images; the fold's camera model (
 from ``solvePnP`` on half of its corners (the (i + j) even checkerboard half) predict the other
 half; the figure is the RMS over images of those errors.
 
+Board check (hand-eye sets): the default run's verdict and ``board_scale`` finding, then the
+run a user makes after measuring the board — the measured square size (to the mm) entered,
+``kappa 'fixed'`` — and its hand-eye against the default's.
+
     python -m benchmarks.real_cv            # about 2 min on 2 idle cores
 
 Prints a table and writes ``benchmarks/results/real_cv.png`` and ``real_cv.md``.
@@ -46,7 +50,7 @@ from scipy.spatial.transform import Rotation
 
 from calib.geometry import check_ur_poses, invert, make_transform
 from calib.peers import solve_opencv
-from calib.pipeline import calibrate_stations
+from calib.pipeline import CalibrationResult, PipelineOptions, calibrate_stations
 from calib.stations import StationInputs
 from calib.target import Board, board_points, detect_checkerboard
 
@@ -245,7 +249,31 @@ def run_set(data: StationData, methods: Sequence[str]) -> dict:
         jack = jackknife_sd(estimates, full_fit.X)
         out.update(kappa=full.kappa, reported=reported, jackknife=jack,
                    ratio_rot=float(np.linalg.norm(reported[:3]) / np.linalg.norm(jack[:3])),
-                   ratio_trans=float(np.linalg.norm(reported[3:]) / np.linalg.norm(jack[3:])))
+                   ratio_trans=float(np.linalg.norm(reported[3:]) / np.linalg.norm(jack[3:])),
+                   **measured_board_check(data, full))
+    return out
+
+
+def measured_board_check(data: StationData, auto: CalibrationResult) -> dict:
+    """The verdict of the default run, and the run a user makes after measuring the board:
+    the measured square size entered, ``kappa 'fixed'``; its hand-eye against the default's."""
+    found = {f.code: f for f in auto.trust.quality.findings}
+    measured = found["board_scale"].values["measured_square_size_m"] if "board_scale" in \
+        found else None
+    out = {"verdict": auto.trust.quality.verdict, "findings": sorted(found),
+           "measured_square_m": measured}
+    if measured is None:
+        return out
+    entered = round(measured, 3)  # what a calliper gives
+    poses = [np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
+             for T in data.T_base_tcp]
+    fixed = calibrate_stations(StationInputs(list(data.corners), poses,
+                                             image_size=data.image_size),
+                               Board(data.board, entered), PipelineOptions(kappa="fixed"))
+    d = _delta(fixed.hand_eye, auto.hand_eye)
+    out.update(entered_square_m=entered, fixed_kappa=fixed.kappa,
+               fixed_vs_auto_rot_rad=float(np.linalg.norm(d[:3])),
+               fixed_vs_auto_trans_m=float(np.linalg.norm(d[3:])))
     return out
 
 
@@ -269,6 +297,20 @@ def table(results: dict[str, dict]) -> str:
             f"{np.rad2deg(np.linalg.norm(jk[:3])):.3f} | {r['ratio_rot']:.2f} | "
             f"{1e3 * np.linalg.norm(rep[3:]):.2f} | {1e3 * np.linalg.norm(jk[3:]):.2f} | "
             f"{r['ratio_trans']:.2f} |")
+    lines += ["", "| set | verdict | findings | board_scale: measured square (mm) | entered, "
+              "--kappa fixed: κ | hand-eye fixed vs auto (deg, mm) |", "|---|---|---|---|---|---|"]
+    for name, r in results.items():
+        if "verdict" not in r:
+            continue
+        fixed = ("–" if r["measured_square_m"] is None else
+                 f"{1e3 * r['entered_square_m']:g} mm: {r['fixed_kappa']:.4f}")
+        delta = ("–" if r["measured_square_m"] is None else
+                 f"{np.rad2deg(r['fixed_vs_auto_rot_rad']):.3f}, "
+                 f"{1e3 * r['fixed_vs_auto_trans_m']:.2f}")
+        measured = ("–" if r["measured_square_m"] is None
+                    else f"{1e3 * r['measured_square_m']:.2f}")
+        lines.append(f"| {name} | {r['verdict']} | {', '.join(r['findings'])} | {measured} | "
+                     f"{fixed} | {delta} |")
     return "\n".join(lines)
 
 
