@@ -32,8 +32,8 @@ from tqdm import tqdm
 
 from calib import (
     OPENCV_HAND_EYE_METHODS,
-    Board,
     CellParameters,
+    Checkerboard,
     JointOptions,
     RobotNoise,
     StationInputs,
@@ -158,7 +158,7 @@ def comparison(seeds: int, stations: int = 15) -> dict[str, np.ndarray]:
 
         ours = calibrate_stations(
             StationInputs(dets, ur_pose_from_matrix(P), image_size=cam.image_size),
-            Board(tuple(t.inner_corners), t.square_size_m))
+            Checkerboard(tuple(t.inner_corners), t.square_size_m))
         _, _, _, rv, tv = cv2.calibrateCamera(
             [grid_nominal] * len(ok), [d.corners.astype(np.float32) for d in ok],
             tuple(cam.image_size), None, None)
@@ -166,7 +166,7 @@ def comparison(seeds: int, stations: int = 15) -> dict[str, np.ndarray]:
         cv_err = [pose_error(calibrate_hand_eye(P_ok, _cv_poses(rv, tv), method=m).hand_eye,
                              X_true) for m in CV_METHODS]
         bound = cramer_rao_bound(
-            P_true, Board(tuple(t.inner_corners), t.square_size_m),
+            P_true, Checkerboard(tuple(t.inner_corners), t.square_size_m),
             CellParameters(cam.k_matrix, cam.dist_coeffs, t.nu, t.kappa, X_true, Y_true),
             JointOptions(sigma_px=sigma_px, noise=RobotNoise(ROBOT_ROT, ROBOT_TRANS)))
         er, et = pose_error(ours.hand_eye, X_true)

@@ -48,11 +48,11 @@ import matplotlib
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from calib.boards import Checkerboard, board_points, detect_checkerboard
 from calib.geometry import check_ur_poses, invert, make_transform
 from calib.peers import solve_opencv
 from calib.pipeline import CalibrationResult, PipelineOptions, calibrate_stations
 from calib.stations import StationInputs
-from calib.target import Board, board_points, detect_checkerboard
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -149,7 +149,7 @@ def fit_cellcal(data: StationData, train: np.ndarray):
         for T in data.T_base_tcp[train]]
     res = calibrate_stations(
         StationInputs([data.corners[i] for i in train], poses, image_size=data.image_size),
-        Board(data.board, data.square))
+        Checkerboard(data.board, data.square))
     grid = board_points(data.board, data.square, kappa=res.kappa, nu=res.nu)
     return Fit(res.K, res.dist, grid, res.hand_eye, res.target_pose), res
 
@@ -269,7 +269,7 @@ def measured_board_check(data: StationData, auto: CalibrationResult) -> dict:
              for T in data.T_base_tcp]
     fixed = calibrate_stations(StationInputs(list(data.corners), poses,
                                              image_size=data.image_size),
-                               Board(data.board, entered), PipelineOptions(kappa="fixed"))
+                               Checkerboard(data.board, entered), PipelineOptions(kappa="fixed"))
     d = _delta(fixed.hand_eye, auto.hand_eye)
     out.update(entered_square_m=entered, fixed_kappa=fixed.kappa,
                fixed_vs_auto_rot_rad=float(np.linalg.norm(d[:3])),

@@ -33,7 +33,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from calib import Board, PipelineOptions, StationInputs, calibrate_stations
+from calib import Checkerboard, PipelineOptions, StationInputs, calibrate_stations
 from mocks.cornersim import simulate_corners
 from mocks.scene import MockScene, load_scene
 
@@ -61,7 +61,8 @@ def monte_carlo(scene: MockScene, seeds: int, n: int = 20) -> dict[str, np.ndarr
         corners, poses = simulate_corners(scene, n, rng, PIXEL_NOISE)
         r = calibrate_stations(
             StationInputs(corners, poses, image_size=tuple(scene.camera.image_size)),
-            Board(tuple(t.inner_corners), t.square_size_m), PipelineOptions(setup=scene.setup))
+            Checkerboard(tuple(t.inner_corners), t.square_size_m),
+            PipelineOptions(setup=scene.setup))
         u = r.trust.uncertainty
         out["rot"].append(Rotation.from_matrix(r.hand_eye[:3, :3] @ X_true[:3, :3].T)
                           .as_rotvec())

@@ -6,13 +6,29 @@ the layout is in ``docs/architecture.md``:
 
 * ``so3``, ``geometry`` — rotations and rigid transforms, UR pose vectors, validation;
 * ``chain`` — the cell as one loop ``P X C = Y``: setups, camera-from-robot, motions;
-* ``camera``, ``target`` — the pinhole model with distortion, PnP; the board and its detection;
+* ``camera`` — the pinhole model with distortion, PnP;
+* ``boards`` — the board interface (checkerboard, ChArUco), detection, the target type;
 * ``screw``, ``peers``, ``refine``, ``handeye`` — pose-level hand-eye (SM, OpenCV, ``refine``);
 * ``intrinsics``, ``joint``, ``nu``, ``bounds`` — corner-level estimation: Method #1, the joint
   maximum likelihood, Method #2, the Cramér-Rao bound;
 * ``validation``, ``planning``, ``pipeline`` — trust metrics, station planning, the whole flow.
 """
 
+from calib.boards import (
+    MIN_CONTRAST,
+    Board,
+    Charuco,
+    CharucoTarget,
+    Checkerboard,
+    CheckerboardTarget,
+    Detection,
+    Target,
+    TargetAdapter,
+    board_from_target,
+    board_points,
+    detect_checkerboard,
+    target_from_board,
+)
 from calib.bounds import cramer_rao_bound
 from calib.camera import Pinhole, solve_pnp
 from calib.chain import (
@@ -73,13 +89,6 @@ from calib.screw import solve_sm
 from calib.selection import KAPPA_MODES, Candidate, Selection
 from calib.selection import RULE as SELECTION_RULE
 from calib.stations import Station, StationInputs, Stations
-from calib.target import (
-    MIN_CONTRAST,
-    Board,
-    Detection,
-    board_points,
-    detect_checkerboard,
-)
 from calib.validation import dot_hit, leave_one_out, motion_residuals, reprojection_rms
 
 __all__ = [
@@ -98,6 +107,10 @@ __all__ = [
     "Candidate",
     "CellGuess",
     "CellParameters",
+    "Charuco",
+    "CharucoTarget",
+    "Checkerboard",
+    "CheckerboardTarget",
     "CornerStations",
     "CrossValidation",
     "Detection",
@@ -121,7 +134,10 @@ __all__ = [
     "StationInputs",
     "StationReport",
     "Stations",
+    "Target",
+    "TargetAdapter",
     "Trust",
+    "board_from_target",
     "board_points",
     "calibrate_hand_eye",
     "calibrate_intrinsics",
@@ -155,6 +171,7 @@ __all__ = [
     "solve_pnp",
     "solve_sm",
     "station_motions",
+    "target_from_board",
     "target_from_station",
     "ur_pose_from_matrix",
 ]

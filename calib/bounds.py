@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from calib.boards import Board
 from calib.joint import CAMERA_PARAMS, CellParameters, JointOptions, JointProblem
-from calib.target import Board
 
 #: Offsets of the 3x3 blocks of X and Y in ``calib.joint.GLOBAL_PARAMS``.
 _BLOCKS = (("hand_eye_rot", 11), ("hand_eye_trans", 14), ("target_pose_rot", 17),

@@ -25,10 +25,10 @@ from scipy.optimize import least_squares
 from scipy.sparse import csr_matrix
 
 from calib import so3
+from calib.boards import Board, board_points
 from calib.camera import Pinhole
 from calib.geometry import make_transform
 from calib.lsq import CachedProblem
-from calib.target import Board, board_points
 
 #: Order of the camera parameters in :attr:`IntrinsicsResult.covariance`.
 PARAM_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "nu")

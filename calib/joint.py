@@ -44,13 +44,13 @@ from scipy.sparse import csr_matrix
 from scipy.stats import chi2
 
 from calib import so3
+from calib.boards import Board
 from calib.camera import Pinhole
 from calib.chain import RobotNoise, check_setup, robot_chain
 from calib.geometry import check_transforms, invert
 from calib.handeye import MIN_STATIONS
 from calib.lsq import CachedProblem
 from calib.schur import BlockSolution, solve_blocks
-from calib.target import Board
 
 #: Camera and board parameters, in the order of :attr:`JointResult.covariance`.
 CAMERA_PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "nu", "kappa")

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from calib.boards import Board, Checkerboard
 from calib.camera import Pinhole
 from calib.chain import (
     RobotNoise,
@@ -59,7 +60,6 @@ from calib.stations import (
     resolve_symmetric_origin,
     usable_stations,
 )
-from calib.target import Board
 from calib.validation import (
     leave_one_out,
     motion_residuals,
@@ -234,7 +234,7 @@ def calibrate_stations(stations: StationInputs, board: Board,
         that cannot determine the calibration.
     """
     options = PipelineOptions() if options is None else options
-    board = Board(tuple(int(v) for v in board.inner_corners), board.square_size)
+    board = Checkerboard(tuple(int(v) for v in board.inner_corners), board.square_size)
     items = stations.observations if progress is None else progress(stations.observations)
     detections = detect_all(items, board.inner_corners)
     ids, usable, rejected, size = usable_stations(detections, stations)

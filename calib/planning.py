@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
+from calib.boards import Board
 from calib.camera import Pinhole, solve_pnp
 from calib.chain import (
     camera_from_robot,
@@ -41,7 +42,6 @@ from calib.chain import (
 )
 from calib.geometry import check_transforms, invert, make_transform, rotation_angle
 from calib.handeye import MIN_STATIONS
-from calib.target import Board
 
 #: Metres of travel one radian of tool rotation is worth when ordering stations.
 ROTATION_WEIGHT_M_PER_RAD = 0.1

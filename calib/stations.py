@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
+from calib.boards import Detection, detect_checkerboard
 from calib.camera import solve_pnp
 from calib.geometry import check_ur_poses, invert, make_transform, rotation_angle
 from calib.intrinsics import MIN_IMAGES
-from calib.target import Detection, detect_checkerboard
 
 Observation = np.ndarray | Detection
 

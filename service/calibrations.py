@@ -18,7 +18,7 @@ import numpy as np
 
 from calib import (
     MIN_IMAGES,
-    Board,
+    Checkerboard,
     PipelineOptions,
     RobotNoise,
     calibrate_stations,
@@ -146,7 +146,7 @@ def solve_calibration(payload: dict[str, Any]) -> dict[str, Any]:
         else opts["robot_noise_trans_mm"] * 1e-3)
     target = stations.target
     result = calibrate_stations(
-        stations.inputs(), Board(tuple(target["inner_corners"]), target["square_size_m"]),
+        stations.inputs(), Checkerboard(tuple(target["inner_corners"]), target["square_size_m"]),
         PipelineOptions(setup=stations.setup, method=opts["method"],
                         estimate_nu=opts["estimate_nu"], estimate_kappa=opts["estimate_kappa"],
                         kappa=opts.get("kappa", "auto"), nu_method=opts["nu_method"],

@@ -10,11 +10,11 @@ import cv2
 import numpy as np
 import pytest
 
+from calib.boards import board_points, detect_checkerboard
 from calib.geometry import matrix_from_ur_pose, pose_error, ur_pose_from_matrix
 from calib.handeye import calibrate_hand_eye
 from calib.refine import RefineOptions
 from calib.stations import Stations
-from calib.target import board_points, detect_checkerboard
 from drivers.capture import CapturedStation, capture_station
 from drivers.errors import RobotError
 from drivers.registry import open_camera, open_robot

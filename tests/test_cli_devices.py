@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
+from calib.boards import detect_checkerboard
 from calib.geometry import matrix_from_ur_pose, pose_error
-from calib.target import detect_checkerboard
 from mocks.scene import default_scene
 from service.cli import main as cli
 

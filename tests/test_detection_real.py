@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calib.target import detect_checkerboard
+from calib.boards import detect_checkerboard
 from tests.helpers import OPENCV_LEFT, SHARED
 
 UR_SETS = [SHARED / "data" / s for s in ("ur-kinect-highR_highT", "ur-kinect-lowR_highT")]

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from calib import (
-    Board,
+    Checkerboard,
     CornerStations,
     JointOptions,
     Pinhole,
@@ -33,7 +33,7 @@ from service.cli.main import main
 from tests.helpers import SHARED
 
 ROT, TRANS = np.deg2rad(0.05), 0.25e-3
-BOARD = Board((11, 8), 0.03)
+BOARD = Checkerboard((11, 8), 0.03)
 UR_SETS = [SHARED / "data" / name for name in ("ur-kinect-highR_highT", "ur-kinect-lowR_highT")]
 
 

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from calib.boards import Checkerboard, board_points, detect_checkerboard
 from calib.camera import Pinhole
 from calib.intrinsics import (
     PARAM_NAMES,
@@ -19,7 +20,6 @@ from calib.intrinsics import (
     calibrate_intrinsics,
     initial_intrinsics,
 )
-from calib.target import Board, board_points, detect_checkerboard
 from tests.helpers import OPENCV_LEFT
 
 DATA = OPENCV_LEFT
@@ -32,7 +32,7 @@ CAMERA = Pinhole(K_TRUE, DIST_TRUE)
 def calibrate(image_points, inner_corners, square_size, image_size, *, point_ids=None,
               **options):
     """``calibrate_intrinsics`` with the board and options as plain arguments."""
-    return calibrate_intrinsics(image_points, Board(inner_corners, square_size), image_size,
+    return calibrate_intrinsics(image_points, Checkerboard(inner_corners, square_size), image_size,
                                 IntrinsicsOptions(**options), point_ids=point_ids)
 BOARD = (11, 8)
 SQUARE = 0.03

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from calib.boards import Checkerboard, board_points
 from calib.bounds import cramer_rao_bound
 from calib.camera import Pinhole
 from calib.chain import RobotNoise
@@ -17,7 +18,6 @@ from calib.joint import (
     JointProblem,
     solve_joint,
 )
-from calib.target import Board, board_points
 from mocks.posesim import default_cell, robot_poses, sample_camera_poses
 from tests.helpers import assert_pose_close
 
@@ -54,7 +54,7 @@ def start_values(data: dict, rng: np.random.Generator) -> CellParameters:
 def stations(data: dict, P: np.ndarray | None = None, n: int | None = None) -> CornerStations:
     """The corners of ``data`` (the first ``n`` sets) with robot readings ``P``."""
     return CornerStations(data["corners"][:n], data["P"] if P is None else P,
-                          Board(BOARD, SQUARE))
+                          Checkerboard(BOARD, SQUARE))
 
 
 @pytest.mark.parametrize("setup", ["eye_in_hand", "eye_to_hand"])
@@ -164,7 +164,7 @@ def test_reported_sigma_matches_monte_carlo_spread():
         corners = [Pinhole(cell.K, DIST).project(true @ C[:3, :3].T + C[:3, 3])
                    + rng.normal(0.0, 0.1, (len(true), 2)) for C in base["C"]]
         P = perturb(base["P_true"], ROT, TRANS, rng)
-        res = solve_joint(CornerStations(corners, P, Board(BOARD, SQUARE)),
+        res = solve_joint(CornerStations(corners, P, Checkerboard(BOARD, SQUARE)),
                           start_values(base, rng), JointOptions(sigma_px=0.1, outlier_sigma=None))
         dX = res.hand_eye @ invert(cell.hand_eye)  # left error, the frame of the sigmas
         assert pose_error(dX, np.eye(4))[0] < 1e-2
@@ -185,7 +185,7 @@ def test_cramer_rao_bound_matches_the_reported_sigmas():
     data = synthetic_stations("eye_in_hand", 12, rng, pixel_noise=0.1, robot_noise=True)
     cell = data["cell"]
     res = solve_joint(stations(data), start_values(data, rng), JointOptions(sigma_px=0.1))
-    bound = cramer_rao_bound(data["P_true"], Board(BOARD, SQUARE),
+    bound = cramer_rao_bound(data["P_true"], Checkerboard(BOARD, SQUARE),
                              CellParameters(cell.K, DIST, NU, KAPPA, cell.hand_eye,
                                             cell.target_pose), JointOptions(sigma_px=0.1))
     ratio = res.sigmas["kappa"] / bound["kappa"]

@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
+from calib.boards import detect_checkerboard
 from calib.geometry import matrix_from_ur_pose, pose_error, ur_pose_from_matrix
-from calib.target import detect_checkerboard
 from drivers.base import Camera, Robot
 from drivers.errors import (
     CameraError,

@@ -7,10 +7,10 @@ from functools import cache
 import numpy as np
 import pytest
 
+from calib.boards import Checkerboard, Detection, board_points, detect_checkerboard
 from calib.camera import Pinhole
 from calib.geometry import perturb, pose_error, ur_pose_from_matrix
 from calib.pipeline import PipelineOptions, StationInputs, calibrate_stations
-from calib.target import Board, Detection, board_points, detect_checkerboard
 from mocks.posesim import default_cell, robot_poses, sample_camera_poses
 from mocks.render import render_board
 from mocks.scene import Noise, camera_pose_for_tcp, default_scene, sample_station_poses
@@ -40,10 +40,10 @@ def detections(n: int = 15, seed: int = 5) -> list[Detection]:
     return [detect_checkerboard(im, BOARD) for im in rendered_stations(n, seed)[0]]
 
 
-TARGET = Board(BOARD, SQUARE)
+TARGET = Checkerboard(BOARD, SQUARE)
 
 
-def calibrate_set(inputs: StationInputs, board: Board = TARGET, **options):
+def calibrate_set(inputs: StationInputs, board: Checkerboard = TARGET, **options):
     """``calibrate_stations`` with the options as plain arguments."""
     return calibrate_stations(inputs, board, PipelineOptions(**options))
 
@@ -108,7 +108,7 @@ def test_wrong_inner_corners_says_what_is_visible():
     images, poses = rendered_stations()
     with pytest.raises(ValueError, match=r"only 0 of 3 stations usable.*a larger 11x8 grid "
                                          r"is visible: check inner_corners"):
-        calibrate_set(StationInputs(images[:3], poses[:3]), Board((10, 8), SQUARE))
+        calibrate_set(StationInputs(images[:3], poses[:3]), Checkerboard((10, 8), SQUARE))
 
 
 def test_corrupted_robot_pose_is_rejected_with_its_reason():
@@ -172,7 +172,7 @@ def test_symmetric_board_origin_is_made_consistent():
         obs.append(Detection(ok=True, corners=uv[::-1] if k % 2 else uv, ambiguous=True))
     P = perturb(robot_poses(cell, C), np.deg2rad(0.05), 0.25e-3, rng)
     res = calibrate_set(StationInputs(obs, ur_pose_from_matrix(P).tolist(),
-                                      image_size=(1280, 1024)), Board((8, 6), 0.03))
+                                      image_size=(1280, 1024)), Checkerboard((8, 6), 0.03))
     assert res.rejected == ()
     rot, trans = pose_error(res.hand_eye, cell.hand_eye)
     assert rot < np.deg2rad(0.05) and trans < 0.5e-3

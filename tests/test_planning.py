@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from calib.boards import Checkerboard, board_points
 from calib.camera import Pinhole
 from calib.chain import camera_from_robot, robot_from_camera
 from calib.geometry import invert, make_transform, perturb, rotation_angle
@@ -16,7 +17,6 @@ from calib.planning import (
     plan_stations,
     rough_target_from_image,
 )
-from calib.target import Board, board_points
 from mocks.scene import default_scene
 from tests.helpers import assert_pose_close
 
@@ -50,7 +50,7 @@ def plan(setup="eye_in_hand", n=15, *, hand_eye_guess=None, target_pose_guess=No
     guess = CellGuess(P0, X if hand_eye_guess is None else hand_eye_guess,
                       Y if target_pose_guess is None else target_pose_guess, setup)
     options = dict(image_size=SIZE, distance_band=BAND, workspace=BOX, rng=3) | options
-    return plan_stations(n, guess, Pinhole(K, DIST), Board(CORNERS, SQUARE),
+    return plan_stations(n, guess, Pinhole(K, DIST), Checkerboard(CORNERS, SQUARE),
                          PlanOptions(**options))
 
 
@@ -189,7 +189,7 @@ def test_rough_target_from_image_closes_the_chain(setup):
     C = camera_from_robot(P0, X, Y, setup)
     uv = cv2.projectPoints(board_points(CORNERS, SQUARE), cv2.Rodrigues(C[:3, :3])[0],
                            C[:3, 3], K, DIST)[0].reshape(-1, 2)
-    board, guess = Board(CORNERS, SQUARE), CellGuess(P0, X, setup=setup)
+    board, guess = Checkerboard(CORNERS, SQUARE), CellGuess(P0, X, setup=setup)
     Y_est = rough_target_from_image(uv, Pinhole(K, DIST), board, guess)
     assert_pose_close(Y_est, Y, rot=1e-6, trans=1e-6)
     # approximate intrinsics (focal length 3 % off) still give a usable guess
@@ -201,5 +201,5 @@ def test_rough_target_from_image_closes_the_chain(setup):
 
 def test_rough_target_needs_every_corner():
     with pytest.raises(ValueError, match="got 10 corners for a 11x8 board"):
-        rough_target_from_image(np.zeros((10, 2)), Pinhole(K, None), Board(CORNERS, SQUARE),
+        rough_target_from_image(np.zeros((10, 2)), Pinhole(K, None), Checkerboard(CORNERS, SQUARE),
                                 CellGuess(np.eye(4), np.eye(4)))

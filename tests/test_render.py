@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calib.target import detect_checkerboard
+from calib.boards import detect_checkerboard
 from mocks.render import RenderParams, render_board
 from mocks.scene import camera_pose_for_tcp, default_scene, sample_station_poses
 

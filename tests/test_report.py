@@ -141,9 +141,9 @@ def test_bad_report_input_is_one_line(tmp_path, capsys) -> None:
 def test_intrinsics_only_and_pose_only_results_have_reports(ur_result, tmp_path) -> None:
     """Results without hand-eye or without camera still give a page, with the plots they
     allow."""
+    from calib.boards import Checkerboard
     from calib.pipeline import calibrate_stations
     from calib.stations import StationInputs
-    from calib.target import Board
     from mocks.posesim import default_cell, simulate
     from service.report import render_report
     from service.results import calibration_result_json
@@ -152,7 +152,7 @@ def test_intrinsics_only_and_pose_only_results_have_reports(ur_result, tmp_path)
     _, result = ur_result
     corners = [np.asarray(s["corners_px"]) for s in result["stations"]]
     intrinsics = calibration_result_json(calibrate_stations(
-        StationInputs(corners, image_size=(1280, 720)), Board((11, 8), 0.03)))
+        StationInputs(corners, image_size=(1280, 720)), Checkerboard((11, 8), 0.03)))
     page = assert_self_contained(render_report(intrinsics))
     assert page.figures == ["fig-station-errors", "fig-residuals", "fig-coverage"]
 

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
+from calib.boards import board_points, detect_checkerboard, order_corners
 from calib.geometry import make_transform
-from calib.target import board_points, detect_checkerboard, order_corners
 from mocks.render import RenderParams, render_board
 from mocks.scene import MockScene, camera_pose_for_tcp, default_scene, sample_station_poses
 from tests.helpers import OPENCV_LEFT

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from calib.boards import board_points
 from calib.camera import Pinhole
 from calib.chain import camera_from_robot
 from calib.geometry import make_transform, perturb
-from calib.target import board_points
 from calib.validation import (
     dot_hit,
     leave_one_out,

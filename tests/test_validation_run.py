@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from calib.boards import board_points
 from calib.geometry import (
     invert,
     make_transform,
@@ -9,7 +10,6 @@ from calib.geometry import (
     rotation_angle,
     ur_pose_from_matrix,
 )
-from calib.target import board_points
 from calib.validation import dot_hit
 from drivers.base import Robot, RobotStatus
 from drivers.errors import WorkspaceError

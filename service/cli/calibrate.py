@@ -27,7 +27,7 @@ import numpy as np
 from calib import (
     KAPPA_MODES,
     METHODS,
-    Board,
+    Checkerboard,
     Detection,
     PipelineOptions,
     PoseStations,
@@ -148,7 +148,8 @@ def _calibrate_images(args: argparse.Namespace, stations: Stations,
                     disable=n < PROGRESS_MIN_IMAGES, leave=False)
 
     result = calibrate_stations(
-        stations.inputs(image), Board(tuple(target["inner_corners"]), target["square_size_m"]),
+        stations.inputs(image),
+        Checkerboard(tuple(target["inner_corners"]), target["square_size_m"]),
         PipelineOptions(setup=stations.setup, method=args.method or "joint",
                         nu_method=args.nu_method, kappa=args.kappa), progress=progress)
     return calibration_result_json(result, command=command)

@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 
 from calib import (
-    Board,
     CellGuess,
+    Checkerboard,
     Pinhole,
     PlanOptions,
     camera_from_robot,
@@ -57,7 +57,7 @@ def plan_poses(motion: Motion, *, n: int, target: dict[str, Any],
             f"({det.reason}). Move the robot so the camera sees the whole board.",
             code="planning_failed")
     try:
-        pinhole, board = Pinhole(K, dist), Board(corners, target["square_size_m"])
+        pinhole, board = Pinhole(K, dist), Checkerboard(corners, target["square_size_m"])
         Y = rough_target_from_image(det.corners, pinhole, board, CellGuess(P0, X, setup=setup))
         d0 = float(np.linalg.norm(camera_from_robot(P0, X, Y, setup)[:3, 3]))
         plan = plan_stations(n, CellGuess(P0, X, Y, setup), pinhole, board, PlanOptions(

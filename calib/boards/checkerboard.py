@@ -2,7 +2,8 @@
 
 Geometry (``docs/conventions.md``): ``inner_corners = (cols, rows)``; true corner (i, j) is
 at (κν i s, κ j s, 0) in the target frame (Strobl & Hirzinger, eq. 4), nominal at κ = ν = 1.
-Corner arrays are row-major: index ``j * cols + i``, x along cols.
+Corner arrays are row-major: point id ``j * cols + i``, x along cols. A checkerboard is read
+only when all its corners are in view (``ids`` = all).
 
 Origin convention. The board has (cols + 1) x (rows + 1) squares; square (a, b) is the one
 whose far corner is inner corner (a, b), so square (0, 0) lies diagonally outside corner
@@ -22,9 +23,25 @@ order. Then:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import cv2
 import numpy as np
+
+from calib.boards.detection import (
+    MIN_CONTRAST,
+    MIN_SHARPNESS,
+    Detection,
+    as_grey,
+    blank_reason,
+    blurred_reason,
+    grey_range,
+    hull_coverage,
+    refine_corners,
+    region_sharpness,
+    sharpness,
+)
+from calib.boards.markers import markers_seen_reason
 
 #: Images at least this large (smaller side, px) are searched at half size first.
 _COARSE_MIN_SIZE = 960
@@ -32,7 +49,7 @@ _COARSE_MIN_SIZE = 960
 #: then without normalisation (the histogram equalisation can drown a board in a bright or
 #: unevenly lit image), then the exhaustive search with and without it, and last with
 #: ``CALIB_CB_ACCURACY``, whose up-sampled search reads some boards the others miss (it is
-#: 4x slower, and its corners are replaced by :func:`_refine`'s anyway).
+#: 4x slower, and its corners are replaced by :func:`refine_corners`'s anyway).
 _SB_FLAG_SETS = (
     cv2.CALIB_CB_NORMALIZE_IMAGE,
     0,
@@ -42,61 +59,56 @@ _SB_FLAG_SETS = (
 )
 #: Local contrast equalisation for the last attempt (tile size in board-independent px).
 _CLAHE = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(8, 8))
-#: Gaussian sigma (px) of the smoothing applied before the sub-pixel refinement.
-_REFINE_SIGMA = 1.2
-#: Largest half window (px) of the sub-pixel refinement.
-_REFINE_HALF_WINDOW = 5
-#: Default lower bound on :attr:`Detection.sharpness` (a Gaussian edge blur sigma of 4 px).
-MIN_SHARPNESS = 0.1
-#: Default lower bound on the image's robust grey range (1st to 99th percentile).
-MIN_CONTRAST = 20.0
 
 
 @dataclass(frozen=True)
-class Detection:
-    """Result of :func:`detect_checkerboard` for one image.
+class Checkerboard:
+    """A checkerboard as printed: ``inner_corners`` (cols, rows), nominal ``square_size`` (m).
 
-    Attributes
-    ----------
-    ok : bool
-        True when ``corners`` holds the full grid and the image passed the quality checks.
-    corners : ndarray, shape (N, 2), float64, or None
-        Pixel positions in the canonical order of :func:`board_points`; None unless ``ok``.
-    reason : str or None
-        Why the image was rejected, in words a person can act on; None when ``ok``.
-    sharpness : float or None
-        Edge steepness over the board region (whole image if no board): mean of the top 1 %
-        gradient magnitudes divided by the grey range, per pixel. About 0.4 for a crisp
-        image, ``1 / (sigma sqrt(2 pi))`` for an edge blurred by a Gaussian of ``sigma`` px.
-        None for unreadable images.
-    coverage : float
-        Fraction of the image area inside the convex hull of the corners (0 if none).
-    mean_contrast : float or None
-        Mean grey level of white minus black inner squares; None without corners.
-    ambiguous : bool
-        True for boards symmetric under 180° (cols + rows even): the origin is at one of the
-        symmetric ends and must be resolved by a later stage.
+    One of the :class:`calib.boards.Board` implementations; point ids run row-major over
+    the inner corners, and a detection always holds all of them.
     """
-
-    ok: bool
-    corners: np.ndarray | None = None
-    reason: str | None = None
-    sharpness: float | None = None
-    coverage: float = 0.0
-    mean_contrast: float | None = None
-    ambiguous: bool = False
-
-
-@dataclass(frozen=True)
-class Board:
-    """A checkerboard as printed: ``inner_corners`` (cols, rows), nominal ``square_size`` (m)."""
 
     inner_corners: tuple[int, int]
     square_size: float
+    kind: ClassVar[str] = "checkerboard"
 
-    def points(self, *, kappa: float = 1.0, nu: float = 1.0) -> np.ndarray:
-        """Inner corners in the target frame, (cols * rows, 3): :func:`board_points`."""
-        return board_points(self.inner_corners, self.square_size, kappa=kappa, nu=nu)
+    @property
+    def point_ids(self) -> np.ndarray:
+        """All point ids, shape (cols * rows,), int64."""
+        cols, rows = _check_inner_corners(self.inner_corners)
+        return np.arange(cols * rows, dtype=np.int64)
+
+    def points(self, ids: np.ndarray | None = None, *, kappa: float = 1.0,
+               nu: float = 1.0) -> np.ndarray:
+        """Inner corners ``ids`` (all when None) in the target frame, shape (N, 3):
+        :func:`board_points`."""
+        pts = board_points(self.inner_corners, self.square_size, kappa=kappa, nu=nu)
+        return pts if ids is None else pts[np.asarray(ids, dtype=np.int64)]
+
+    def detect(self, image: np.ndarray) -> Detection:
+        """:func:`detect_checkerboard` with this board's corner counts."""
+        return detect_checkerboard(image, self.inner_corners)
+
+    def outline(self, per_side: int = 8) -> np.ndarray:
+        """Points along the outer edge of the squares (one square beyond the inner corners),
+        shape (4 * per_side, 3), target frame."""
+        cols, rows = self.inner_corners
+        s = self.square_size
+        return rectangle_outline((-s, -s), (cols * s, rows * s), per_side)
+
+
+def rectangle_outline(lo: tuple[float, float], hi: tuple[float, float],
+                      per_side: int) -> np.ndarray:
+    """Points along the rectangle ``lo``..``hi`` (x, y) in the target plane, going round
+    from ``lo``, shape (4 * per_side, 3)."""
+    t = np.linspace(0.0, 1.0, per_side, endpoint=False)
+    (x0, y0), (x1, y1) = lo, hi
+    xs = np.concatenate([x0 + (x1 - x0) * t, np.full_like(t, x1), x1 - (x1 - x0) * t,
+                         np.full_like(t, x0)])
+    ys = np.concatenate([np.full_like(t, y0), y0 + (y1 - y0) * t, np.full_like(t, y1),
+                         y1 - (y1 - y0) * t])
+    return np.stack([xs, ys, np.zeros_like(xs)], axis=1)
 
 
 def board_points(inner_corners: tuple[int, int], square_size: float, *, kappa: float = 1.0,
@@ -119,8 +131,8 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
     """Find the checkerboard's inner corners in a grey or BGR uint8 image.
 
     Uses OpenCV's sector-based detector (``findChessboardCornersSB``), refines the corners
-    (:func:`_refine`) and puts them in the canonical order (:func:`order_corners`). Bad input
-    never raises: the returned :class:`Detection` says why it was rejected.
+    (:func:`refine_corners`) and puts them in the canonical order (:func:`order_corners`).
+    Bad input never raises: the returned :class:`Detection` says why it was rejected.
 
     Parameters
     ----------
@@ -130,46 +142,34 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
         Quality bounds; see :class:`Detection`.
     """
     cols, rows = _check_inner_corners(inner_corners)
-    grey, reason = _as_grey(image)
+    grey, reason = as_grey(image)
     if grey is None:
         return Detection(ok=False, reason=reason)
-    lo, hi = _grey_range(grey)
+    lo, hi = grey_range(grey)
     faint = hi - lo < min_contrast  # a blank frame, or a board in a few grey levels
     found, raw = (False, None) if hi == lo else _find_grid(grey, (cols, rows), quick=faint)
     if not found:
         if faint:
-            return Detection(ok=False, sharpness=0.0, reason=(
-                f"image is blank: grey levels span only {lo:.0f}..{hi:.0f} "
-                "(nothing in view, lens cap, lighting or exposure?)"))
-        sharpness = _sharpness(grey)
-        if sharpness < min_sharpness:
-            reason = f"image too blurred (sharpness {sharpness:.3f} < {min_sharpness:.3f})"
+            return Detection(ok=False, sharpness=0.0, reason=blank_reason(lo, hi))
+        sharp = sharpness(grey)
+        if sharp < min_sharpness:
+            reason = f"image too blurred (sharpness {sharp:.3f} < {min_sharpness:.3f})"
         else:
-            reason = _diagnose_missing_board(grey, (cols, rows))
-        return Detection(ok=False, reason=reason, sharpness=sharpness)
+            reason = (markers_seen_reason(grey, f"{cols}x{rows}-corner checkerboard")
+                      or _diagnose_missing_board(grey, (cols, rows)))
+        return Detection(ok=False, reason=reason, sharpness=sharp)
 
     corners, ambiguous, contrast = order_corners(grey, raw.reshape(-1, 2), (cols, rows))
-    corners = _refine(grey, corners, (cols, rows))
-    x0, y0 = np.floor(corners.min(axis=0)).astype(int)
-    x1, y1 = np.ceil(corners.max(axis=0)).astype(int)
-    sharpness = _sharpness(grey[max(y0, 0):y1 + 1, max(x0, 0):x1 + 1])
-    hull = cv2.convexHull(corners.astype(np.float32))
-    coverage = float(cv2.contourArea(hull)) / grey.size
-    metrics = {"sharpness": sharpness, "coverage": coverage, "mean_contrast": contrast,
-               "ambiguous": ambiguous}
-    if sharpness < min_sharpness:
-        return Detection(ok=False, **metrics, reason=(
-            f"image too blurred: the board was found but its edges are soft (sharpness "
-            f"{sharpness:.3f} < {min_sharpness:.3f}), corners would be inaccurate"))
+    grid = corners.reshape(rows, cols, 2)
+    spacing = min(np.linalg.norm(np.diff(grid, axis=0), axis=-1).min(),
+                  np.linalg.norm(np.diff(grid, axis=1), axis=-1).min())
+    corners = refine_corners(grey, corners, spacing)
+    sharp = region_sharpness(grey, corners)
+    metrics = {"sharpness": sharp, "coverage": hull_coverage(corners, grey.shape),
+               "mean_contrast": contrast, "ambiguous": ambiguous}
+    if sharp < min_sharpness:
+        return Detection(ok=False, **metrics, reason=blurred_reason(sharp, min_sharpness))
     return Detection(ok=True, corners=corners, **metrics)
-
-
-def _grey_range(grey: np.ndarray) -> tuple[float, float]:
-    """1st and 99th percentile grey levels of a uint8 image, from its 256-bin histogram
-    (exact for integer levels, and several times faster than ``np.percentile``)."""
-    cdf = np.cumsum(np.bincount(grey.ravel(), minlength=256))
-    lo, hi = np.searchsorted(cdf, [0.01 * cdf[-1], 0.99 * cdf[-1]])
-    return float(lo), float(hi)
 
 
 def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], *, quick: bool = False
@@ -177,7 +177,7 @@ def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], *, quick: bool 
     """OpenCV's SB detector, first on a half-size copy of a large image (about 4x faster).
 
     Half-size corners are scaled back (a half-size pixel centre x sits at 2x + 0.5) and are
-    only a start for :func:`_refine` at full resolution; when the half-size search fails
+    only a start for :func:`refine_corners` at full resolution; when the half-size search fails
     (small or distant board) the full image is searched with each of ``_SB_FLAG_SETS`` in
     turn, and last the exhaustive search on a locally equalised copy (CLAHE) for boards in
     shadow or glare. The common case costs one call; only a missing board costs them all.
@@ -250,34 +250,6 @@ def _check_inner_corners(inner_corners: tuple[int, int]) -> tuple[int, int]:
     return cols, rows
 
 
-def _as_grey(image: object) -> tuple[np.ndarray | None, str | None]:
-    """The image as contiguous 2-D uint8, or None and the reason it is unusable."""
-    if not isinstance(image, np.ndarray):
-        return None, f"image is empty/corrupt: expected an array, got {type(image).__name__}"
-    if image.size == 0:
-        return None, f"image is empty/corrupt: no pixels (shape {image.shape})"
-    if image.dtype != np.uint8:
-        return None, f"image is empty/corrupt: expected 8-bit pixels (uint8), got {image.dtype}"
-    if image.ndim == 3 and image.shape[2] == 1:
-        image = image[..., 0]
-    elif image.ndim == 3 and image.shape[2] == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    if image.ndim != 2:
-        return None, f"image is empty/corrupt: expected grey or BGR, got shape {image.shape}"
-    return np.ascontiguousarray(image), None
-
-
-def _sharpness(grey: np.ndarray) -> float:
-    """Mean of the top 1 % gradient magnitudes over the 1-99 % grey range, per pixel."""
-    g = grey.astype(np.float32)
-    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8.0
-    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 8.0
-    mag = np.sqrt(gx * gx + gy * gy).ravel()
-    top = np.partition(mag, int(0.99 * mag.size))[int(0.99 * mag.size):]
-    lo, hi = _grey_range(grey)
-    return float(top.mean() / max(hi - lo, 1.0))
-
-
 def _diagnose_missing_board(grey: np.ndarray, inner_corners: tuple[int, int]) -> str:
     """Reason for a failed detection: off-image, wrong size, or simply not found.
 
@@ -292,7 +264,7 @@ def _diagnose_missing_board(grey: np.ndarray, inner_corners: tuple[int, int]) ->
         return f"board not found ({cols}x{rows} inner corners expected)"
     grid_rows, grid_cols = meta.shape[:2]
     grid = pts.reshape(grid_rows, grid_cols, 2).astype(float)
-    lo, hi = _grey_range(grey)
+    lo, hi = grey_range(grey)
     if abs(_even_square_darkness(grey, grid)) < 0.25 * (hi - lo):
         return f"board not found ({cols}x{rows} inner corners expected)"
     pts = grid.reshape(-1, 2)
@@ -315,30 +287,6 @@ def _diagnose_missing_board(grey: np.ndarray, inner_corners: tuple[int, int]) ->
                 "shadow, or too blurred?)")
     return (f"board not found with {cols}x{rows} inner corners; a {grid_cols}x{grid_rows} "
             "grid is visible: check inner_corners, or whether part of the board is hidden")
-
-
-def _refine(grey: np.ndarray, corners: np.ndarray, inner_corners: tuple[int, int]) -> np.ndarray:
-    """Sub-pixel corners, shape (N, 2): ``cornerSubPix`` on a Gaussian-smoothed image.
-
-    On rendered images with known truth this is 2-5x more accurate than the SB detector's own
-    ``CALIB_CB_ACCURACY`` (0.02-0.03 px RMS against 0.03-0.16 px) because smoothing removes
-    the pixel locking that gradient-based refinement shows on very sharp edges; on the 13
-    OpenCV ``left*.jpg`` images it lowers the ``cv2.calibrateCamera`` RMS from 0.234 px
-    (``CALIB_CB_ACCURACY``) to 0.182 px. The window
-    shrinks for small squares; a corner that wanders off its window keeps the SB estimate.
-    """
-    cols, rows = inner_corners
-    grid = corners.reshape(rows, cols, 2)
-    spacing = min(np.linalg.norm(np.diff(grid, axis=0), axis=-1).min(),
-                  np.linalg.norm(np.diff(grid, axis=1), axis=-1).min())
-    half = int(np.clip(0.3 * spacing, 2, _REFINE_HALF_WINDOW))
-    smooth = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), _REFINE_SIGMA)
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
-    refined = cv2.cornerSubPix(smooth, corners.astype(np.float32).reshape(-1, 1, 2),
-                               (half, half), (-1, -1), criteria).reshape(-1, 2).astype(float)
-    moved = np.linalg.norm(refined - corners, axis=1) > 0.6 * half
-    refined[moved] = corners[moved]
-    return refined
 
 
 def _bending(grid: np.ndarray) -> float:

@@ -1,0 +1,48 @@
+"""Calibration boards: the one :class:`Board` interface, its implementations and the target
+configuration that names them.
+
+* ``base`` — the :class:`Board` protocol;
+* ``detection`` — :class:`Detection` (corners with ids) and the image helpers all boards use;
+* ``checkerboard`` — :class:`Checkerboard` (full views, origin rule, ambiguity);
+* ``charuco`` — :class:`Charuco` (OpenCV's ChArUco layout, partial views);
+* ``markers`` — ArUco markers in view, for the reasons a board was not found;
+* ``targets`` — the pydantic target union and :func:`board_from_target`.
+"""
+
+from calib.boards.base import Board
+from calib.boards.charuco import MIN_CHARUCO_CORNERS, Charuco, detect_charuco
+from calib.boards.checkerboard import (
+    Checkerboard,
+    board_points,
+    detect_checkerboard,
+    order_corners,
+)
+from calib.boards.detection import MIN_CONTRAST, MIN_SHARPNESS, Detection
+from calib.boards.targets import (
+    CharucoTarget,
+    CheckerboardTarget,
+    Target,
+    TargetAdapter,
+    board_from_target,
+    target_from_board,
+)
+
+__all__ = [
+    "MIN_CHARUCO_CORNERS",
+    "MIN_CONTRAST",
+    "MIN_SHARPNESS",
+    "Board",
+    "Charuco",
+    "CharucoTarget",
+    "Checkerboard",
+    "CheckerboardTarget",
+    "Detection",
+    "Target",
+    "TargetAdapter",
+    "board_from_target",
+    "board_points",
+    "detect_charuco",
+    "detect_checkerboard",
+    "order_corners",
+    "target_from_board",
+]

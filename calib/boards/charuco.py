@@ -1,0 +1,255 @@
+"""ChArUco target: a checkerboard with ArUco markers in its white squares.
+
+Layout: OpenCV's ``CharucoBoard`` (``squares = (cols, rows)``, square (0, 0) at the top-left
+of the printed board, markers in the white squares, ``legacy_pattern`` for boards made by
+OpenCV before 4.6). Point id k is OpenCV's ChArUco corner id: the inner corners row-major,
+``k = j * (cols - 1) + i``. The target frame has its origin at corner 0, x along ``cols``
+(towards corner 1) and y along ``rows`` (towards corner ``cols - 1``), both in the board's
+print as OpenCV draws it (x right, y down); z = x × y points into the board, away from a
+camera that sees its front, as for the checkerboard (``docs/conventions.md``). So corner
+(i, j) is at (κν i s, κ j s, 0) (Strobl & Hirzinger, eq. 4), exactly like a checkerboard with
+``(cols - 1, rows - 1)`` inner corners, and the markers make every corner's id certain:
+partial views are read, and the origin is never ambiguous.
+
+Detection: ``cv2.aruco.CharucoDetector`` finds the markers and places each corner between
+two of them; every corner is then refined on the image itself
+(:func:`~calib.boards.detection.refine_corners`), the same sub-pixel step the checkerboard
+uses. An image is usable with at least :data:`MIN_CHARUCO_CORNERS` corners not all on one
+line (a homography, hence a pose, needs four in general position; two spare).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import cv2
+import numpy as np
+
+from calib.boards.checkerboard import board_points, rectangle_outline
+from calib.boards.detection import (
+    MIN_CONTRAST,
+    MIN_SHARPNESS,
+    Detection,
+    as_grey,
+    blank_reason,
+    blurred_reason,
+    grey_range,
+    hull_coverage,
+    refine_corners,
+    region_sharpness,
+    sharpness,
+)
+from calib.boards.markers import (
+    dictionary,
+    find_markers,
+    guess_charuco_layout,
+    markers_seen_reason,
+)
+
+#: Fewest corners, not all on one line, that make a view usable.
+MIN_CHARUCO_CORNERS = 6
+#: Sharpness from every 4th row of the board region: keeps detection within 1.2x of
+#: ``CharucoDetector.detectBoard`` alone (``benchmarks/charuco.py``).
+_SHARPNESS_ROW_STEP = 4
+
+
+@dataclass(frozen=True)
+class Charuco:
+    """A ChArUco board as printed: ``squares`` (cols, rows), nominal ``square_size`` and
+    ``marker_size`` (m), OpenCV ``dictionary`` name, ``legacy_pattern``.
+
+    One of the :class:`calib.boards.Board` implementations; partial views allowed.
+    """
+
+    squares: tuple[int, int]
+    square_size: float
+    marker_size: float
+    dictionary: str
+    legacy_pattern: bool = False
+    kind: ClassVar[str] = "charuco"
+
+    def __post_init__(self) -> None:
+        cols, rows = (int(n) for n in self.squares)
+        if min(cols, rows) < 3 or (cols, rows) != tuple(self.squares):
+            raise ValueError(f"squares must be two integers >= 3 (cols, rows), got "
+                             f"{self.squares!r}")
+        if not 0.0 < self.marker_size < self.square_size:
+            raise ValueError(f"marker_size must be positive and smaller than square_size "
+                             f"({self.marker_size} >= {self.square_size})")
+        words = len(dictionary(self.dictionary).bytesList)
+        if (cols * rows) // 2 > words:
+            raise ValueError(f"a {cols}x{rows}-square ChArUco board needs "
+                             f"{(cols * rows) // 2} markers; {self.dictionary} has {words}")
+
+    @property
+    def inner_corners(self) -> tuple[int, int]:
+        """(cols - 1, rows - 1): the grid of ChArUco corners."""
+        return self.squares[0] - 1, self.squares[1] - 1
+
+    @property
+    def point_ids(self) -> np.ndarray:
+        """All corner ids, shape ((cols - 1) * (rows - 1),), int64."""
+        cols, rows = self.inner_corners
+        return np.arange(cols * rows, dtype=np.int64)
+
+    def points(self, ids: np.ndarray | None = None, *, kappa: float = 1.0,
+               nu: float = 1.0) -> np.ndarray:
+        """Corners ``ids`` (all when None) in the target frame, shape (N, 3)."""
+        pts = board_points(self.inner_corners, self.square_size, kappa=kappa, nu=nu)
+        return pts if ids is None else pts[np.asarray(ids, dtype=np.int64)]
+
+    def detect(self, image: np.ndarray) -> Detection:
+        """:func:`detect_charuco` on this board."""
+        return detect_charuco(image, self)
+
+    def outline(self, per_side: int = 8) -> np.ndarray:
+        """Points along the printed board's outer edge, shape (4 * per_side, 3)."""
+        cols, rows = self.inner_corners
+        s = self.square_size
+        return rectangle_outline((-s, -s), (cols * s, rows * s), per_side)
+
+    def opencv_board(self) -> cv2.aruco.CharucoBoard:
+        """The same board as OpenCV's object (its own units: metres)."""
+        board = cv2.aruco.CharucoBoard(tuple(self.squares), self.square_size,
+                                       self.marker_size, dictionary(self.dictionary))
+        board.setLegacyPattern(self.legacy_pattern)
+        return board
+
+    def black_squares(self) -> np.ndarray:
+        """Mask (rows, cols) of the squares printed black (those without a marker)."""
+        cols, rows = self.squares
+        centres = np.asarray(self.opencv_board().getObjPoints())[:, :, :2].mean(axis=1)
+        a, b = np.floor(centres / self.square_size).astype(int).T
+        black = np.ones((rows, cols), bool)
+        black[b, a] = False
+        return black
+
+
+def detect_charuco(image: np.ndarray, board: Charuco, *, min_sharpness: float = MIN_SHARPNESS,
+                   min_contrast: float = MIN_CONTRAST) -> Detection:
+    """Find the ChArUco corners of ``board`` in a grey or BGR uint8 image, with their ids.
+
+    Corners come from ``CharucoDetector.detectBoard`` (each between two markers seen), are
+    refined on the image (:func:`refine_corners`), dropped when their refinement window
+    leaves the image, and returned in increasing id order. Bad input never raises: the
+    :class:`Detection` says why an image is unusable (no markers, another dictionary's
+    markers, too few corners, blur, blank).
+    """
+    grey, reason = as_grey(image)
+    if grey is None:
+        return Detection(ok=False, reason=reason)
+    corners, ids, marker_ids = _detect_board(grey, board)
+    half = _window(corners, ids, board)
+    inside = _inside(corners, grey.shape, half)
+    corners, ids = corners[inside], ids[inside]
+    if not _usable(ids, board):
+        lo, hi = grey_range(grey)
+        if hi - lo < min_contrast:
+            return Detection(ok=False, sharpness=0.0, reason=blank_reason(lo, hi))
+        sharp = sharpness(grey)
+        if sharp < min_sharpness:
+            reason = f"image too blurred (sharpness {sharp:.3f} < {min_sharpness:.3f})"
+        else:
+            reason = _missing_reason(grey, board, marker_ids, len(ids))
+        return Detection(ok=False, reason=reason, sharpness=sharp)
+    corners = refine_corners(grey, corners, half / 0.3)
+    sharp = region_sharpness(grey, corners, _SHARPNESS_ROW_STEP)
+    metrics = {"sharpness": sharp, "coverage": hull_coverage(corners, grey.shape),
+               "mean_contrast": _contrast(grey, corners, ids, board)}
+    if sharp < min_sharpness:
+        return Detection(ok=False, **metrics, reason=blurred_reason(sharp, min_sharpness))
+    return Detection(ok=True, corners=corners, ids=ids, **metrics)
+
+
+def _detect_board(grey: np.ndarray, board: Charuco
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """OpenCV's detector: corners (N, 2) and ids (N,) sorted by id, marker ids (M,)."""
+    detector = cv2.aruco.CharucoDetector(board.opencv_board())
+    corners, ids, _, marker_ids = detector.detectBoard(grey)
+    marker_ids = np.zeros(0, int) if marker_ids is None else marker_ids.ravel()
+    if ids is None or len(ids) == 0:
+        return np.zeros((0, 2)), np.zeros(0, np.int64), marker_ids
+    ids = ids.ravel().astype(np.int64)
+    order = np.argsort(ids)
+    return corners.reshape(-1, 2).astype(float)[order], ids[order], marker_ids
+
+
+def _window(corners: np.ndarray, ids: np.ndarray, board: Charuco) -> float:
+    """Half window (px) of the refinement: 0.3 of the smallest distance between detected
+    grid neighbours (as for the checkerboard), between 2 and 5 px."""
+    cols = board.inner_corners[0]
+    pos = {int(k): p for k, p in zip(ids, corners, strict=True)}
+    gaps = [np.linalg.norm(p - pos[k + step]) for k, p in pos.items() for step in (1, cols)
+            if k + step in pos and (step == cols or (k + 1) % cols)]
+    spacing = min(gaps) if gaps else 2.0 / 0.3
+    return float(np.clip(0.3 * spacing, 2, 5))
+
+
+def _inside(corners: np.ndarray, shape: tuple[int, ...], half: float) -> np.ndarray:
+    """Corners whose refinement window (plus the gradient's pixel) lies inside the image."""
+    margin = np.floor(half) + 1
+    h, w = shape[:2]
+    return ((corners >= margin) & (corners <= np.array([w, h]) - 1 - margin)).all(axis=1)
+
+
+def _usable(ids: np.ndarray, board: Charuco) -> bool:
+    """At least :data:`MIN_CHARUCO_CORNERS` corners, not all on one line of the board."""
+    if len(ids) < MIN_CHARUCO_CORNERS:
+        return False
+    grid = board.points(ids)[:, :2]
+    return bool(np.linalg.matrix_rank(grid - grid.mean(axis=0), tol=1e-9) == 2)
+
+
+def _missing_reason(grey: np.ndarray, board: Charuco, marker_ids: np.ndarray,
+                    n_corners: int) -> str:
+    """Why the board was not read: no markers (another dictionary's, or none), markers of
+    another board, or too few corners."""
+    cols, rows = board.squares
+    if len(marker_ids) == 0:
+        wanted = f"{cols}x{rows}-square ChArUco board with {board.dictionary} markers"
+        return markers_seen_reason(grey, wanted) or (
+            f"ChArUco board not found: no {board.dictionary} markers in view "
+            f"({cols}x{rows} squares expected)")
+    n_markers = len(board.opencv_board().getIds())
+    foreign = marker_ids[marker_ids >= n_markers]
+    if len(foreign) > len(marker_ids) // 2:
+        return (f"{len(marker_ids)} {board.dictionary} markers seen, but ids such as "
+                f"{int(foreign.max())} are not on a {cols}x{rows}-square board (ids "
+                f"0..{n_markers - 1}): check squares")
+    layout = _layout_in_view(grey, board)
+    if layout is not None and layout != (cols, rows, board.legacy_pattern):
+        return (f"{len(marker_ids)} {board.dictionary} markers seen but only {n_corners} "
+                f"ChArUco corners readable: the markers sit as on a board with squares "
+                f"[{layout[0]}, {layout[1]}] (rows at least), legacy_pattern "
+                f"{str(layout[2]).lower()}: check squares and legacy_pattern")
+    return (f"only {n_corners} ChArUco corners readable ({len(marker_ids)} markers seen); at "
+            f"least {MIN_CHARUCO_CORNERS} not on one line are needed: bring more of the board "
+            "into view, or check for glare and blur")
+
+
+def _layout_in_view(grey: np.ndarray, board: Charuco) -> tuple[int, int, bool] | None:
+    """The ChArUco layout the board's dictionary's markers in view suggest, if any."""
+    seen = find_markers(grey, board.dictionary)
+    return None if seen is None else guess_charuco_layout(seen)
+
+
+def _contrast(grey: np.ndarray, corners: np.ndarray, ids: np.ndarray, board: Charuco) -> float:
+    """White minus black grey level: the 99th percentile grey over the corners' bounding box
+    (the white squares' margins) minus the mean at the centres of the black squares whose four
+    corners were all seen (or, when none is, the darkest 1 % of the box)."""
+    x0, y0 = np.floor(corners.min(axis=0)).astype(int)
+    x1, y1 = np.ceil(corners.max(axis=0)).astype(int)
+    box = grey[max(y0, 0):y1 + 1, max(x0, 0):x1 + 1]
+    lo, white = grey_range(box)
+    cols, rows = board.inner_corners
+    grid = np.full((rows, cols, 2), np.nan)
+    grid[ids // cols, ids % cols] = corners
+    centres = (grid[:-1, :-1] + grid[:-1, 1:] + grid[1:, :-1] + grid[1:, 1:]) / 4
+    dark = centres[board.black_squares()[1:-1, 1:-1]]
+    dark = dark[np.isfinite(dark).all(axis=1)].astype(np.float32)
+    if len(dark) == 0:
+        return white - lo
+    vals = cv2.remap(grey, dark[:, :1], dark[:, 1:], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE)
+    return float(white - vals.astype(float).mean())
