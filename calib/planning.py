@@ -158,7 +158,7 @@ def plan_stations(n: int, guess: CellGuess, camera: Pinhole, board: Board,
     grid = board.points()
     centre = grid[[0, -1]].mean(axis=0)
     half_extent = grid[-1] - centre
-    outline = _board_outline(*board.inner_corners, board.square_size)
+    outline = board.outline()
     P0, X, Y, setup = guess.start_tcp_pose, guess.hand_eye, guess.target_pose, guess.setup
     roll0 = _start_roll(camera_from_robot(P0, X, Y, setup))
     lo, hi = options.box()
@@ -300,18 +300,6 @@ def _start_roll(C0: np.ndarray) -> float:
             "robot so that the camera sees the board")
     x = R_target_cam[:, 0]
     return float(np.arctan2(x[1], x[0]))
-
-
-def _board_outline(cols: int, rows: int, square_size: float, per_side: int = 8) -> np.ndarray:
-    """Points along the outer edge of the squares (one square beyond the inner corners),
-    shape (4 * per_side, 3), target frame."""
-    t = np.linspace(0.0, 1.0, per_side, endpoint=False)
-    x0, y0, x1, y1 = -square_size, -square_size, cols * square_size, rows * square_size
-    xs = np.concatenate([x0 + (x1 - x0) * t, np.full_like(t, x1), x1 - (x1 - x0) * t,
-                         np.full_like(t, x0)])
-    ys = np.concatenate([np.full_like(t, y0), y0 + (y1 - y0) * t, np.full_like(t, y1),
-                         y1 - (y1 - y0) * t])
-    return np.stack([xs, ys, np.zeros_like(xs)], axis=1)
 
 
 def _board_in_view(C: np.ndarray, outline: np.ndarray, camera: Pinhole,
