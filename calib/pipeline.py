@@ -3,7 +3,7 @@
 One entry point, :func:`calibrate_stations`, for the CLI and the service (``product.md``,
 "Pipeline")::
 
-    detect corners (calib.target)   a bad image becomes a rejected station, never an abort
+    detect corners (calib.boards)   a bad image becomes a rejected station, never an abort
       -> intrinsics with ν (Method #1, eq. 5; skipped when intrinsics are given)
       -> [no robot poses: intrinsics-only result]
       -> symmetric boards: one physical target origin in every image, from the robot motions

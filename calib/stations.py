@@ -30,7 +30,7 @@ class StationInputs:
     """What a station set holds.
 
     ``observations``: n items, one per station: a grey or BGR uint8 image (corners are
-    detected), a :class:`calib.target.Detection` (e.g. ``ok=False`` with the reason a file could
+    detected), a :class:`calib.boards.Detection` (e.g. ``ok=False`` with the reason a file could
     not be read), or detected corners, float shape (cols * rows, 2) in the order of
     ``board_points``. Consumed once, so a generator keeps only one image in memory.
     ``tcp_poses``: n UR pose vectors T_base_tcp ``[x, y, z, rx, ry, rz]`` (m, rad) or None;

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib import Board, PipelineOptions, StationInputs, calibrate_stations
+from calib import Checkerboard, PipelineOptions, StationInputs, calibrate_stations
 from mocks.cornersim import simulate_corners
 from mocks.scene import MockScene, load_scene
 
@@ -21,7 +21,7 @@ def calibrate(scene: MockScene, n: int, seed: int):
     t = scene.target
     return calibrate_stations(
         StationInputs(corners, poses, image_size=tuple(scene.camera.image_size)),
-        Board(tuple(t.inner_corners), t.square_size_m), PipelineOptions(setup=scene.setup))
+        Checkerboard(tuple(t.inner_corners), t.square_size_m), PipelineOptions(setup=scene.setup))
 
 
 def with_board(kappa: float, kinematic_errors: bool) -> MockScene:
