@@ -50,6 +50,18 @@ def station_of(row: StationRow) -> Station:
         rejected=row.error)
 
 
+def row_values(station: Station) -> dict[str, Any]:
+    """The columns of a stored row that the station model fills: ``state`` (``captured``
+    unless rejected), ``tcp_pose``, ``image_size``, ``detection`` and ``error`` (the rejection
+    reason); the capture adds the index, commanded pose, joints, image path, code, attempts."""
+    T = station.T_base_tcp
+    return {"state": "skipped" if station.rejected else "captured",
+            "tcp_pose": None if T is None else [float(v) for v in T],
+            "image_size": None if station.image_size is None else list(station.image_size),
+            "detection": None if station.detection is None else detection_json(station.detection),
+            "error": station.rejected}
+
+
 def stations_of(run: Run, rows: Sequence[StationRow]) -> Stations:
     """A run's stations ``rows`` as a station set of the run's setup and target."""
     return Stations(setup=run.setup, target=dict(run.target),

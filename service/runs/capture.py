@@ -38,7 +38,7 @@ import numpy as np
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from calib import detect_checkerboard
+from calib import Station, detect_checkerboard
 from drivers.capture import CaptureOptions, capture_station
 from drivers.errors import (
     CameraError,
@@ -51,9 +51,10 @@ from drivers.errors import (
 from service import store
 from service.db import DatabaseUnavailableError, retry_transient
 from service.events import EventBus, state_event
-from service.models import Run, Station
+from service.models import Run
+from service.models import Station as StationRow
 from service.motion import Motion
-from service.station_rows import detection_json
+from service.station_rows import row_values
 
 log = logging.getLogger("cellcal.service")
 T = TypeVar("T")
@@ -66,19 +67,6 @@ ATTEMPTS = 2
 
 #: What the worker made of a station.
 _STORED, _RETRY, _LOST = "stored", "retry", "lost"
-
-
-@dataclass
-class _Visit:
-    """What happened at one station, ready to be stored."""
-
-    state: str
-    tcp_pose: list[float] | None
-    image: np.ndarray | None
-    detection: dict[str, Any] | None
-    error: str | None
-    error_code: str | None
-    attempts: int
 
 
 @dataclass
@@ -316,21 +304,22 @@ class Capture:
     def _develop(self, shot: _Shot) -> str:
         """The worker's part of a station: detect, write the PNG and commit (``_STORED``),
         or ``_RETRY`` for a first detection failure, or ``_LOST`` if the run is not ours."""
+        station_id = f"{shot.index:03d}"
+        code = shot.error_code
         if shot.image is None:
-            visit = _Visit("skipped", None, None, None, shot.error, shot.error_code,
-                           shot.attempt)
+            station = Station(station_id, rejected=shot.error or "No image.")
         else:
             det = detect_checkerboard(shot.image, self.inner)
-            if det.ok:
-                visit = _Visit("captured", shot.tcp_pose, shot.image, detection_json(det),
-                               None, None, shot.attempt)
-            elif shot.attempt < ATTEMPTS:
+            if not det.ok and shot.attempt < ATTEMPTS:
                 return _RETRY
-            else:
-                visit = _Visit("skipped", shot.tcp_pose, shot.image, detection_json(det),
-                               f"Checkerboard not found: {det.reason}.", "not_detected",
-                               shot.attempt)
-        return _STORED if self._store(shot, visit) else _LOST
+            height, width = shot.image.shape[:2]
+            station = Station(station_id, T_base_tcp=None if shot.tcp_pose is None
+                              else np.asarray(shot.tcp_pose, dtype=float),
+                              image=shot.image, image_size=(width, height), detection=det,
+                              rejected=None if det.ok
+                              else f"Checkerboard not found: {det.reason}.")
+            code = None if det.ok else "not_detected"
+        return _STORED if self._store(shot, station, code) else _LOST
 
     def _wanted(self) -> bool:
         """True while the service runs and this thread owns the run (worth another try)."""
@@ -341,29 +330,27 @@ class Capture:
             lambda s: store.owns_run(s, run_id=self.run_id, token=self.token),
             f"checking run {self.run_id}")
 
-    def _store(self, shot: _Shot, visit: _Visit) -> bool:
+    def _store(self, shot: _Shot, station: Station, code: str | None) -> bool:
         """Commit one station (image file first) unless the run is no longer ours; True if
-        it was stored.
+        it was stored. ``code`` names the reason of a rejected station.
 
         Ownership is claimed in the same transaction as the insert (``store.claim_run`` locks
         the run row), so a station is never committed after a cancel, a pause or a takeover
         has been committed.
         """
         rel = None
-        if visit.image is not None:
+        if isinstance(station.image, np.ndarray):
             rel = Path("runs") / self.run_id / f"{shot.index:03d}-{self.token[:8]}.png"
-            write_png(self.data_dir / rel, visit.image)
-        size = None if visit.image is None else [visit.image.shape[1], visit.image.shape[0]]
+            write_png(self.data_dir / rel, station.image)
+        row = row_values(station)
 
         def commit(s: Session) -> bool:
             if not store.claim_run(s, run_id=self.run_id, token=self.token):
                 return False
-            s.add(Station(run_id=self.run_id, index=shot.index, state=visit.state,
-                          target_pose=shot.pose, tcp_pose=visit.tcp_pose,
-                          joint_positions=shot.joints,
-                          image_path=None if rel is None else rel.as_posix(),
-                          image_size=size, detection=visit.detection, error=visit.error,
-                          error_code=visit.error_code, attempts=visit.attempts))
+            s.add(StationRow(run_id=self.run_id, index=shot.index, target_pose=shot.pose,
+                             joint_positions=shot.joints,
+                             image_path=None if rel is None else rel.as_posix(),
+                             error_code=code, attempts=shot.attempt, **row))
             try:
                 s.commit()
             except IntegrityError:  # another owner stored this index
@@ -381,8 +368,8 @@ class Capture:
         if not stored:
             return False
         event: dict[str, Any] = {"type": "station", "run_id": self.run_id,
-                                 "index": shot.index, "state": visit.state}
-        if visit.error:
-            event["error"] = {"code": visit.error_code, "detail": visit.error}
+                                 "index": shot.index, "state": row["state"]}
+        if station.rejected:
+            event["error"] = {"code": code, "detail": station.rejected}
         self._publish(event)
         return True
