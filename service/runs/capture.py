@@ -29,7 +29,7 @@ import logging
 import math
 import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -71,13 +71,13 @@ _STORED, _RETRY, _LOST = "stored", "retry", "lost"
 
 @dataclass
 class _Shot:
-    """A frame taken at a station for the worker, or the device error of its last try."""
+    """Try ``attempt`` at station ``index`` (commanded TCP pose ``pose``) for the worker: the
+    station ``taken`` (robot reading and frame, not yet detected), or why there is none."""
 
     index: int
     pose: list[float]
     attempt: int
-    tcp_pose: list[float] | None
-    image: np.ndarray | None
+    taken: Station | None
     error: str | None = None
     error_code: str | None = None
     joints: list[float] | None = None
@@ -279,10 +279,9 @@ class Capture:
                     return None
                 if _stops_run(exc):
                     raise
-                shot = _Shot(index, pose, attempt, None, None, str(exc), exc.code)
+                shot = _Shot(index, pose, attempt, None, str(exc), exc.code)
                 continue
-            return _Shot(index, pose, attempt, [float(v) for v in taken.tcp_pose],
-                         taken.image)
+            return _Shot(index, pose, attempt, taken.station(f"{index:03d}"))
         return shot
 
     # ---- stations a cell controller posts (service.runs.external) -------------------------
@@ -296,7 +295,10 @@ class Capture:
         with self.db.session() as s:
             self.inner = tuple(store.get_run(s, run_id=self.run_id).target["inner_corners"])
         detail, code = problem or (None, None)
-        return self._develop(_Shot(index, pose, ATTEMPTS, pose, image, detail, code,
+        taken = None if image is None else Station(
+            f"{index:03d}", T_base_tcp=np.asarray(pose, dtype=float), image=image,
+            image_size=(image.shape[1], image.shape[0]))
+        return self._develop(_Shot(index, pose, ATTEMPTS, taken, detail, code,
                                    joints)) == _STORED
 
     # ---- the worker's part -----------------------------------------------------------------
@@ -304,19 +306,14 @@ class Capture:
     def _develop(self, shot: _Shot) -> str:
         """The worker's part of a station: detect, write the PNG and commit (``_STORED``),
         or ``_RETRY`` for a first detection failure, or ``_LOST`` if the run is not ours."""
-        station_id = f"{shot.index:03d}"
-        code = shot.error_code
-        if shot.image is None:
-            station = Station(station_id, rejected=shot.error or "No image.")
+        code, taken = shot.error_code, shot.taken
+        if taken is None or not isinstance(taken.image, np.ndarray):
+            station = Station(f"{shot.index:03d}", rejected=shot.error or "No image.")
         else:
-            det = detect_checkerboard(shot.image, self.inner)
+            det = detect_checkerboard(taken.image, self.inner)
             if not det.ok and shot.attempt < ATTEMPTS:
                 return _RETRY
-            height, width = shot.image.shape[:2]
-            station = Station(station_id, T_base_tcp=None if shot.tcp_pose is None
-                              else np.asarray(shot.tcp_pose, dtype=float),
-                              image=shot.image, image_size=(width, height), detection=det,
-                              rejected=None if det.ok
+            station = replace(taken, detection=det, rejected=None if det.ok
                               else f"Checkerboard not found: {det.reason}.")
             code = None if det.ok else "not_detected"
         return _STORED if self._store(shot, station, code) else _LOST
