@@ -9,10 +9,12 @@ do better, so a benchmark compares the reported σ and the actual errors against
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from calib.boards import Board
-from calib.joint import CAMERA_PARAMS, CellParameters, JointOptions, JointProblem
+from calib.joint import CAMERA_PARAMS, CellParameters, CornerStations, JointOptions, JointProblem
 
 #: Offsets of the 3x3 blocks of X and Y in ``calib.joint.GLOBAL_PARAMS``.
 _BLOCKS = (("hand_eye_rot", 11), ("hand_eye_trans", 14), ("target_pose_rot", 17),
@@ -20,8 +22,10 @@ _BLOCKS = (("hand_eye_rot", 11), ("hand_eye_trans", 14), ("target_pose_rot", 17)
 
 
 def cramer_rao_bound(T_base_tcp: np.ndarray, board: Board, truth: CellParameters,
-                     options: JointOptions) -> dict[str, float | np.ndarray]:
-    """Cramér-Rao bound with the full board seen at every true robot pose T_base_tcp (n, 4, 4).
+                     options: JointOptions, point_ids: Sequence[np.ndarray] | None = None
+                     ) -> dict[str, float | np.ndarray]:
+    """Cramér-Rao bound with the board's points ``point_ids`` (default: all) seen at every
+    true robot pose T_base_tcp (n, 4, 4).
 
     ``options`` gives the setup, σ_px, the robot noise and the fixed parameters (its outlier
     and budget fields are not used). Returns the covariance (23, 23) over
@@ -29,10 +33,9 @@ def cramer_rao_bound(T_base_tcp: np.ndarray, board: Board, truth: CellParameters
     ``hand_eye_trans``, ``target_pose_rot``, ``target_pose_trans``, and the standard deviation
     of each name in ``CAMERA_PARAMS``.
     """
-    grid = board.points()[:, :2]
-    n = len(T_base_tcp)
+    grids = CornerStations([None] * len(T_base_tcp), T_base_tcp, board, point_ids).grids()
     # the Jacobian does not depend on the observations: placeholders suffice
-    problem = JointProblem([grid] * n, [np.zeros_like(grid)] * n,
+    problem = JointProblem(grids, [np.zeros_like(g) for g in grids],
                            np.asarray(T_base_tcp, dtype=float), truth, options)
     cov = problem.covariance(problem.x0(), 1.0)
     bound: dict[str, float | np.ndarray] = {

@@ -228,7 +228,7 @@ def _kind(parts: list[np.ndarray], n: int) -> str:
 def predict_image_station(state: CellParameters, data: JointData, k: int, station_id: str,
                           fold: int) -> HeldOut:
     """Errors of station ``k``'s corners predicted from its robot reading through ``state``."""
-    true = data.stations.board.points(kappa=state.kappa, nu=state.nu)
+    true = data.stations.board.points(data.stations.ids()[k], kappa=state.kappa, nu=state.nu)
     C = camera_from_robot(data.stations.T_base_tcp[k], state.hand_eye, state.target_pose,
                           data.setup)
     K, dist = state.K, np.asarray(state.dist, dtype=float)

@@ -25,7 +25,7 @@ from scipy.optimize import least_squares
 from scipy.sparse import csr_matrix
 
 from calib import so3
-from calib.boards import Board, board_points
+from calib.boards import Board
 from calib.camera import Pinhole
 from calib.geometry import make_transform
 from calib.lsq import CachedProblem
@@ -193,7 +193,7 @@ class IntrinsicsOptions:
 def calibrate_intrinsics(image_points: Sequence[np.ndarray], board: Board,
                          image_size: Sequence[int], options: IntrinsicsOptions | None = None, *,
                          point_ids: Sequence[np.ndarray] | None = None) -> IntrinsicsResult:
-    """Calibrate K, distortion and the board aspect ratio ν from checkerboard corners (eq. 5).
+    """Calibrate K, distortion and the board aspect ratio ν from board corners (eq. 5).
 
     Minimises the reprojection error over fx, fy, cx, cy, k1, k2, p1, p2, k3, ν and a 6-vector
     pose per image, with the true corner (i, j) at (ν i s, j s, 0); κ = 1 (see module docstring).
@@ -202,13 +202,13 @@ def calibrate_intrinsics(image_points: Sequence[np.ndarray], board: Board,
     ----------
     image_points : sequence of N arrays, shape (N_i, 2) or (N_i, 1, 2)
         Detected corners in pixels, one array per image (N ≥ 3).
-    board : inner corners (cols, rows; x runs along ``cols``) and nominal square size (m).
+    board : the printed target (:class:`calib.boards.Board`), nominal geometry.
     image_size : (width, height)
         Pixels.
     options : :class:`IntrinsicsOptions` (default: estimate ν, nothing held).
     point_ids : sequence of N integer arrays, shape (N_i,), optional
-        Grid index ``j * cols + i`` of each corner, for partial detections. Without it every
-        image must hold all ``cols * rows`` corners in row-major order (OpenCV's).
+        The board's point id of each corner, for partial detections. Without it every image
+        must hold all the board's points in id order.
 
     Returns
     -------
@@ -222,17 +222,16 @@ def calibrate_intrinsics(image_points: Sequence[np.ndarray], board: Board,
     """
     options = IntrinsicsOptions() if options is None else options
     width, height = _check_image_size(image_size)
-    cols, rows = _check_inner_corners(board.inner_corners)
-    square_size = _check_square_size(board.square_size)
+    _check_square_size(board.square_size)
+    grid = board.points()[:, :2]
     fixed = _check_fix(options.fix)
-    pts, ids = _check_points(image_points, point_ids, cols * rows, (width, height))
+    pts, ids = _check_points(image_points, point_ids, len(grid), (width, height))
     nu, estimate_nu = options.nu, options.estimate_nu
     if nu is not None and not (np.isfinite(nu) and 0.5 < nu < 2.0):
         raise ValueError(f"nu must be a finite aspect ratio near 1, got {nu}")
     if not estimate_nu:
         fixed = (*fixed, "nu")
 
-    grid = board_points((cols, rows), square_size)[:, :2]
     obj = [grid[i] for i in ids]
     init = initial_intrinsics(obj, pts, (width, height))
     cam0 = np.zeros(_N_CAM)
@@ -368,14 +367,6 @@ def _check_image_size(image_size: Sequence[int]) -> tuple[int, int]:
             or np.any(size < 2):
         raise ValueError(f"image_size must be (width, height) in whole pixels, got {image_size!r}")
     return int(size[0]), int(size[1])
-
-
-def _check_inner_corners(inner_corners: Sequence[int]) -> tuple[int, int]:
-    ic = np.asarray(inner_corners)
-    if ic.shape != (2,) or np.any(ic != np.round(ic)) or np.any(ic < 2):
-        raise ValueError(
-            f"inner_corners must be [cols, rows] with each >= 2, got {inner_corners!r}")
-    return int(ic[0]), int(ic[1])
 
 
 def _check_square_size(square_size: float) -> float:

@@ -37,7 +37,7 @@ The same model gives the Cramér-Rao bound (``calib.bounds``); ν by Method #2 i
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.sparse import csr_matrix
@@ -74,14 +74,32 @@ class CornerStations:
     """What was measured at n stations: corners of a board and the robot readings.
 
     ``image_points`` holds n arrays (N_i, 2) of detected corners (pixels), ``T_base_tcp`` the
-    readings (n, 4, 4) in metres, ``point_ids`` optionally n int arrays (N_i,) with the grid
-    index ``j * cols + i`` of each corner (default: the full grid, row-major).
+    readings (n, 4, 4) in metres, ``point_ids`` optionally n int arrays (N_i,) with the board's
+    point id of each corner (partial views; default: all of the board's points in order).
     """
 
     image_points: Sequence[np.ndarray]
     T_base_tcp: np.ndarray
     board: Board
     point_ids: Sequence[np.ndarray] | None = None
+
+    def ids(self) -> list[np.ndarray]:
+        """Point ids (N_i,) int64 of every station's corners."""
+        if self.point_ids is None:
+            return [self.board.point_ids] * len(self.image_points)
+        return [np.asarray(i, dtype=np.int64) for i in self.point_ids]
+
+    def grids(self) -> list[np.ndarray]:
+        """Nominal board coordinates (N_i, 2) of every station's corners."""
+        grid = self.board.points()[:, :2]
+        return [grid[i] for i in self.ids()]
+
+    def subset(self, index: Sequence[int] | np.ndarray) -> CornerStations:
+        """The stations ``index`` (in that order), ids included."""
+        index = [int(i) for i in index]
+        ids = None if self.point_ids is None else [self.point_ids[i] for i in index]
+        return replace(self, image_points=[self.image_points[i] for i in index],
+                       T_base_tcp=np.asarray(self.T_base_tcp)[index], point_ids=ids)
 
 
 @dataclass(frozen=True)
@@ -199,17 +217,15 @@ def solve_joint(stations: CornerStations, start: CellParameters,
     n = len(T_base_tcp)
     if len(stations.image_points) != n:
         raise ValueError(f"{len(stations.image_points)} corner sets but {n} robot poses")
-    grid = stations.board.points()[:, :2]
-    ids = ([np.arange(len(grid))] * n if stations.point_ids is None
-           else [np.asarray(i, dtype=int) for i in stations.point_ids])
+    grids = stations.grids()
     pts = [np.asarray(p, dtype=float).reshape(-1, 2) for p in stations.image_points]
-    if any(len(p) != len(i) for p, i in zip(pts, ids, strict=True)):
-        raise ValueError("every station needs one grid index per corner (point_ids)")
+    if any(len(p) != len(g) for p, g in zip(pts, grids, strict=True)):
+        raise ValueError("every station needs one point id per corner (point_ids)")
 
     keep = list(range(n))
     rejected: list[tuple[int, str]] = []
     while True:
-        problem = JointProblem([grid[ids[k]] for k in keep], [pts[k] for k in keep],
+        problem = JointProblem([grids[k] for k in keep], [pts[k] for k in keep],
                                T_base_tcp[keep], start, options)
         # the station blocks eliminated exactly (calib.schur): an iterative sparse solver
         # needs hundreds of products per step on these ill-conditioned problems

@@ -64,10 +64,7 @@ class JointData:
     sigma_px: float
 
     def subset(self, indices: Sequence[int]) -> JointData:
-        idx = np.asarray(indices, dtype=int)
-        st = self.stations
-        return replace(self, stations=replace(
-            st, image_points=[st.image_points[i] for i in idx], T_base_tcp=st.T_base_tcp[idx]))
+        return replace(self, stations=self.stations.subset(indices))
 
     def __len__(self) -> int:
         return len(self.stations.image_points)
@@ -119,13 +116,12 @@ def fit_joint(data: JointData, model: JointModel, start: CellParameters, *,
     """Fit ``model`` to ``data`` from ``start``; parameters in ``model.fix`` keep their start."""
     cell = start
     sigmas = [data.sigma_px, model.noise.rot_rad, model.noise.trans_m]
-    grid = data.stations.board.points()[:, :2]
-    n = len(data)
+    grids = data.stations.grids()
     for _ in range(NOISE_ROUNDS if model.estimate_noise else 1):
         options = JointOptions(sigma_px=sigmas[0], setup=data.setup,
                                noise=RobotNoise(sigmas[1], sigmas[2]), fix=model.fix,
                                outlier_sigma=None)
-        problem = JointProblem([grid] * n, list(data.stations.image_points),
+        problem = JointProblem(grids, list(data.stations.image_points),
                                data.stations.T_base_tcp, cell, options)
         sol = solve_blocks(problem, problem.x0(), max_nfev=max_nfev)
         cell, _ = problem.unpack(sol.x)

@@ -3,7 +3,8 @@
 One entry point, :func:`calibrate_stations`, for the CLI and the service (``product.md``,
 "Pipeline")::
 
-    detect corners (calib.boards)   a bad image becomes a rejected station, never an abort
+    detect the board (calib.boards)  a bad image becomes a rejected station, never an abort;
+                                     partial views carry their point ids through every stage
       -> intrinsics with ν (Method #1, eq. 5; skipped when intrinsics are given)
       -> [no robot poses: intrinsics-only result]
       -> symmetric boards: one physical target origin in every image, from the robot motions
@@ -19,14 +20,14 @@ the per-image camera poses of the intrinsic stage (κ = 1, no joint stage).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from calib.boards import Board, Checkerboard
+from calib.boards import Board
 from calib.camera import Pinhole
 from calib.chain import (
     RobotNoise,
@@ -78,8 +79,9 @@ MAX_HELD_OUT = 15
 class StationReport:
     """Per-station residuals of a calibration.
 
-    ``corners_px`` holds the detected corners (N, 2) and ``residuals_px`` the fitted model's
-    projection minus them (N, 2), pixels, in the order of ``board_points``. ``rms_px`` is the
+    ``corners_px`` holds the detected corners (N, 2), ``point_ids`` their board point ids (N,)
+    and ``residuals_px`` the fitted model's projection minus them (N, 2), pixels, in the same
+    order. ``rms_px`` is the
     reprojection RMS of the fitted model (the joint model with the robot correction, or the
     intrinsic stage's own pose); ``chain_rms_px`` predicts the image from the uncorrected robot
     reading through X and Y (validation, includes the robot's noise). ``correction`` and
@@ -95,6 +97,7 @@ class StationReport:
     correction: PoseError | None = None
     mahalanobis: float | None = None
     loo: PoseError | None = None
+    point_ids: np.ndarray | None = None
 
     @property
     def n_corners(self) -> int:
@@ -224,8 +227,10 @@ def calibrate_stations(stations: StationInputs, board: Board,
     BLAS runs on one thread meanwhile: the solvers' matrices are small (tens of columns), so
     a multi-threaded BLAS spends its time in thread hand-offs — 5x slower on 2 busy cores.
 
-    ``board`` holds the inner corners (cols, rows) and the nominal square size (m);
-    ``progress`` wraps the observation iterable, e.g. a progress bar.
+        ``board`` is the printed target (:class:`calib.boards.Board`: checkerboard, ChArUco);
+    each station may see part of it (its detection's point ids), with at least
+    ``MIN_STATION_POINTS`` points. ``progress`` wraps the observation iterable, e.g. a
+    progress bar.
 
     Raises
     ------
@@ -234,22 +239,24 @@ def calibrate_stations(stations: StationInputs, board: Board,
         that cannot determine the calibration.
     """
     options = PipelineOptions() if options is None else options
-    board = Checkerboard(tuple(int(v) for v in board.inner_corners), board.square_size)
     items = stations.observations if progress is None else progress(stations.observations)
-    detections = detect_all(items, board.inner_corners)
-    ids, usable, rejected, size = usable_stations(detections, stations)
+    detections = detect_all(items, board)
+    ids, usable, rejected, size = usable_stations(detections, stations, board)
     corners = [detections[k][0].corners for k in usable]
-    stage = _camera_stage(corners, board, size, stations.intrinsics, options)
+    measured = CornerStations(corners, np.zeros((len(usable), 4, 4)), board,
+                              [detections[k][0].ids for k in usable])
+    stage = _camera_stage(measured, size, stations.intrinsics, options)
     stage.image_size = size
     common = dict(setup=options.setup, image_size=size, options=options.record(
         stations.intrinsics is not None))
     if stations.tcp_poses is None or all(p is None for p in stations.tcp_poses):
-        res = _view_residuals(corners, stage.C, board.points(nu=stage.nu), stage.K, stage.dist)
+        res = _view_residuals(measured, stage.C, stage.nu, stage.K, stage.dist)
         return CalibrationResult(
             method="intrinsics", K=stage.K, dist=stage.dist, sigma_px=stage.sigma_px,
             rms_px=float(np.sqrt(np.mean(stage.rms_img ** 2))), nu=stage.nu, kappa=1.0,
             hand_eye=None, target_pose=None, sigmas=stage.sigmas,
-            stations=tuple(StationReport(ids[k], corners[i], res[i], float(stage.rms_img[i]))
+            stations=tuple(StationReport(ids[k], corners[i], res[i], float(stage.rms_img[i]),
+                                         point_ids=measured.ids()[i])
                            for i, k in enumerate(usable)),
             rejected=tuple(rejected), validation={}, trust=Trust(
                 cross_validation=None, model_selection=None, uncertainty=None,
@@ -262,7 +269,7 @@ def calibrate_stations(stations: StationInputs, board: Board,
     if any(d.ambiguous for d, _ in (detections[k] for k in usable)):
         stage.C, corners = resolve_symmetric_origin(robot_chain(T_base_tcp, options.setup),
                                                      stage.C, corners, board.points(), stage.nu)
-    measured = CornerStations(corners, T_base_tcp, board)
+    measured = replace(measured, image_points=corners, T_base_tcp=T_base_tcp)
     _hand_eye_stage(stage, measured, size, options, stations.intrinsics is not None)
     station_ids = [ids[k] for k in usable]
     if stage.joint is not None:
@@ -281,18 +288,22 @@ def calibrate_stations(stations: StationInputs, board: Board,
         trust=_trust(stage, measured, station_ids, options, rejected), **common)
 
 
-def _camera_stage(corners: list[np.ndarray], board: Board, size: tuple[int, int],
+def _camera_stage(views: CornerStations, size: tuple[int, int],
                   intrinsics: tuple[np.ndarray, np.ndarray] | None,
                   options: PipelineOptions) -> _Stage:
-    """Intrinsics with ν (Method #1), or the known camera and per-image PnP poses."""
+    """Intrinsics with ν (Method #1), or the known camera and per-image PnP poses, from the
+    corners and point ids of ``views`` (its robot poses are not used)."""
     if intrinsics is None:
-        intr = calibrate_intrinsics(corners, board, size,
-                                    IntrinsicsOptions(estimate_nu=options.estimate_nu))
+        intr = calibrate_intrinsics(views.image_points, views.board, size,
+                                    IntrinsicsOptions(estimate_nu=options.estimate_nu),
+                                    point_ids=views.ids())
         return _Stage(K=intr.K, dist=intr.dist, nu=intr.nu, C=intr.T_cam_target,
                       sigma_px=intr.sigma_px, rms_img=intr.rms_px_per_image,
                       sigmas={**intr.sigmas, "kappa": 0.0})
     K, dist = check_intrinsics(*intrinsics)
-    C, sigma_px, rms_img = poses_from_known_intrinsics(corners, board.points(), K, dist)
+    all_points = views.board.points()
+    C, sigma_px, rms_img = poses_from_known_intrinsics(
+        list(views.image_points), [all_points[i] for i in views.ids()], K, dist)
     return _Stage(K=K, dist=dist, nu=1.0, C=C, sigma_px=sigma_px, rms_img=rms_img, sigmas={})
 
 
@@ -341,9 +352,7 @@ def _choose_model(stage: _Stage, stations: CornerStations, ids: list[str],
     first = stage.joint
     assert first is not None
     kept = first.stations
-    data = JointData(replace(stations, image_points=[stations.image_points[i] for i in kept],
-                             T_base_tcp=stations.T_base_tcp[kept]), options.setup,
-                     stage.sigma_px)
+    data = JointData(stations.subset(kept), options.setup, stage.sigma_px)
     stage.choice = choose_joint(data, [ids[i] for i in kept],
                                 JointModel("all estimated", stage.fix, options.noise), first,
                                 kappa=options.kappa_mode)
@@ -360,9 +369,7 @@ def _trust(stage: _Stage, stations: CornerStations, ids: list[str],
            options: PipelineOptions, rejected: list[tuple[str, str]]) -> Trust:
     """Cross-validation, selection, uncertainty and the verdict of the finished stages."""
     keep = stage.keep
-    data = JointData(replace(stations, image_points=[stations.image_points[i] for i in keep],
-                             T_base_tcp=stations.T_base_tcp[keep]), options.setup,
-                     stage.sigma_px)
+    data = JointData(stations.subset(keep), options.setup, stage.sigma_px)
     kept_ids = [ids[i] for i in keep]
     if stage.choice is None:
         cell = CellParameters(stage.K, stage.dist, stage.nu, stage.kappa, stage.hand_eye,
@@ -393,9 +400,10 @@ def _validate(stage: _Stage, stations: CornerStations, ids: list[str], setup: st
     """Reports of the kept stations and the validation figures, camera poses at true scale."""
     keep, joint, X, Y = stage.keep, stage.joint, stage.hand_eye, stage.target_pose
     P, Ck = stations.T_base_tcp[keep], scale_translations(stage.C[keep], stage.kappa)
-    pts = [stations.image_points[i] for i in keep]
-    true_grid = stations.board.points(kappa=stage.kappa, nu=stage.nu)
-    chain = reprojection_rms(pts, [true_grid] * len(keep), stage.K, stage.dist,
+    kept = stations.subset(keep)
+    pts, point_ids = kept.image_points, kept.ids()
+    true_grids = [kept.board.points(i, kappa=stage.kappa, nu=stage.nu) for i in point_ids]
+    chain = reprojection_rms(pts, true_grids, stage.K, stage.dist,
                              camera_from_robot(P, X, Y, setup))
     held = np.unique(np.linspace(0, len(keep) - 1, min(len(keep), MAX_HELD_OUT)).astype(int))
     loo = leave_one_out(P, Ck, setup=setup, held_out=held)
@@ -407,8 +415,7 @@ def _validate(stage: _Stage, stations: CornerStations, ids: list[str], setup: st
         fit_res = np.split(joint.residuals_px, np.cumsum([len(m) for m in pts])[:-1])
     else:
         fit_rms = stage.rms_img[keep]
-        fit_res = _view_residuals(pts, stage.C[keep], stations.board.points(nu=stage.nu),
-                                  stage.K, stage.dist)
+        fit_res = _view_residuals(kept, stage.C[keep], stage.nu, stage.K, stage.dist)
     reports = []
     for j, i in enumerate(keep):
         extra = {} if joint is None else dict(
@@ -418,7 +425,7 @@ def _validate(stage: _Stage, stations: CornerStations, ids: list[str], setup: st
         reports.append(StationReport(ids[i], pts[j], fit_res[j], float(fit_rms[j]),
                                      chain_rms_px=float(chain[j]),
                                      loo=PoseError(float(loo_rot[j]), float(loo_trans[j])),
-                                     **extra))
+                                     point_ids=point_ids[j], **extra))
     validation = {
         "E_R": motion.E_R, "E_t": motion.E_t, "n_motions": motion.n_motions,
         "loo_rot_rad_mean": float(np.nanmean(loo.rot_rad)),
@@ -431,11 +438,10 @@ def _validate(stage: _Stage, stations: CornerStations, ids: list[str], setup: st
     return reports, validation
 
 
-def _view_residuals(corners: Sequence[np.ndarray], T_cam_target: np.ndarray, grid: np.ndarray,
+def _view_residuals(views: CornerStations, T_cam_target: np.ndarray, nu: float,
                     K: np.ndarray, dist: np.ndarray) -> list[np.ndarray]:
-    """Projected minus detected corners (N, 2) per view, each at its own board pose.
-
-    ``T_cam_target`` (n, 4, 4) and ``grid`` (N, 3) in the same (nominal-scale) target frame.
+    """Projected minus detected corners (N_i, 2) per view, each at its own board pose
+    ``T_cam_target`` (n, 4, 4) in the nominal-scale target frame, the board's aspect ``nu``.
     """
-    return [Pinhole(K, dist).project(grid @ T[:3, :3].T + T[:3, 3]) - m
-            for m, T in zip(corners, T_cam_target, strict=True)]
+    return [Pinhole(K, dist).project(views.board.points(i, nu=nu) @ T[:3, :3].T + T[:3, 3]) - m
+            for m, i, T in zip(views.image_points, views.ids(), T_cam_target, strict=True)]

@@ -212,7 +212,8 @@ def _checked(guess: CellGuess, camera: Pinhole) -> tuple[CellGuess, Pinhole]:
 
 
 def rough_target_from_image(corners: np.ndarray, camera: Pinhole, board: Board,
-                            guess: CellGuess) -> np.ndarray:
+                            guess: CellGuess, point_ids: np.ndarray | None = None
+                            ) -> np.ndarray:
     """Rough target pose from one detection at the start pose, for :func:`plan_stations`.
 
     ``solvePnP`` of the nominal board gives T_cam_target, closed through the chain:
@@ -223,29 +224,29 @@ def rough_target_from_image(corners: np.ndarray, camera: Pinhole, board: Board,
 
     Parameters
     ----------
-    corners : shape (cols * rows, 2), detected corners in the order of ``board_points``.
+    corners : shape (N, 2), detected corners of the points ``point_ids``.
     camera : approximate intrinsics (distortion may be zero or None).
-    board : inner corners (cols, rows) and nominal square size (m).
+    board : the printed target.
     guess : the start pose T_base_tcp when the image was taken, and the hand-eye guess
         T_tcp_cam (eye-in-hand) or T_base_cam (eye-to-hand); its target pose is not used.
+    point_ids : shape (N,), the board point ids of ``corners`` (a partial view); default all.
 
     Returns
     -------
     target_pose : shape (4, 4), T_base_target (eye-in-hand) or T_tcp_target (eye-to-hand).
     """
     check_setup(guess.setup)
-    obj = board.points()
+    obj = board.points(point_ids)
     img = np.asarray(corners, dtype=float).reshape(-1, 2)
     if img.shape[0] != obj.shape[0]:
-        raise ValueError(f"got {img.shape[0]} corners for a {board.inner_corners[0]}x"
-                         f"{board.inner_corners[1]} board ({obj.shape[0]} expected)")
+        raise ValueError(f"got {img.shape[0]} corners for {obj.shape[0]} board points")
     P = check_transforms(guess.start_tcp_pose, "start_tcp_pose")[0]
     X = check_transforms(guess.hand_eye, "hand_eye_guess")[0]
     try:
         C, _ = solve_pnp(obj, img, camera.K, camera.dist)
     except ValueError:
-        raise ValueError("solvePnP failed on the detected corners: check K and inner_corners"
-                         ) from None
+        raise ValueError("solvePnP failed on the detected corners: check K and the target "
+                         "configuration") from None
     return target_from_station(P, X, C, guess.setup)
 
 

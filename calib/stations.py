@@ -17,12 +17,15 @@ from typing import Any
 
 import numpy as np
 
-from calib.boards import Detection, detect_checkerboard
+from calib.boards import Board, Detection
 from calib.camera import solve_pnp
 from calib.geometry import check_ur_poses, invert, make_transform, rotation_angle
 from calib.intrinsics import MIN_IMAGES
 
 Observation = np.ndarray | Detection
+#: Fewest board points a station must show, not all on one line (a homography needs four in
+#: general position; two spare against a bad corner).
+MIN_STATION_POINTS = 6
 
 
 @dataclass(frozen=True)
@@ -30,9 +33,10 @@ class StationInputs:
     """What a station set holds.
 
     ``observations``: n items, one per station: a grey or BGR uint8 image (corners are
-    detected), a :class:`calib.boards.Detection` (e.g. ``ok=False`` with the reason a file could
-    not be read), or detected corners, float shape (cols * rows, 2) in the order of
-    ``board_points``. Consumed once, so a generator keeps only one image in memory.
+    detected by the board), a :class:`calib.boards.Detection` (corners with their point ids,
+    partial views allowed; or ``ok=False`` with the reason a file could not be read), or
+    corners of the whole board, float shape (N, 2) in the order of its point ids. Consumed
+    once, so a generator keeps only one image in memory.
     ``tcp_poses``: n UR pose vectors T_base_tcp ``[x, y, z, rx, ry, rz]`` (m, rad) or None;
     None (or no pose at all) gives an intrinsics-only calibration. ``ids``: n names for reports
     (default ``000``, ``001``, ...). ``image_size``: (width, height), required when no
@@ -108,10 +112,11 @@ class Stations:
 
 
 def usable_stations(detections: list[tuple[Detection, tuple[int, int] | None]],
-                     stations: StationInputs
+                     stations: StationInputs, board: Board
                      ) -> tuple[list[str], list[int], list[tuple[str, str]], tuple[int, int]]:
     """Station ids, the indices of usable stations, the rejected (id, reason) and the image
-    size (width, height); ``ValueError`` when too few are usable."""
+    size (width, height); ``ValueError`` when too few are usable. A station needs
+    :data:`MIN_STATION_POINTS` points of ``board``, not all on one line."""
     n, tcp_poses = len(detections), stations.tcp_poses
     ids = ([f"{k:03d}" for k in range(n)] if stations.ids is None
            else [str(s) for s in stations.ids])
@@ -128,6 +133,8 @@ def usable_stations(detections: list[tuple[Detection, tuple[int, int] | None]],
             if shape != size:
                 det = Detection(ok=False, reason=(
                     f"image is {shape[0]}x{shape[1]}, the others {size[0]}x{size[1]}"))
+        if det.ok:
+            det = _enough_points(det, board)
         if det.ok:
             usable.append(k)
         else:
@@ -146,7 +153,23 @@ def usable_stations(detections: list[tuple[Detection, tuple[int, int] | None]],
     return ids, usable, rejected, size
 
 
-def detect_all(items: Iterable[Observation], inner_corners: tuple[int, int], *,
+def _enough_points(det: Detection, board: Board) -> Detection:
+    """``det``, or a rejection when its points are too few, repeated, not the board's, or
+    all on one line."""
+    ids, n_board = det.ids, len(board.point_ids)
+    if ids.min(initial=0) < 0 or ids.max(initial=0) >= n_board or len(set(ids)) != len(ids):
+        return Detection(ok=False, reason=(
+            f"point ids must be distinct board points 0..{n_board - 1}"))
+    grid = board.points(ids)[:, :2]
+    if len(ids) < MIN_STATION_POINTS or np.linalg.matrix_rank(
+            grid - grid.mean(axis=0), tol=1e-9) < 2:
+        return Detection(ok=False, reason=(
+            f"only {len(ids)} board points usable, at least {MIN_STATION_POINTS} not on one "
+            "line are needed"))
+    return det
+
+
+def detect_all(items: Iterable[Observation], board: Board, *,
                 workers: int | None = None) -> list[tuple[Detection, tuple[int, int] | None]]:
     """``_detect`` over all observations on a few threads, in order.
 
@@ -158,28 +181,27 @@ def detect_all(items: Iterable[Observation], inner_corners: tuple[int, int], *,
     with ThreadPoolExecutor(workers) as pool:
         pending: deque[Future] = deque()
         for obs in items:
-            pending.append(pool.submit(_detect, obs, inner_corners))
+            pending.append(pool.submit(_detect, obs, board))
             if len(pending) >= 2 * workers:
                 out.append(pending.popleft().result())
         out.extend(f.result() for f in pending)
     return out
 
 
-def _detect(obs: Observation, inner_corners: tuple[int, int]
-            ) -> tuple[Detection, tuple[int, int] | None]:
+def _detect(obs: Observation, board: Board) -> tuple[Detection, tuple[int, int] | None]:
     """Detection of one observation and the image size (w, h) if it was an image."""
     if isinstance(obs, Detection):
         return obs, None
     arr = np.asarray(obs)
     if arr.ndim == 2 and arr.shape[1] == 2 and np.issubdtype(arr.dtype, np.floating):
-        n_grid = inner_corners[0] * inner_corners[1]
-        if len(arr) != n_grid or not np.isfinite(arr).all():
+        n_board = len(board.point_ids)
+        if len(arr) != n_board or not np.isfinite(arr).all():
             return Detection(ok=False, reason=(
-                f"{len(arr)} corners given, the {inner_corners[0]}x{inner_corners[1]} board "
-                f"has {n_grid} (or some are not finite)")), None
-        return Detection(ok=True, corners=arr.astype(float)), None
+                f"{len(arr)} corners given, the board has {n_board} (or some are not "
+                "finite); give a detection with point ids for a partial view")), None
+        return Detection(ok=True, corners=arr.astype(float), ids=board.point_ids), None
     shape = (arr.shape[1], arr.shape[0]) if arr.ndim >= 2 else None
-    return detect_checkerboard(arr, inner_corners), shape
+    return board.detect(arr), shape
 
 
 def check_intrinsics(K: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -193,12 +215,13 @@ def check_intrinsics(K: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.nd
     return K, np.concatenate([dist, np.zeros(5)])[:5]
 
 
-def poses_from_known_intrinsics(corners: list[np.ndarray], grid: np.ndarray, K: np.ndarray,
-                                 dist: np.ndarray
+def poses_from_known_intrinsics(corners: list[np.ndarray], grids: list[np.ndarray],
+                                 K: np.ndarray, dist: np.ndarray
                                  ) -> tuple[np.ndarray, float, np.ndarray]:
-    """Per-image T_cam_target (nominal board) by PnP, σ_px and per-image RMS (n,)."""
+    """Per-image T_cam_target (nominal board) by PnP, σ_px and per-image RMS (n,);
+    ``grids`` holds each image's board points (N_i, 3)."""
     poses, sq = [], []
-    for m in corners:
+    for m, grid in zip(corners, grids, strict=True):
         try:
             C, residuals = solve_pnp(grid, m, K, dist)
         except ValueError:

@@ -49,9 +49,9 @@ from calib.boards.markers import (
 
 #: Fewest corners, not all on one line, that make a view usable.
 MIN_CHARUCO_CORNERS = 6
-#: Sharpness from every 4th row of the board region: keeps detection within 1.2x of
-#: ``CharucoDetector.detectBoard`` alone (``benchmarks/charuco.py``).
-_SHARPNESS_ROW_STEP = 4
+#: Sharpness and contrast from every 4th row of the board region: keeps detection within
+#: 1.2x of ``CharucoDetector.detectBoard`` alone (``benchmarks/charuco.py``).
+_QUALITY_ROW_STEP = 4
 
 
 @dataclass(frozen=True)
@@ -154,7 +154,7 @@ def detect_charuco(image: np.ndarray, board: Charuco, *, min_sharpness: float = 
             reason = _missing_reason(grey, board, marker_ids, len(ids))
         return Detection(ok=False, reason=reason, sharpness=sharp)
     corners = refine_corners(grey, corners, half / 0.3)
-    sharp = region_sharpness(grey, corners, _SHARPNESS_ROW_STEP)
+    sharp = region_sharpness(grey, corners, _QUALITY_ROW_STEP)
     metrics = {"sharpness": sharp, "coverage": hull_coverage(corners, grey.shape),
                "mean_contrast": _contrast(grey, corners, ids, board)}
     if sharp < min_sharpness:
@@ -236,12 +236,12 @@ def _layout_in_view(grey: np.ndarray, board: Charuco) -> tuple[int, int, bool] |
 
 def _contrast(grey: np.ndarray, corners: np.ndarray, ids: np.ndarray, board: Charuco) -> float:
     """White minus black grey level: the 99th percentile grey over the corners' bounding box
-    (the white squares' margins) minus the mean at the centres of the black squares whose four
-    corners were all seen (or, when none is, the darkest 1 % of the box)."""
+    (the white squares' margins; every 4th row) minus the mean at the centres of the black
+    squares whose four corners were all seen (or, when none is, the darkest 1 % of the box)."""
     x0, y0 = np.floor(corners.min(axis=0)).astype(int)
     x1, y1 = np.ceil(corners.max(axis=0)).astype(int)
     box = grey[max(y0, 0):y1 + 1, max(x0, 0):x1 + 1]
-    lo, white = grey_range(box)
+    lo, white = grey_range(box[::_QUALITY_ROW_STEP])
     cols, rows = board.inner_corners
     grid = np.full((rows, cols, 2), np.nan)
     grid[ids // cols, ids % cols] = corners
