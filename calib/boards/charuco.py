@@ -26,20 +26,9 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
+from calib.boards import detection as imaging
 from calib.boards.checkerboard import board_points, rectangle_outline
-from calib.boards.detection import (
-    MIN_CONTRAST,
-    MIN_SHARPNESS,
-    Detection,
-    as_grey,
-    blank_reason,
-    blurred_reason,
-    grey_range,
-    hull_coverage,
-    refine_corners,
-    region_sharpness,
-    sharpness,
-)
+from calib.boards.detection import MIN_CONTRAST, MIN_SHARPNESS, Detection
 from calib.boards.markers import (
     dictionary,
     find_markers,
@@ -136,7 +125,7 @@ def detect_charuco(image: np.ndarray, board: Charuco, *, min_sharpness: float = 
     :class:`Detection` says why an image is unusable (no markers, another dictionary's
     markers, too few corners, blur, blank).
     """
-    grey, reason = as_grey(image)
+    grey, reason = imaging.as_grey(image)
     if grey is None:
         return Detection(ok=False, reason=reason)
     corners, ids, marker_ids = _detect_board(grey, board)
@@ -144,21 +133,21 @@ def detect_charuco(image: np.ndarray, board: Charuco, *, min_sharpness: float = 
     inside = _inside(corners, grey.shape, half)
     corners, ids = corners[inside], ids[inside]
     if not _usable(ids, board):
-        lo, hi = grey_range(grey)
+        lo, hi = imaging.grey_range(grey)
         if hi - lo < min_contrast:
-            return Detection(ok=False, sharpness=0.0, reason=blank_reason(lo, hi))
-        sharp = sharpness(grey)
+            return Detection(ok=False, sharpness=0.0, reason=imaging.blank_reason(lo, hi))
+        sharp = imaging.sharpness(grey)
         if sharp < min_sharpness:
             reason = f"image too blurred (sharpness {sharp:.3f} < {min_sharpness:.3f})"
         else:
             reason = _missing_reason(grey, board, marker_ids, len(ids))
         return Detection(ok=False, reason=reason, sharpness=sharp)
-    corners = refine_corners(grey, corners, half / 0.3)
-    sharp = region_sharpness(grey, corners, _QUALITY_ROW_STEP)
-    metrics = {"sharpness": sharp, "coverage": hull_coverage(corners, grey.shape),
+    corners = imaging.refine_corners(grey, corners, half / 0.3)
+    sharp = imaging.region_sharpness(grey, corners, _QUALITY_ROW_STEP)
+    metrics = {"sharpness": sharp, "coverage": imaging.hull_coverage(corners, grey.shape),
                "mean_contrast": _contrast(grey, corners, ids, board)}
     if sharp < min_sharpness:
-        return Detection(ok=False, **metrics, reason=blurred_reason(sharp, min_sharpness))
+        return Detection(ok=False, **metrics, reason=imaging.blurred_reason(sharp, min_sharpness))
     return Detection(ok=True, corners=corners, ids=ids, **metrics)
 
 
@@ -241,7 +230,7 @@ def _contrast(grey: np.ndarray, corners: np.ndarray, ids: np.ndarray, board: Cha
     x0, y0 = np.floor(corners.min(axis=0)).astype(int)
     x1, y1 = np.ceil(corners.max(axis=0)).astype(int)
     box = grey[max(y0, 0):y1 + 1, max(x0, 0):x1 + 1]
-    lo, white = grey_range(box[::_QUALITY_ROW_STEP])
+    lo, white = imaging.grey_range(box[::_QUALITY_ROW_STEP])
     cols, rows = board.inner_corners
     grid = np.full((rows, cols, 2), np.nan)
     grid[ids // cols, ids % cols] = corners
