@@ -20,6 +20,12 @@ axes), rolled about its optical axis, from a distance in ``distance_band``. A vi
 the whole board projects inside the image with a margin and its tcp pose lies in the workspace
 box. The stations are then ordered for short travel, and a plan whose motions could not
 determine the hand-eye (Chen: two non-parallel screw axes) is refused before the robot moves.
+
+On request (``PlanOptions.cut_fraction``, for boards read in partial views such as ChArUco) a
+share of the stations instead *cut* the board at the image border on purpose: their look-at
+point ranges over the whole board, and a view is kept when some points fall outside the image
+while at least ``min_cut_points`` stay inside and one of those lies near an image corner
+(:func:`cuts_board_at_corner`). Those are the points that decide the lens distortion.
 """
 
 from __future__ import annotations
@@ -56,6 +62,10 @@ _ATTEMPTS_PER_STATION = 300
 _LOOK_AT_JITTER = 0.2
 #: Smallest cosine between the start camera's optical axis and the board normal.
 _MIN_START_FACING = 0.2
+#: A cut view shows a point within this fraction of the smaller image side of an image corner.
+CORNER_REACH_FRAC = 0.15
+#: Points of a cut view count as in view this fraction of the smaller image side inside it.
+_CUT_MARGIN_FRAC = 0.01
 
 
 @dataclass(frozen=True)
@@ -98,7 +108,9 @@ class PlanOptions:
     frame the tcp positions must lie in; ``max_tilt_deg`` the largest angle between the optical
     axis and the board normal; ``max_roll_deg`` the largest roll about the optical axis relative
     to the start view; ``margin_frac`` the free image border around the board, as a fraction of
-    the smaller image side; ``rng`` a generator or seed.
+    the smaller image side; ``rng`` a generator or seed. ``cut_fraction`` of the stations cut
+    the board at the image border on purpose (module docstring), each keeping at least
+    ``min_cut_points`` points in view; only for boards read in partial views.
     """
 
     image_size: tuple[int, int]
@@ -108,8 +120,15 @@ class PlanOptions:
     max_roll_deg: float = 90.0
     margin_frac: float = 0.04
     rng: np.random.Generator | int | None = None
+    cut_fraction: float = 0.0
+    min_cut_points: int = 12
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.cut_fraction <= 1.0:
+            raise ValueError(f"cut_fraction must be in [0, 1], got {self.cut_fraction}")
+        if self.min_cut_points < 6:
+            raise ValueError(f"min_cut_points must be at least 6 (a camera pose needs them), "
+                             f"got {self.min_cut_points}")
         if not 0.0 < self.max_tilt_deg <= MAX_TILT_LIMIT_DEG:
             raise ValueError(f"max_tilt_deg must be in (0, {MAX_TILT_LIMIT_DEG:g}], got "
                              f"{self.max_tilt_deg}: tilted views are what make the hand-eye "
@@ -167,13 +186,16 @@ def plan_stations(n: int, guess: CellGuess, camera: Pinhole, board: Board,
     tcps: list[np.ndarray] = []
     for k in range(n):
         in_view = 0
+        cut = np.floor((k + 1) * options.cut_fraction) > np.floor(k * options.cut_fraction)
         for _ in range(_ATTEMPTS_PER_STATION):
             azimuth = 2.0 * np.pi * (k + rng.uniform()) / n
             tilt = np.deg2rad(options.max_tilt_deg) * np.sqrt(rng.uniform(0.1, 1.0))
             roll = roll0 + np.deg2rad(options.max_roll_deg) * rng.uniform(-1.0, 1.0)
-            look_at = centre + _LOOK_AT_JITTER * half_extent * rng.uniform(-1.0, 1.0, 3)
+            jitter = 1.0 if cut else _LOOK_AT_JITTER
+            look_at = centre + jitter * half_extent * rng.uniform(-1.0, 1.0, 3)
             C = look_at_view(look_at, tilt, azimuth, roll, rng.uniform(*options.distance_band))
-            if not _board_in_view(C, outline, camera, options):
+            if not (_cuts_board(C, grid, camera, options) if cut
+                    else _board_in_view(C, outline, camera, options)):
                 continue
             in_view += 1
             P = robot_from_camera(C, X, Y, setup)
@@ -313,6 +335,34 @@ def _board_in_view(C: np.ndarray, outline: np.ndarray, camera: Pinhole,
     w, h = options.image_size
     m = options.margin_frac * min(w, h)
     return bool((uv >= m).all() and (uv <= [w - m, h - m]).all())
+
+
+def _cuts_board(C: np.ndarray, grid: np.ndarray, camera: Pinhole,
+                options: PlanOptions) -> bool:
+    """Whether view ``C`` cuts the board of points ``grid`` (N, 3) as a cut station should."""
+    in_cam = grid @ C[:3, :3].T + C[:3, 3]
+    uv = np.full((len(grid), 2), np.nan)
+    front = in_cam[:, 2] > 0.0
+    uv[front] = camera.project(in_cam[front])
+    return cuts_board_at_corner(uv, options.image_size, options.min_cut_points)
+
+
+def cuts_board_at_corner(uv: np.ndarray, image_size: tuple[int, int], min_points: int) -> bool:
+    """Whether projected points ``uv`` (N, 2), NaN for points behind the camera, cut the board.
+
+    True when some points fall outside the image, at least ``min_points`` lie inside it (by
+    ``_CUT_MARGIN_FRAC`` of the smaller side), and one of those is within
+    ``CORNER_REACH_FRAC`` of the smaller image side from an image corner.
+    """
+    w, h = image_size
+    margin_px = _CUT_MARGIN_FRAC * min(w, h)
+    with np.errstate(invalid="ignore"):
+        inside = ((uv >= margin_px) & (uv <= [w - margin_px, h - margin_px])).all(axis=1)
+    if inside.all() or inside.sum() < min_points:
+        return False
+    corners = np.array([[0.0, 0.0], [w, 0.0], [0.0, h], [w, h]])
+    reach = np.linalg.norm(uv[inside][:, None] - corners[None], axis=-1).min()
+    return bool(reach <= CORNER_REACH_FRAC * min(w, h))
 
 
 def _infeasible_message(k: int, n: int, views_fit: bool, options: PlanOptions) -> str:

@@ -1,4 +1,5 @@
-"""Synthetic camera images of the checkerboard, geometrically exact and anti-aliased.
+"""Synthetic camera images of the checkerboard or ChArUco board, geometrically exact and
+anti-aliased.
 
 Each output pixel is split into ``supersample``² sub-pixel samples (default 1). A sample's
 pixel position is undistorted to a normalized camera ray (exactly on a coarse grid with OpenCV,
@@ -14,6 +15,9 @@ integer coordinates (OpenCV), so pixel (u, v) covers [u - 0.5, u + 0.5] x [v - 0
 The board is the *true* geometry: corner (i, j) at (κν i s, κ j s, 0) in the target frame,
 square (a, b) (a = 0..cols, b = 0..rows, square (0, 0) diagonally outside corner (0, 0)) black
 when a + b is even, on a white plate with ``margin_squares`` of border, over a grey background.
+A ChArUco board (``markers``) is the checkerboard of its inner corners with OpenCV's ArUco
+markers in the white squares (``mocks.markers``), box-filtered the same way; its corner id k is
+checkerboard corner k, so ``MockScene.true_board_points()[ids]`` are the true corners.
 """
 
 from __future__ import annotations
@@ -25,7 +29,8 @@ import cv2
 import numpy as np
 from scipy.interpolate import RectBivariateSpline
 
-from mocks.scene import MockScene
+from mocks.markers import MarkerLayout, marker_coverage
+from mocks.scene import CharucoTarget, MockScene
 
 #: Pixel spacing of the grid on which rays are undistorted exactly before spline interpolation.
 _RAY_GRID_STEP = 8
@@ -50,10 +55,12 @@ class RenderParams:
     white: float = 225.0
     background: float = 110.0
     supersample: int = 1
+    markers: MarkerLayout | None = None
 
     @classmethod
     def from_scene(cls, scene: MockScene, **overrides: object) -> RenderParams:
         """Parameters of ``scene``'s camera, true board and image noise; ``overrides`` win."""
+        t = scene.target
         fields: dict[str, object] = {
             "image_size": tuple(scene.camera.image_size),
             "K": tuple(scene.camera.k_matrix.ravel()),
@@ -65,6 +72,9 @@ class RenderParams:
             "blur_px": scene.noise.blur_px,
             "image_noise": scene.noise.image_noise,
             "seed": scene.seed,
+            "markers": MarkerLayout(tuple(t.squares), t.marker_size_m / t.square_size_m,
+                                    t.dictionary, t.legacy_pattern)
+            if isinstance(t, CharucoTarget) else None,
         }
         fields.update(overrides)
         return cls(**fields)  # type: ignore[arg-type]
@@ -133,8 +143,12 @@ def _shade(p: RenderParams, G: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.n
         black *= _box(gy, -1.0, rows, fy)
         wave = _square_wave(gx, fx)
         wave *= _square_wave(gy, fy)
+        if p.markers is not None and p.markers.swapped_colours:
+            np.negative(wave, out=wave)
         wave += 1.0
         black *= wave
+        if p.markers is not None:
+            black += 2.0 * marker_coverage(p.markers, gx, gy, fx, fy)
         black *= 0.5 * (p.white - p.black)
         plate *= p.white - p.background
         plate += p.background

@@ -1,6 +1,6 @@
 """Mock scene: the data that fully defines a simulated robot cell, and its true geometry.
 
-A scene is the JSON file described in ``product.md`` ("Mock scene"): camera, checkerboard (with
+A scene is the JSON file described in ``product.md`` ("Mock scene"): camera, board (with
 its *true* κ and ν), setup, true hand-eye and target pose, noise levels and a seed. Frames and
 pose conventions are those of ``docs/conventions.md``:
 
@@ -23,7 +23,9 @@ from pydantic import (
     AfterValidator,
     BaseModel,
     ConfigDict,
+    Discriminator,
     Field,
+    Tag,
     ValidationError,
     field_validator,
     model_validator,
@@ -39,7 +41,9 @@ from calib import (
     matrix_from_ur_pose,
     robot_from_camera,
 )
+from calib.planning import cuts_board_at_corner
 from drivers.config_files import describe_validation_error
+from mocks.markers import aruco_dictionary, marker_count
 from mocks.ur_kinematics import DHOffsets, kinematic_error
 
 #: Fraction of the image the pattern spans (along its tighter axis) at the working distance.
@@ -104,6 +108,52 @@ class Target(_Strict):
     nu: float = Field(1.0, gt=0.9, lt=1.1, description="true extra scale along x")
 
 
+class CharucoTarget(_Strict):
+    """ChArUco board as printed, in OpenCV's layout (``mocks.markers``), with the true κ, ν.
+
+    Corner id k (OpenCV's charuco corner id) is inner corner k of the (cols - 1) x (rows - 1)
+    grid, row-major: id 0 at the target origin, x along cols.
+    """
+
+    type: Literal["charuco"]
+    squares: tuple[Annotated[int, Field(ge=3)], Annotated[int, Field(ge=3)]] = Field(
+        description="[cols, rows] of squares; x runs along cols")
+    square_size_m: float = Field(gt=0.0, le=0.5, description="nominal square size in metres")
+    marker_size_m: float = Field(gt=0.0, description="nominal marker side in metres")
+    dictionary: str = Field(description="OpenCV's ArUco dictionary name, e.g. DICT_5X5_100")
+    legacy_pattern: bool = Field(False, description="OpenCV's pre-4.6 ChArUco layout")
+    kappa: float = Field(1.0, gt=0.9, lt=1.1, description="true scale of the printed board")
+    nu: float = Field(1.0, gt=0.9, lt=1.1, description="true extra scale along x")
+
+    @model_validator(mode="after")
+    def _check_markers(self) -> CharucoTarget:
+        if self.marker_size_m >= self.square_size_m:
+            raise ValueError("marker_size_m must be smaller than square_size_m")
+        need, have = marker_count(self.squares), aruco_dictionary(self.dictionary).bytesList
+        if need > have.shape[0]:
+            raise ValueError(f"a {self.squares[0]}x{self.squares[1]} board needs {need} "
+                             f"markers; {self.dictionary} has only {have.shape[0]}")
+        return self
+
+    @property
+    def inner_corners(self) -> tuple[int, int]:
+        """(cols - 1, rows - 1): the chessboard corners' grid."""
+        return self.squares[0] - 1, self.squares[1] - 1
+
+
+def _target_type(value: object) -> object:
+    """The ``type`` a scene target is read as; a file without one holds a checkerboard."""
+    if isinstance(value, dict):
+        return value.get("type", "checkerboard")
+    return getattr(value, "type", None)
+
+
+#: The board a scene holds, told apart by ``type``.
+SceneTarget = Annotated[Annotated[Target, Tag("checkerboard")]
+                        | Annotated[CharucoTarget, Tag("charuco")],
+                        Discriminator(_target_type)]
+
+
 class Noise(_Strict):
     """Noise the mock devices add: robot pose readings and camera images."""
 
@@ -156,7 +206,7 @@ class MockScene(_Strict):
 
     format: Literal["cellcal/scene@1"] = "cellcal/scene@1"
     camera: Camera
-    target: Target
+    target: SceneTarget
     setup: Literal["eye_in_hand", "eye_to_hand"]
     hand_eye: Matrix4 = Field(description="true T_tcp_cam (eye-in-hand) or T_base_cam, 4x4")
     target_pose: Matrix4 = Field(
@@ -266,6 +316,8 @@ class StationSpread:
     max_tilt_deg: float = 35.0
     distance_band: tuple[float, float] = (0.8, 1.3)
     margin_frac: float = 0.04
+    cut_fraction: float = 0.0
+    min_cut_points: int = 12
 
 
 def sample_station_poses(scene: MockScene, n: int, rng: np.random.Generator,
@@ -277,38 +329,68 @@ def sample_station_poses(scene: MockScene, n: int, rng: np.random.Generator,
     drawn from ``spread.distance_band`` times the working distance, rolled by a random angle in
     ±180° about the optical axis. Views are rejected until the whole board plate outline
     (pattern plus one square of white margin) projects inside the image with
-    ``spread.margin_frac`` of the smaller image side to spare. Poses are true (noise-free)
-    commands.
+    ``spread.margin_frac`` of the smaller image side to spare. A share ``spread.cut_fraction``
+    of the stations (spread evenly over the sequence) instead cut the board at the image
+    border on purpose, as the planner's cut stations do: look-at points range over the whole
+    pattern, and a view is kept when ``calib.planning.cuts_board_at_corner`` accepts its
+    projected corners (at least ``spread.min_cut_points`` in view, one near an image corner).
+    Poses are true (noise-free) commands.
     """
     cols, rows = scene.target.inner_corners
     s = scene.target.square_size_m * scene.target.kappa
     sx = s * scene.target.nu
     outline = _rectangle_outline((-2.0 * sx, -2.0 * s), ((cols + 1) * sx, (rows + 1) * s))
     w, h = scene.camera.image_size
-    margin = spread.margin_frac * min(w, h)
     centre = scene.pattern_centre()
     d0 = scene.working_distance()
     half_extent = np.array([(cols - 1) * sx, (rows - 1) * s, 0.0]) / 2
     if n < 0:
         raise ValueError(f"number of stations must be >= 0, got {n}")
     out: list[np.ndarray] = []
-    for _ in range(1000 * n):
-        if len(out) == n:
-            break
-        tilt = np.deg2rad(spread.max_tilt_deg) * np.sqrt(rng.uniform())
-        azimuth = rng.uniform(-np.pi, np.pi)
-        roll = rng.uniform(-np.pi, np.pi)
-        look_at = centre + half_extent * rng.uniform(-0.2, 0.2, 3) * [1.0, 1.0, 0.0]
-        T = _look_at_pose(look_at, tilt, azimuth, roll, d0 * rng.uniform(*spread.distance_band))
-        uv, _ = cv2.projectPoints(outline, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3],
-                                  scene.camera.k_matrix, scene.camera.dist_coeffs)
-        uv = uv.reshape(-1, 2)
-        if (uv >= margin).all() and (uv <= [w - margin, h - margin]).all():
-            out.append(T)
-    if len(out) < n:
-        raise RuntimeError(f"could not place {n} stations with the board in view; "
-                           "check the camera, target size and distance band")
+    for k in range(n):
+        cut = np.floor((k + 1) * spread.cut_fraction) > np.floor(k * spread.cut_fraction)
+        for _ in range(1000):
+            tilt = np.deg2rad(spread.max_tilt_deg) * np.sqrt(rng.uniform())
+            azimuth = rng.uniform(-np.pi, np.pi)
+            roll = rng.uniform(-np.pi, np.pi)
+            jitter = 1.0 if cut else 0.2
+            look_at = centre + half_extent * rng.uniform(-jitter, jitter, 3) * [1.0, 1.0, 0.0]
+            T = _look_at_pose(look_at, tilt, azimuth, roll,
+                              d0 * rng.uniform(*spread.distance_band))
+            if (_cuts_board(scene, T, spread) if cut
+                    else _in_view(scene, T, outline, spread.margin_frac * min(w, h))):
+                out.append(T)
+                break
+        else:
+            raise RuntimeError(f"could not place {n} stations with the board in view; "
+                               "check the camera, target size and distance band")
     return tcp_pose_for_camera(scene, np.array(out).reshape(n, 4, 4))
+
+
+def _project(scene: MockScene, T_cam_target: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Pixels of target-frame ``points`` (N, 3) seen from ``T_cam_target``; NaN behind."""
+    uv, _ = cv2.projectPoints(points, cv2.Rodrigues(T_cam_target[:3, :3])[0],
+                              T_cam_target[:3, 3], scene.camera.k_matrix,
+                              scene.camera.dist_coeffs)
+    uv = uv.reshape(-1, 2)
+    uv[points @ T_cam_target[2, :3] + T_cam_target[2, 3] <= 0.0] = np.nan
+    return uv
+
+
+def _in_view(scene: MockScene, T_cam_target: np.ndarray, outline: np.ndarray,
+             margin: float) -> bool:
+    """Whether ``outline`` (N, 3) projects inside the image with ``margin`` pixels to spare."""
+    w, h = scene.camera.image_size
+    uv = _project(scene, T_cam_target, outline)
+    with np.errstate(invalid="ignore"):
+        return bool((uv >= margin).all() and (uv <= [w - margin, h - margin]).all())
+
+
+def _cuts_board(scene: MockScene, T_cam_target: np.ndarray, spread: StationSpread) -> bool:
+    """Whether the view cuts the board at the image border as a cut station should."""
+    size = tuple(scene.camera.image_size)
+    uv = _project(scene, T_cam_target, scene.true_board_points())
+    return cuts_board_at_corner(uv, size, spread.min_cut_points)
 
 
 def _look_at_pose(look_at: np.ndarray, tilt: float, azimuth: float, roll: float,
@@ -364,6 +446,15 @@ def default_scene() -> MockScene:
         noise=Noise(robot_rot_deg=0.02, robot_trans_mm=0.1, image_noise=2.0, blur_px=0.7),
         seed=7,
     )
+
+
+def charuco_scene() -> MockScene:
+    """The default cell holding a 12x9-square ChArUco board (30 mm squares, 22 mm DICT_5X5_100
+    markers, OpenCV's current layout) printed 0.4 % oversized with ν = 0.998."""
+    target = CharucoTarget(type="charuco", squares=(12, 9), square_size_m=0.03,
+                           marker_size_m=0.022, dictionary="DICT_5X5_100", kappa=1.004,
+                           nu=0.998)
+    return default_scene().model_copy(update={"target": target})
 
 
 def load_scene(path: str | Path) -> MockScene:

@@ -75,6 +75,42 @@ def test_planned_stations_keep_the_board_in_view_inside_the_workspace(setup):
     assert (t >= BOX[0]).all() and (t <= BOX[1]).all()
 
 
+@pytest.mark.parametrize("setup", ["eye_in_hand", "eye_to_hand"])
+def test_cut_stations_put_corners_near_the_image_corners(setup):
+    """cut_fraction 0.4 of 15: six views cut the board at the border with >= 12 corners in
+    view, one of them near an image corner; the other nine show the whole board."""
+    _, X, Y = cell(setup)
+    p = plan(setup, cut_fraction=0.4, min_cut_points=12)
+    grid = board_points(CORNERS, SQUARE)
+    w, h = SIZE
+    corners = np.array([[0, 0], [w, 0], [0, h], [w, h]])
+    cut, reach = 0, []
+    for C in camera_from_robot(p.tcp_poses, X, Y, setup):
+        uv = cv2.projectPoints(grid, cv2.Rodrigues(C[:3, :3])[0], C[:3, 3], K, DIST)[0]
+        uv = uv.reshape(-1, 2)
+        inside = ((uv >= 0) & (uv <= SIZE)).all(axis=1)
+        if not inside.all():
+            cut += 1
+            assert inside.sum() >= 12
+            reach.append(np.linalg.norm(uv[inside][:, None] - corners, axis=-1).min())
+    assert cut == 6
+    assert max(reach) <= 0.15 * min(SIZE)
+    full = plan(setup)
+    assert np.mean(reach) < 0.5 * _corner_reach(full, X, Y, setup)
+
+
+def _corner_reach(p, X, Y, setup):
+    """Mean over stations of the distance (px) from the nearest image corner to a corner."""
+    w, h = SIZE
+    corners = np.array([[0, 0], [w, 0], [0, h], [w, h]])
+    out = []
+    for C in camera_from_robot(p.tcp_poses, X, Y, setup):
+        uv = cv2.projectPoints(board_points(CORNERS, SQUARE), cv2.Rodrigues(C[:3, :3])[0],
+                               C[:3, 3], K, DIST)[0].reshape(-1, 2)
+        out.append(np.linalg.norm(uv[:, None] - corners, axis=-1).min())
+    return float(np.mean(out))
+
+
 def test_views_tilt_and_roll_about_varied_axes_within_the_band():
     p = plan(max_tilt_deg=35.0, max_roll_deg=90.0)
     axis = p.views[:, :3, :3].transpose(0, 2, 1)[:, :, 2]  # optical axis in the target frame
@@ -140,6 +176,8 @@ def test_travel_counts_rotation():
     ({"setup": "eye_on_base"}, "unknown setup"),
     ({"K": np.eye(2)}, "K must be a finite 3x3"),
     ({"image_size": (0, 480)}, "image_size"),
+    ({"cut_fraction": 1.5}, "cut_fraction must be in"),
+    ({"min_cut_points": 3}, "min_cut_points must be at least 6"),
     ({"hand_eye_guess": np.zeros((4, 4))}, "hand_eye_guess"),
 ])
 def test_bad_options_are_refused(kw, match):

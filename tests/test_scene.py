@@ -12,6 +12,7 @@ from pydantic import ValidationError
 from calib.geometry import invert, make_transform, pose_error, rotation_angle
 from mocks.scene import (
     MockScene,
+    StationSpread,
     camera_pose_for_tcp,
     default_scene,
     load_scene,
@@ -131,3 +132,24 @@ def test_sampled_stations_keep_the_board_in_view(make):
     assert max(tilts) <= 35.0 + 1e-9 and max(tilts) > 20.0
     assert np.ptp(rolls) > 180.0
     assert (T_cam_target[:, 2, 3] > 0).all()
+
+
+def test_cut_stations_cut_the_board_near_an_image_corner():
+    """Every other station cuts the board: some corners outside the image, >= 12 inside, one
+    within 15 % of the smaller image side of an image corner; the rest show it whole."""
+    scene = default_scene()
+    T_cam_target = camera_pose_for_tcp(scene, sample_station_poses(
+        scene, 10, np.random.default_rng(3), StationSpread(cut_fraction=0.5)))
+    w, h = scene.camera.image_size
+    corners = np.array([[0, 0], [w, 0], [0, h], [w, h]])
+    cut = []
+    for T in T_cam_target:
+        uv, _ = cv2.projectPoints(scene.true_board_points(), cv2.Rodrigues(T[:3, :3])[0],
+                                  T[:3, 3], scene.camera.k_matrix, scene.camera.dist_coeffs)
+        uv = uv.reshape(-1, 2)
+        inside = ((uv >= 0) & (uv <= [w, h])).all(axis=1)
+        cut.append(not inside.all())
+        if cut[-1]:
+            assert inside.sum() >= 12
+            assert np.linalg.norm(uv[inside][:, None] - corners, axis=-1).min() < 0.15 * h
+    assert cut == [False, True] * 5
