@@ -171,6 +171,7 @@ def test_no_mislabelled_corner_in_cut_and_full_views():
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(3600)
 def test_no_mislabelled_corner_over_1000_renders():
     """Issue 9: 0 mislabelled corners over 1,000 renders of 15-station ChArUco scenes with
     >= 30 % of the stations cutting the board at the image border (here 40 %)."""
