@@ -83,7 +83,14 @@ from calib.pipeline import (
     StationReport,
     calibrate_stations,
 )
-from calib.planning import CellGuess, Plan, PlanOptions, plan_stations, rough_target_from_image
+from calib.planning import (
+    CellGuess,
+    Plan,
+    PlanOptions,
+    cuts_board_at_corner,
+    plan_stations,
+    rough_target_from_image,
+)
 from calib.refine import RefineOptions
 from calib.screw import solve_sm
 from calib.selection import KAPPA_MODES, Candidate, Selection
@@ -150,6 +157,7 @@ __all__ = [
     "check_ur_poses",
     "choose_pose_only",
     "cramer_rao_bound",
+    "cuts_board_at_corner",
     "detect_checkerboard",
     "dot_hit",
     "hand_eye_from_station",

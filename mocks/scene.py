@@ -36,12 +36,12 @@ from calib import (
     board_points,
     camera_from_robot,
     check_transforms,
+    cuts_board_at_corner,
     invert,
     make_transform,
     matrix_from_ur_pose,
     robot_from_camera,
 )
-from calib.planning import cuts_board_at_corner
 from drivers.config_files import describe_validation_error
 from mocks.markers import aruco_dictionary, marker_count
 from mocks.ur_kinematics import DHOffsets, kinematic_error

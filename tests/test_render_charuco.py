@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from calib.planning import cuts_board_at_corner
+from calib import cuts_board_at_corner
 from mocks.camera import MockCamera
 from mocks.devices import MockRobot
 from mocks.markers import MarkerLayout
