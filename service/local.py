@@ -1,5 +1,9 @@
 """``cellcal serve`` in a child process on a free loopback port, for the demo, tests and
-benchmarks: started, waited for until healthy, and always stopped with its workers."""
+benchmarks: started, waited for until healthy, and always stopped with its workers.
+
+The port is bound here and the listening socket handed to the child (``cellcal serve --fd``),
+so no other process can take it between choosing and serving (no check-then-bind race).
+"""
 
 from __future__ import annotations
 
@@ -31,23 +35,30 @@ class LocalService:
     log: Path
 
 
-def free_port() -> int:
-    """A TCP port that is free on 127.0.0.1 right now."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+def listening_socket() -> socket.socket:
+    """A TCP socket listening on a port of 127.0.0.1 the system chose (port 0)."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        sock.bind(("127.0.0.1", 0))
+        sock.listen(128)
+    except OSError:
+        sock.close()
+        raise
+    return sock
 
 
 @dataclass(frozen=True)
 class ServeOptions:
     """How the child service runs: its mock ``scene`` file, its environment ``env`` before the
     two settings (default: this process's), its ``log`` file (default: next to the data
-    directory) and how long it may take to answer ``/health`` (s)."""
+    directory), how long it may take to answer ``/health`` (s), and whether it simulates the
+    cell (``--mock``; without it the devices come from ``CELLCAL_ROBOT``/``CELLCAL_CAMERA``)."""
 
     scene: Path | None = None
     env: dict[str, str] | None = None
     log: Path | None = None
     startup_timeout: float = STARTUP_TIMEOUT_S
+    mock: bool = True
 
 
 @contextlib.contextmanager
@@ -57,16 +68,19 @@ def local_service(data_dir: Path, key: str,
 
     The child gets its own process group, so the calibration worker it spawns stops with it.
     """
-    port = free_port()
-    log = options.log or data_dir.parent / f"serve-{port}.log"
-    scene = options.scene
-    cmd = [sys.executable, "-m", "service.cli", "serve", "--mock", "--host", "127.0.0.1",
-           "--port", str(port), *(["--scene", str(scene)] if scene is not None else [])]
-    child_env = {**(os.environ if options.env is None else options.env),
-                 "CELLCAL_DATA_DIR": str(data_dir), "CELLCAL_API_KEY": key}
-    with log.open("wb") as sink:
-        proc = subprocess.Popen(cmd, env=child_env, stdout=sink, stderr=subprocess.STDOUT,
-                                stdin=subprocess.DEVNULL, start_new_session=True)
+    with listening_socket() as sock:
+        port = sock.getsockname()[1]
+        log = options.log or data_dir.parent / f"serve-{port}.log"
+        scene = options.scene
+        cmd = [sys.executable, "-m", "service.cli", "serve", "--fd", str(sock.fileno()),
+               *(["--mock"] if options.mock else []),
+               *(["--scene", str(scene)] if scene is not None else [])]
+        child_env = {**(os.environ if options.env is None else options.env),
+                     "CELLCAL_DATA_DIR": str(data_dir), "CELLCAL_API_KEY": key}
+        with log.open("wb") as sink:
+            proc = subprocess.Popen(cmd, env=child_env, stdout=sink, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL, start_new_session=True,
+                                    pass_fds=(sock.fileno(),))
     try:
         service = LocalService(url=f"http://127.0.0.1:{port}", key=key, proc=proc, log=log)
         _wait_healthy(service, options.startup_timeout)

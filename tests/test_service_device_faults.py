@@ -13,8 +13,6 @@ from __future__ import annotations
 import contextlib
 import os
 import sqlite3
-import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -30,7 +28,7 @@ from sqlalchemy import event
 from calib.geometry import ur_pose_from_matrix
 from mocks.scene import default_scene, sample_station_poses
 from service.app import create_app
-from service.local import LocalService, _wait_healthy, free_port, local_service, stop
+from service.local import LocalService, ServeOptions, local_service
 from service.models import Run, Station
 from service.settings import Settings
 from tests.helpers import wait_for
@@ -54,20 +52,10 @@ def _settled(client: httpx.Client | TestClient, run_id: str) -> dict[str, Any]:
 @contextlib.contextmanager
 def recording_service(tmp_path: Path, frames: Path) -> Iterator[LocalService]:
     """``cellcal serve`` with the mock robot and the recording ``frames`` as its camera."""
-    port = free_port()
-    log = tmp_path / f"serve-{port}.log"
-    env = {**os.environ, "CELLCAL_DATA_DIR": str(tmp_path / "data"), "CELLCAL_API_KEY": KEY,
-           "CELLCAL_ROBOT": "mock://", "CELLCAL_CAMERA": f"file://{frames}"}
-    with log.open("wb") as sink:
-        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port",
-                                 str(port)], env=env, stdout=sink, stderr=subprocess.STDOUT,
-                                stdin=subprocess.DEVNULL, start_new_session=True)
-    try:
-        service = LocalService(url=f"http://127.0.0.1:{port}", key=KEY, proc=proc, log=log)
-        _wait_healthy(service, 60)
+    env = {**os.environ, "CELLCAL_ROBOT": "mock://", "CELLCAL_CAMERA": f"file://{frames}"}
+    with local_service(tmp_path / "data", KEY,
+                       ServeOptions(env=env, mock=False, startup_timeout=60)) as service:
         yield service
-    finally:
-        stop(proc)
 
 
 @pytest.fixture(scope="module")

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import secrets
+import socket
 import sys
 from typing import Any
 
@@ -31,6 +32,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="mock scene file (default: the built-in demo cell)")
     parser.add_argument("--host", help="address to listen on (default 127.0.0.1)")
     parser.add_argument("--port", type=int, help="TCP port (default 8000)")
+    parser.add_argument("--fd", type=int, metavar="FD",
+                        help="serve on the listening TCP socket inherited as file descriptor FD "
+                             "instead of binding --host/--port (socket activation: the parent "
+                             "holds the port, so no other process can take it meanwhile)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -42,6 +47,9 @@ def run(args: argparse.Namespace) -> int:
 
     overrides: dict[str, Any] = {k: v for k, v in (("host", args.host), ("port", args.port),
                                                    ("scene", args.scene)) if v is not None}
+    sock = None if args.fd is None else _inherited_socket(args)
+    if sock is not None:
+        overrides.update(host=sock.getsockname()[0], port=sock.getsockname()[1])
     if args.mock:
         overrides.update(robot="mock://", camera="mock://")
     try:
@@ -53,9 +61,25 @@ def run(args: argparse.Namespace) -> int:
                   file=sys.stderr)
     except ValidationError as exc:
         raise ValueError(f"configuration: {_describe(exc)}") from None
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port,
-                log_level="info")
+    config = uvicorn.Config(create_app(settings), host=settings.host, port=settings.port,
+                            log_level="info")
+    uvicorn.Server(config).run(sockets=None if sock is None else [sock])
     return 0
+
+
+def _inherited_socket(args: argparse.Namespace) -> socket.socket:
+    """The listening TCP socket ``--fd`` names (its address becomes the service's host/port)."""
+    if args.host is not None or args.port is not None:
+        raise ValueError("--fd replaces --host and --port: give one or the other.")
+    try:
+        sock = socket.socket(fileno=args.fd)
+    except OSError as exc:
+        raise ValueError(f"--fd {args.fd}: not an open socket ({exc.strerror}).") from None
+    if sock.family not in (socket.AF_INET, socket.AF_INET6) or \
+            sock.type != socket.SOCK_STREAM or not sock.getsockopt(socket.SOL_SOCKET,
+                                                                 socket.SO_ACCEPTCONN):
+        raise ValueError(f"--fd {args.fd}: not a listening TCP socket.")
+    return sock
 
 
 def _describe(exc: ValidationError) -> str:
