@@ -295,23 +295,42 @@ def test_cancel_stops_the_run_for_good(client: TestClient) -> None:
     assert r.status_code == 409 and r.json()["code"] == "invalid_state"
 
 
+class RefusingRobot:
+    """A mock robot whose first ``refusals`` moves are refused (its ``unreachable`` fault:
+    code ``motion_failed``, the robot stays put)."""
+
+    def __init__(self, robot: Robot, refusals: int) -> None:
+        self.robot, self.refusals = robot, refusals
+
+    def move_linear(self, *args: Any, **kwargs: Any) -> None:
+        if self.refusals > 0:
+            self.refusals -= 1
+            self.robot.inject_fault("unreachable")  # type: ignore[attr-defined]
+        self.robot.move_linear(*args, **kwargs)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.robot, name)
+
+
 @pytest.mark.timeout(30)
 def test_failed_station_is_retried_once_then_skipped(tmp_path: Path) -> None:
-    with TestClient(create_app(settings(tmp_path, grab_timeout_s=0.05))) as c:
+    mocks = settings_opener(settings(tmp_path))
+
+    def refusing() -> tuple[Robot, Camera]:
+        robot, camera = mocks()
+        return RefusingRobot(robot, 2), camera  # type: ignore[return-value]
+
+    with TestClient(create_app(settings(tmp_path), open_devices=refusing)) as c:
         c.headers.update(AUTH)
-        camera = c.app.state.devices.get()[1]
-        # Station 0: both tries time out (fewer timeouts in a row than a stall,
-        # drivers.stall.STALL_AFTER); the next frame arrives.
-        camera.inject_fault("timeout", 2)
+        # Station 0: both tries are refused; the next move goes.
         run = wait_run(c, start_run(c, 4), finished)
         assert (run["state"], run["stations_captured"], run["stations_skipped"]) == \
             ("done", 3, 1)
         assert run["station_errors"][0]["index"] == 0
-        assert run["station_errors"][0]["code"] == "camera_timeout"
+        assert run["station_errors"][0]["code"] == "motion_failed"
         stations = c.get(f"/runs/{run['id']}/stations").json()
         assert [(s["state"], s["attempts"]) for s in stations] == \
             [("skipped", 2), ("captured", 1), ("captured", 1), ("captured", 1)]
-        assert "no frame" in stations[0]["error"]["detail"]
 
 
 @pytest.mark.timeout(20)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sqlite3
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -22,13 +23,19 @@ import cv2
 import httpx
 import numpy as np
 import pytest
+import uvicorn
+from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from sqlalchemy import event
 
 from calib.geometry import ur_pose_from_matrix
+from drivers.base import Camera, Robot
+from drivers.stall import STALL_AFTER
+from mocks.camera import MockCamera
 from mocks.scene import default_scene, sample_station_poses
 from service.app import create_app
-from service.local import LocalService, ServeOptions, local_service
+from service.devices import settings_opener
+from service.local import LocalService, ServeOptions, listening_socket, local_service
 from service.models import Run, Station
 from service.settings import Settings
 from tests.helpers import wait_for
@@ -112,24 +119,82 @@ def test_run_that_captured_nothing_fails(tmp_path):
     assert run["stations_skipped"] == 1 and run["station_errors"][0]["code"] == "not_detected"
 
 
-def test_stalled_camera_ends_the_run_as_a_camera_fault(tmp_path):
-    """The mock camera's stall fault: no grab delivers until the fault is cleared."""
+@contextlib.contextmanager
+def uvicorn_thread(app: FastAPI) -> Iterator[str]:
+    """``app`` served by uvicorn over real HTTP on a loopback port, from a thread of this
+    process (so a test keeps its hands on the app's devices); yields the base URL."""
+    with listening_socket() as sock:
+        server = uvicorn.Server(uvicorn.Config(app, log_level="warning"))
+        thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+        thread.start()
+        try:
+            wait_for("uvicorn to start", lambda: server.started, timeout=60)
+            yield f"http://127.0.0.1:{sock.getsockname()[1]}"
+        finally:
+            server.should_exit = True
+            thread.join(30)
+    assert not thread.is_alive()
+
+
+class StallingCamera:
+    """A mock camera that stops delivering after its first ``free`` frames: grab ``free + 1``
+    sets off the mock's ``stall`` fault (no frame until ``clear_faults``)."""
+
+    def __init__(self, camera: MockCamera, free: int) -> None:
+        self.camera, self.free = camera, free
+
+    def grab(self, *, timeout: float = 2.0) -> np.ndarray:
+        self.free -= 1
+        if self.free == -1:
+            self.camera.inject_fault("stall")
+        return self.camera.grab(timeout=timeout)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.camera, name)
+
+
+@pytest.mark.timeout(240)
+def test_stalled_camera_ends_the_run_and_resume_captures_every_station_once(tmp_path):
+    """Over HTTP: the camera stalls after 3 stations; the run ends ``camera_stalled`` with
+    the station it was at still to capture (before, its two timeouts skipped it and the third
+    stalled the next one); after ``resume`` every planned station is captured exactly once."""
+    settings = Settings(data_dir=tmp_path, api_key=KEY, grab_timeout_s=0.05)
+    devices = settings_opener(settings)
+    cameras: list[StallingCamera] = []
+
+    def stalling() -> tuple[Robot, Camera]:
+        robot, camera = devices()
+        cameras.append(StallingCamera(camera, 3 if not cameras else 100))
+        return robot, cameras[-1]  # type: ignore[return-value]
+
+    with (uvicorn_thread(create_app(settings, open_devices=stalling)) as url,
+          httpx.Client(base_url=url, headers=AUTH, timeout=30) as client):
+        run_id = client.post("/runs", json={"poses": _poses(6)}).json()["id"]
+        run = _settled(client, run_id)
+        assert run["state"] == "failed" and run["error"]["code"] == "camera_stalled", run
+        assert (run["stations_captured"], run["stations_skipped"]) == (3, 0)
+        cameras[-1].camera.clear_faults()
+        assert client.post(f"/runs/{run_id}/resume").json()["state"] == "capturing"
+        run = _settled(client, run_id)
+        stations = client.get(f"/runs/{run_id}/stations").json()
+    assert run["state"] == "done", run
+    assert (run["stations_captured"], run["stations_skipped"]) == (6, 0)
+    assert [(s["index"], s["state"]) for s in stations] == [(k, "captured") for k in range(6)]
+
+
+@pytest.mark.timeout(60)
+def test_timed_out_grabs_retry_the_station_without_using_up_its_attempts(tmp_path):
+    """Fewer timeouts in a row than a stall: the station is captured once the frame comes,
+    its stored attempts count the timed-out grabs."""
     settings = Settings(data_dir=tmp_path, api_key=KEY, grab_timeout_s=0.05)
     with TestClient(create_app(settings)) as client:
         client.headers.update(AUTH)
         camera = client.app.state.devices.get()[1]
-        camera.inject_fault("stall")
-        run_id = client.post("/runs", json={"poses": _poses(6)}).json()["id"]
-        run = _settled(client, run_id)
-        assert run["state"] == "failed" and run["error"]["code"] == "camera_stalled"
-        # two timeouts skip the first station, the third in a row is the stall: the other
-        # stations are left for the resume instead of being skipped too
-        assert run["stations_skipped"] <= 1 and run["stations_captured"] == 0
-        camera.clear_faults()
-        assert client.post(f"/runs/{run_id}/resume").json()["state"] == "capturing"
-        run = _settled(client, run_id)
-        assert run["state"] == "done", run
-        assert run["stations_captured"] + run["stations_skipped"] == 6
+        camera.inject_fault("timeout", STALL_AFTER - 1)
+        run = _settled(client, client.post("/runs", json={"poses": _poses(3)}).json()["id"])
+        stations = client.get(f"/runs/{run['id']}/stations").json()
+    assert (run["state"], run["stations_captured"], run["stations_skipped"]) == ("done", 3, 0)
+    assert [s["attempts"] for s in stations] == [STALL_AFTER, 1, 1]
 
 
 def test_no_station_is_committed_after_a_cancel(tmp_path):

@@ -42,12 +42,14 @@ from calib import Station, detect_checkerboard
 from drivers.capture import CaptureOptions, capture_station
 from drivers.errors import (
     CameraError,
+    CameraStalledError,
     CameraTimeoutError,
     DeviceError,
     EmergencyStopError,
     ProtectiveStopError,
     RobotConnectionError,
 )
+from drivers.stall import STALL_AFTER
 from service import store
 from service.db import DatabaseUnavailableError, retry_transient
 from service.events import EventBus, state_event
@@ -81,6 +83,12 @@ class _Shot:
     error: str | None = None
     error_code: str | None = None
     joints: list[float] | None = None
+    late: int = 0  # grabs that timed out before this one (they use up no attempt)
+
+    @property
+    def tries(self) -> int:
+        """Captures of the station so far, timed-out grabs included (stored as attempts)."""
+        return self.attempt + self.late
 
 
 def _stops_run(exc: DeviceError) -> bool:
@@ -267,10 +275,16 @@ class Capture:
 
     def _shoot(self, index: int, pose: list[float], first_attempt: int) -> _Shot | None:
         """Move, settle, grab and read the pose, retrying a device error once; None if the
-        run was taken meanwhile. Raises the device errors that stop the run (among them
-        ``camera_stalled``: the camera's ``drivers.stall.STALL_AFTER``-th timeout in a row)."""
+        run was taken meanwhile. Raises the device errors that stop the run.
+
+        A grab timeout is the camera's fault, not the station's: it uses up no attempt, the
+        station is tried again, and the ``drivers.stall.STALL_AFTER``-th timeout in a row is
+        ``camera_stalled`` (raised by the camera, or here for a camera that does not count),
+        which stops the run with this station still to capture, so ``resume`` captures it.
+        """
         shot: _Shot | None = None
-        for attempt in range(first_attempt, ATTEMPTS + 1):
+        attempt, late = first_attempt, 0
+        while attempt <= ATTEMPTS:
             try:
                 taken = capture_station(self.robot, self.camera, np.asarray(pose),
                                         self.options)
@@ -279,9 +293,16 @@ class Capture:
                     return None
                 if _stops_run(exc):
                     raise
-                shot = _Shot(index, pose, attempt, None, str(exc), exc.code)
+                if isinstance(exc, CameraTimeoutError):
+                    late += 1
+                    if late >= STALL_AFTER:
+                        raise CameraStalledError(f"The camera delivered no frame in {late} "
+                                                 f"grabs in a row ({exc}).") from exc
+                    continue
+                shot = _Shot(index, pose, attempt, None, str(exc), exc.code, late=late)
+                attempt += 1
                 continue
-            return _Shot(index, pose, attempt, taken.station(f"{index:03d}"))
+            return _Shot(index, pose, attempt, taken.station(f"{index:03d}"), late=late)
         return shot
 
     # ---- stations a cell controller posts (service.runs.external) -------------------------
@@ -347,7 +368,7 @@ class Capture:
             s.add(StationRow(run_id=self.run_id, index=shot.index, target_pose=shot.pose,
                              joint_positions=shot.joints,
                              image_path=None if rel is None else rel.as_posix(),
-                             error_code=code, attempts=shot.attempt, **row))
+                             error_code=code, attempts=shot.tries, **row))
             try:
                 s.commit()
             except IntegrityError:  # another owner stored this index
