@@ -243,6 +243,8 @@ class CalibrationSummary(BaseModel):
     state: Literal["running", "done", "failed"]
     method: str | None = Field(description="the solver asked for")
     rms_px: float | None = Field(description="RMS reprojection error; None without camera model")
+    verdict: Literal["pass", "warn", "fail"] | None = Field(
+        None, description="the result's quality verdict; None while running or failed")
     active: bool = Field(description="the robot cell's current calibration")
     error: str | None
     created_at: dt.datetime

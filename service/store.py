@@ -117,17 +117,19 @@ class CalibrationFilter:
     setup: str | None = None
 
 
-#: A listed calibration: the row without its result document, its run's setup and robot, and
-#: the calibration's RMS reprojection error (px; None for pose-only results).
-CalibrationRow = tuple[Calibration, str, str, float | None]
+#: A listed calibration: the row without its result document, its run's setup and robot, the
+#: calibration's RMS reprojection error (px; None for pose-only results) and its verdict.
+CalibrationRow = tuple[Calibration, str, str, float | None, str | None]
 
 
 def page_calibrations(s: Session, *, where: CalibrationFilter, limit: int,
                       offset: int) -> tuple[list[CalibrationRow], int]:
     """One page of calibrations, newest first, and how many match in all. The result
-    documents stay in the database (only their RMS error is read), so pages stay small."""
+    documents stay in the database (only their RMS error and verdict are read), so pages stay
+    small."""
     query = select(Calibration, Run.setup, Run.robot,
-                   Calibration.result[("camera", "rms_px")].as_float()) \
+                   Calibration.result[("camera", "rms_px")].as_float(),
+                   Calibration.result[("quality", "verdict")].as_string()) \
         .join(Run, Run.id == Calibration.run_id).options(defer(Calibration.result))
     for column, value in ((Calibration.run_id, where.run_id), (Calibration.state, where.state),
                           (Run.setup, where.setup)):
@@ -136,7 +138,7 @@ def page_calibrations(s: Session, *, where: CalibrationFilter, limit: int,
     total = s.scalar(select(func.count()).select_from(query.subquery())) or 0
     rows = s.execute(query.order_by(Calibration.created_at.desc(), Calibration.id)
                      .limit(limit).offset(offset)).all()
-    return [(cal, setup, robot, rms) for cal, setup, robot, rms in rows], total
+    return [(cal, setup, robot, rms, verdict) for cal, setup, robot, rms, verdict in rows], total
 
 
 # ---- which calibration is active -----------------------------------------------------------

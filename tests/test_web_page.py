@@ -1,24 +1,28 @@
 """The web page at ``/`` and the API docs at ``/docs`` and ``/redoc`` work without any other
 host: every asset they reference is served by cellcal itself, without the API key (the data
-calls still need it). A headless chromium renders the page against ``cellcal serve --mock``.
+calls still need it). A headless chromium (``tests.browser``, the DevTools protocol) clicks
+through the page against ``cellcal serve --mock``: key, run, calibration, report, export.
+
+``CELLCAL_SCREENSHOTS=docs pytest tests/test_web_page.py`` refreshes the screenshots in docs/.
 """
 
 from __future__ import annotations
 
+import json
+import os
 import re
-import shutil
-import subprocess
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import cv2
 import httpx
 import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from service.local import local_service
+from service.local import LocalService, local_service
 from service.web import STATIC_DIR
+from tests.browser import Browser
 from tests.test_service_api import AUTH, KEY, settings
 
 #: src / href attribute values in HTML.
@@ -76,61 +80,117 @@ def test_docs_work_offline(client: TestClient, path: str, script: str) -> None:
     assert "fonts.googleapis" not in html and "cdn." not in html
 
 
+@pytest.mark.parametrize("path", ["/ui/", "/docs", "/redoc"])
+def test_html_pages_let_the_browser_load_nothing_from_another_host(client: TestClient,
+                                                                    path: str) -> None:
+    policy = client.get(path).headers["content-security-policy"]
+    directives = dict(d.strip().split(" ", 1) for d in policy.split(";"))
+    for directive in ("default-src", "img-src", "connect-src"):
+        sources = directives[directive].split()
+        assert "'self'" in sources
+        assert all(s in ("'self'", "'unsafe-inline'", "data:", "blob:") for s in sources), policy
+    assert "content-security-policy" not in client.get("/health").headers  # JSON: no need
+
+
 def test_data_still_needs_the_key(client: TestClient) -> None:
     assert client.get("/runs").status_code == 401
     assert client.get("/ui/../runs").status_code in (401, 404)
     assert client.get("/runs", headers=AUTH).status_code == 200
 
 
-def chromium_dom(url: str, profile: Path) -> tuple[str, set[str]]:
-    """The page's DOM after its scripts ran (headless chromium), and every URL the page
-    requested (from the browser's net log)."""
-    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
-    assert chromium, "chromium is needed (Debian package chromium; .ci/run installs it)"
-    net_log = profile / "net-log.json"
-    dom = subprocess.run(
-        [chromium, "--headless", "--no-sandbox", "--disable-gpu", f"--user-data-dir={profile}",
-         "--no-first-run", "--disable-background-networking", "--disable-sync",
-         "--disable-component-update", "--virtual-time-budget=15000",
-         f"--log-net-log={net_log}", "--dump-dom", url],
-        capture_output=True, text=True, timeout=90, check=False)
-    assert dom.returncode == 0, dom.stderr[-2000:]
-    return dom.stdout, page_requests(net_log.read_text())
+@pytest.fixture(scope="module")
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalService]:
+    with local_service(tmp_path_factory.mktemp("served") / "data", KEY) as service:
+        yield service
 
 
-#: Chromium's network traffic annotations of what a page loads: navigations, and the
-#: subresources and fetches of its documents (the browser's own services use others).
-_PAGE_TRAFFIC = (63171670, 101845102)
+@pytest.fixture
+def shots(tmp_path: Path) -> Path:
+    """Where screenshots go: ``CELLCAL_SCREENSHOTS`` (e.g. docs) or the test's directory."""
+    return Path(os.environ.get("CELLCAL_SCREENSHOTS", tmp_path))
 
 
-def page_requests(net_log: str) -> set[str]:
-    """URLs the pages requested, from a chromium net log."""
-    annotations = "|".join(map(str, _PAGE_TRAFFIC))
-    return set(re.findall(rf'"traffic_annotation":(?:{annotations}),"url":"([^"]+)"', net_log))
+def text(browser: Browser, selector: str, session: str | None = None) -> str:
+    return browser.js(f"document.querySelector({json.dumps(selector)})?.textContent ?? ''",
+                      session)
 
 
-def wait_done(url: str, run_id: str) -> None:
-    auth = {"Authorization": f"Bearer {KEY}"}
-    deadline = time.monotonic() + 60
-    while httpx.get(f"{url}/runs/{run_id}", headers=auth).json()["state"] == "capturing":
-        assert time.monotonic() < deadline, "run did not finish"
-        time.sleep(0.2)
+def left_the_machine(requests: list[str], service: LocalService) -> list[str]:
+    """The requested URLs that went anywhere but the service (blob: and data: URLs are
+    made in the page itself)."""
+    local = (f"{service.url}/", f"blob:{service.url}/", "data:", "about:blank")
+    return [u for u in requests if not u.startswith(local)]
 
 
-@pytest.mark.timeout(180)
-def test_page_and_docs_in_headless_chromium_ask_no_other_host(tmp_path: Path) -> None:
-    with local_service(tmp_path / "data", KEY) as service:
-        run_id = httpx.post(f"{service.url}/runs", json={"stations": 3},
-                            headers={"Authorization": f"Bearer {KEY}"}, timeout=30).json()["id"]
-        wait_done(service.url, run_id)
-        html, requested = chromium_dom(f"{service.url}/ui/#key={KEY}", tmp_path / "page")
-        docs, docs_requested = chromium_dom(f"{service.url}/docs", tmp_path / "docs")
-    assert f"<td>{run_id[:8]}</td>" in html, html[-3000:]
-    assert '<td class="done">done</td>' in html
-    assert "Robot mock://: connected" in html
-    assert 'id="status" role="status">connected<' in html
-    assert 'class="swagger-ui"' in docs and "/calibrations/active" in docs
-    local = service.url + "/"
-    assert {f"{local}ui/app.js", f"{local}devices", f"{local}runs?limit=20"} <= requested
-    assert any(u.endswith("/swagger-ui-bundle.js") for u in docs_requested)
-    assert [u for u in requested | docs_requested if not u.startswith(local)] == []
+@pytest.mark.timeout(600)
+def test_click_through_run_calibrate_report_export(served: LocalService, tmp_path: Path,
+                                                   shots: Path) -> None:
+    with Browser(tmp_path / "chromium") as browser:
+        browser.goto(f"{served.url}/")
+        browser.type("#key", KEY)
+        browser.click("#key-form button")
+        browser.wait_for("the page to connect", "document.querySelector('#status')"
+                         ".textContent === 'connected'")
+        assert "Robot mock://: connected" in text(browser, "#devices")
+
+        browser.type("#stations", "8")
+        browser.click("#run-form button")
+        browser.wait_for("the run to finish",
+                         "document.querySelector('#run-state').textContent === 'done'")
+        browser.wait_for("the last station's image", "document.querySelector("
+                         "'#latest-caption').textContent.startsWith('Station 7: captured')")
+        assert text(browser, "#progress-text") == "8 of 8 stations: 8 captured, 0 skipped"
+        assert browser.js("document.querySelectorAll('#stations tbody td.captured').length") == 8
+        assert browser.js("[...document.querySelectorAll('[data-action]')]"
+                          ".every((b) => b.disabled)")  # nothing to pause, resume or cancel
+
+        browser.click("#calibrate")
+        browser.wait_for("the calibration", "document.querySelector('#status').textContent"
+                         " === 'calibration finished'")
+        row = "#calibrations tbody tr:first-child"
+        assert browser.js(f"document.querySelector('{row} td:nth-child(4)').textContent") \
+            == "done"
+        verdict = text(browser, f"{row} td:nth-child(5)")
+        assert verdict in ("pass", "warn"), verdict
+        assert text(browser, "#figures dd.verdict, #figures dd.pass, #figures dd.warn") \
+            == verdict
+        browser.screenshot(shots / "web-page.png")
+
+        report = browser.click_to_open_tab(f"{row} a.report")
+        browser.wait_for("the report", "document.readyState === 'complete' && "
+                         "location.protocol === 'blob:' && document.querySelector('h1')"
+                         "?.textContent === 'Calibration report'", report)
+        assert text(browser, ".verdict .word", report) == verdict
+
+        browser.click(f"{row} a[data-format=opencv-yaml]")
+        exported = browser.downloaded()
+        fs = cv2.FileStorage(str(exported), cv2.FILE_STORAGE_READ)
+        K = fs.getNode("camera_matrix").mat()
+        fs.release()
+        assert K.shape == (3, 3) and K[0, 0] > 100 and K[2, 2] == 1.0
+        requested = browser.requests
+    assert f"{served.url}/ui/app.js" in requested
+    assert any(u.startswith(f"{served.url}/calibrations/") and u.endswith("/report")
+               for u in requested)
+    assert left_the_machine(requested, served) == []
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize(("path", "rendered"), [
+    ("/docs", "document.querySelectorAll('.swagger-ui .opblock').length > 20"),
+    ("/redoc", "document.querySelectorAll('[data-section-id]').length > 20")])
+def test_docs_render_in_chromium_asking_no_other_host(served: LocalService, tmp_path: Path,
+                                                      shots: Path, path: str,
+                                                      rendered: str) -> None:
+    with Browser(tmp_path / "chromium") as browser:
+        browser.goto(f"{served.url}{path}")
+        browser.wait_for(f"{path} to render the API", rendered)
+        assert "/calibrations/active" in browser.js("document.body.innerText")
+        if path == "/docs":
+            browser.screenshot(shots / "web-docs.png")
+        requested, blocked = browser.requests, browser.blocked
+    assert any(u.endswith("/openapi.json") for u in requested)
+    assert left_the_machine(requested, served) == []
+    # what the bundles would fetch from elsewhere (ReDoc: its vendor's logo) the page's
+    # Content-Security-Policy stopped in the browser
+    assert all(not u.startswith(served.url) for u in blocked), blocked

@@ -31,9 +31,9 @@ def list_calibrations(session: SessionDep,
     active = store.active_calibration_ids(session, robots=sorted({r[2] for r in rows}))
     items = [CalibrationSummary(
         id=cal.id, run_id=cal.run_id, setup=setup, robot=robot, state=cal.state,
-        method=cal.options.get("method"), rms_px=rms, active=cal.id in active, error=cal.error,
-        created_at=cal.created_at, finished_at=cal.finished_at)
-        for cal, setup, robot, rms in rows]
+        method=cal.options.get("method"), rms_px=rms, verdict=verdict, active=cal.id in active,
+        error=cal.error, created_at=cal.created_at, finished_at=cal.finished_at)
+        for cal, setup, robot, rms, verdict in rows]
     end = query.offset + len(items)
     return CalibrationPage(items=items, total=total, limit=query.limit, offset=query.offset,
                            next_offset=end if end < total else None)

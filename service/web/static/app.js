@@ -69,13 +69,33 @@ async function openRun(runId) {
   follow(runId);
 }
 
+// What each run button may do in each run state (the service answers 409 otherwise).
+const ACTIONS = {
+  pause: (run) => run.state === "capturing",
+  resume: (run) => ["paused", "interrupted", "failed"].includes(run.state),
+  cancel: (run) => ["capturing", "paused", "interrupted"].includes(run.state),
+  finish: (run) => run.mode === "external" && run.state === "capturing",
+};
+
 async function refreshRun() {
   const run = await json("GET", `/runs/${currentRun}`);
   $("#run-state").textContent = run.state;
   $("#run-state").className = run.state;
-  const planned = Math.max(run.stations_planned, run.stations_captured + run.stations_skipped, 1);
+  for (const button of document.querySelectorAll("[data-action]")) {
+    button.disabled = !ACTIONS[button.dataset.action](run);
+  }
+  $("[data-action=finish]").hidden = run.mode !== "external";
+  $("#calibrate").disabled = run.state === "capturing" || run.stations_captured === 0;
+  $("#run-error").hidden = !run.error;
+  $("#run-error").textContent = run.error ? run.error.detail : "";
+  const seen = run.stations_captured + run.stations_skipped;
+  const planned = Math.max(run.stations_planned, seen, 1);
   $("#progress").max = planned;
-  $("#progress").value = run.stations_captured + run.stations_skipped;
+  $("#progress").value = seen;
+  $("#progress-text").textContent = run.mode === "external"
+    ? `${run.stations_captured} stations captured, ${run.stations_skipped} skipped`
+    : `${seen} of ${run.stations_planned} stations: ${run.stations_captured} captured, ` +
+      `${run.stations_skipped} skipped`;
   const stations = await json("GET", `/runs/${currentRun}/stations`);
   const body = $("#stations tbody");
   body.replaceChildren();
@@ -159,19 +179,37 @@ async function loadCalibrations() {
     cell(row, short(cal.run_id));
     cell(row, cal.setup);
     cell(row, cal.state, cal.state);
+    cell(row, cal.verdict, cal.verdict);
     cell(row, cal.rms_px === null ? null : cal.rms_px.toFixed(3));
     cell(row, cal.active ? "active" : "");
     const exports = cell(row, "");
     if (cal.state === "done") {
+      const report = document.createElement("a");
+      report.href = "#";
+      report.textContent = "report";
+      report.className = "report";
+      report.addEventListener("click", (event) => {
+        event.preventDefault();
+        event.stopPropagation();
+        openReport(cal.id);
+      });
+      exports.append(report, " · ");
       for (const format of FORMATS) {
         const link = document.createElement("a");
         link.href = "#";
         link.textContent = format;
-        link.addEventListener("click", (event) => { event.preventDefault(); download(cal.id, format); });
+        link.dataset.format = format;
+        link.addEventListener("click", (event) => {
+          event.preventDefault();
+          event.stopPropagation();
+          run(() => download(cal.id, format));
+        });
         exports.append(link, " ");
       }
       const activate = document.createElement("button");
       activate.textContent = "Activate";
+      activate.title = "make this the calibration the cell controller gets from " +
+        "GET /calibrations/active";
       activate.addEventListener("click", async (event) => {
         event.stopPropagation();
         await json("POST", `/calibrations/${cal.id}/activate`);
@@ -190,15 +228,21 @@ async function showCalibration(calId) {
   $("#calibration-view").hidden = false;
   $("#cal-id").textContent = short(calId);
   const r = cal.result ?? {};
+  const mm = (values) => values?.map((v) => (1e3 * v).toFixed(2)).join(" / ");
+  const deg = (values) => values?.map((v) => (180 / Math.PI * v).toFixed(3)).join(" / ");
+  const pose = r.hand_eye?.pose;
   const figures = {
     state: cal.state,
     verdict: r.quality?.verdict,
-    "RMS (px)": r.camera?.rms_px?.toFixed(3),
-    "cross-validated RMS (px)": r.cross_validation?.rms_px?.toFixed(3),
-    kappa: r.target?.kappa?.toFixed(5),
-    nu: r.target?.nu?.toFixed(5),
-    "hand-eye [x y z rx ry rz]": r.hand_eye?.pose?.map((v) => v.toFixed(4)).join(" "),
-    "hand-eye σ translation (mm)": r.uncertainty?.hand_eye_trans_m?.map((v) => (1e3 * v).toFixed(2)).join(" "),
+    findings: r.quality?.findings?.map((f) => `${f.severity}: ${f.message}`).join("\n"),
+    "reprojection RMS (px)": r.camera?.rms_px?.toFixed(3),
+    "predicted from robot poses, RMS (px)": r.cross_validation?.rms_px?.toFixed(3),
+    "board scale κ / shear ν": r.target && `${r.target.kappa?.toFixed(5)} / ${r.target.nu?.toFixed(5)}`,
+    [`hand-eye (${r.setup === "eye_to_hand" ? "base → camera" : "tool → camera"}) x / y / z (mm)`]:
+      mm(pose?.slice(0, 3)),
+    "hand-eye rotation vector rx / ry / rz (deg)": deg(pose?.slice(3)),
+    "hand-eye 1σ x / y / z (mm)": mm(r.uncertainty?.hand_eye_trans_m),
+    "hand-eye 1σ rotation (deg)": deg(r.uncertainty?.hand_eye_rot_rad),
     error: cal.error,
   };
   const list = $("#figures");
@@ -210,8 +254,24 @@ async function showCalibration(calId) {
     const dd = document.createElement("dd");
     dd.textContent = value;
     if (name === "verdict") dd.className = value;
+    if (name === "findings") dd.className = "findings";
     list.append(dt, dd);
   }
+}
+
+// The report needs the API key, so it is fetched here and shown in a new tab. The tab is
+// opened at the click itself (a tab opened after a slow answer would count as a pop-up).
+function openReport(calId) {
+  const tab = window.open("", "_blank");
+  run(async () => {
+    try {
+      const html = await (await api("GET", `/calibrations/${calId}/report`)).text();
+      tab.location = URL.createObjectURL(new Blob([html], { type: "text/html" }));
+    } catch (error) {
+      tab.close();
+      throw error;
+    }
+  });
 }
 
 async function download(calId, format) {
