@@ -91,6 +91,7 @@ from calib.planning import (
     plan_stations,
     rough_target_from_image,
 )
+from calib.recheck import CheckVerdict, Expected, StationCheck, StoredCell, check_verdict
 from calib.refine import RefineOptions
 from calib.screw import solve_sm
 from calib.selection import KAPPA_MODES, Candidate, Selection
@@ -116,11 +117,13 @@ __all__ = [
     "CellParameters",
     "Charuco",
     "CharucoTarget",
+    "CheckVerdict",
     "Checkerboard",
     "CheckerboardTarget",
     "CornerStations",
     "CrossValidation",
     "Detection",
+    "Expected",
     "HandEyeResult",
     "IntrinsicsOptions",
     "IntrinsicsResult",
@@ -138,9 +141,11 @@ __all__ = [
     "RobotNoise",
     "Selection",
     "Station",
+    "StationCheck",
     "StationInputs",
     "StationReport",
     "Stations",
+    "StoredCell",
     "Target",
     "TargetAdapter",
     "Trust",
@@ -155,6 +160,7 @@ __all__ = [
     "check_transforms",
     "check_ur_pose",
     "check_ur_poses",
+    "check_verdict",
     "choose_pose_only",
     "cramer_rao_bound",
     "cuts_board_at_corner",

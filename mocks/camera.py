@@ -45,6 +45,7 @@ class MockCamera(CameraSession):
         self._faults: dict[str, int] = {}
         self._lock = threading.Lock()
         self.stall = StallCounter()
+        self._T_mount_cam = np.eye(4)  # how far the camera moved on its mount (shift_mount)
 
     companion_robot: ClassVar[str | None] = "mock://"
 
@@ -83,6 +84,13 @@ class MockCamera(CameraSession):
             raise ValueError(f"count must be at least 1, got {count}")
         with self._lock:
             self._faults[name] = count
+
+    def shift_mount(self, T_mount_cam: np.ndarray) -> None:
+        """Move the camera on its mount (a bumped bracket): from now on the camera frame is at
+        ``T_tcp_cam @ T_mount_cam`` (eye-in-hand; ``T_base_cam @ T_mount_cam`` eye-to-hand),
+        shape (4, 4), while the scene's hand-eye stays what a calibration found."""
+        with self._lock:
+            self._T_mount_cam = np.asarray(T_mount_cam, dtype=float).copy()
 
     def replug(self) -> None:
         """Plug the camera back in after an ``unplug`` fault (it still needs :meth:`open`)."""
@@ -132,6 +140,7 @@ class MockCamera(CameraSession):
             time.sleep(min(2.0 * period - time.monotonic() % period, timeout))
         T_cam_target = camera_pose_for_tcp(self.scene, self.robot.true_pose)
         with self._lock:
+            T_cam_target = np.linalg.inv(self._T_mount_cam) @ T_cam_target
             image = render_board(self._params, T_cam_target, rng=self._rng)
             if fault == "corrupt":
                 image[int(self._rng.integers(image.shape[0] // 4, image.shape[0])):] = 0

@@ -165,17 +165,36 @@ class ValidationCreate(_Input):
                           "centre; default all five")
 
 
+class CheckCreate(_Input):
+    """A re-check: revisit ``stations`` of the calibration's run (spread over its captured
+    stations; default 5) or the given ``poses``, not both."""
+
+    stations: Annotated[int, Field(ge=1, le=50)] | None = Field(
+        None, description="how many of the calibration's stations to revisit (default 5)")
+    poses: Annotated[list[Pose], Field(min_length=1, max_length=50)] | None = Field(
+        None, description="TCP poses to visit instead, [x, y, z, rx, ry, rz] (m, rad)")
+
+    @model_validator(mode="after")
+    def _one_plan(self) -> CheckCreate:
+        if self.stations is not None and self.poses is not None:
+            raise ValueError("give either 'stations' (how many of the calibration's stations "
+                             "to revisit) or 'poses', not both")
+        return self
+
+
 class ValidationPublic(BaseModel):
     model_config = ConfigDict(from_attributes=True)  # read from the stored row
 
     id: str
     calibration_id: str
-    kind: Literal["dot_hit"]
+    kind: Literal["dot_hit", "check"]
     state: Literal["running", "done", "failed"]
     result: dict[str, Any] | None = Field(
-        None, description="the report: probe, the board observation, per point id, "
+        None, description="the report. dot_hit: probe, the board observation, per point id, "
                           "commanded and reached probe-tip positions (base frame, m) and "
-                          "error_m against the truth (mock cells), and error_m mean / max")
+                          "error_m against the truth (mock cells), and error_m mean / max. "
+                          "check: state ok | degraded, the mean camera pose offset and its "
+                          "limits, per station rms_px, offset and ok | degraded")
     error: str | None
     created_at: dt.datetime
     finished_at: dt.datetime | None

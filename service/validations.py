@@ -1,13 +1,16 @@
-"""Validations of a calibration: the dot-hit run (SM eq. 24) checked, started and recorded.
+"""Validations of a calibration, checked, started and recorded: the dot-hit run (SM eq. 24)
+and the re-check (``service.checks``: has the camera mount moved?).
 
-A dot-hit request is checked against the calibration's result document (``dot_hit_plan``),
-the robot is claimed (``service.motion``), and a thread observes the board from where the
-robot stands, touches the requested points (``service.validation_run``) and stores the report.
+A request is checked against the calibration's result document (``dot_hit_plan``,
+``check_plan``), the robot is claimed (``service.motion``), and a thread does the work and
+stores the report: the dot-hit run observes the board from where the robot stands and touches
+the requested points (``service.validation_run``); the re-check revisits stations.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,12 +28,14 @@ from calib import (
     ur_pose_from_matrix,
 )
 from drivers.base import GroundTruthSource, Robot
+from drivers.capture import CaptureOptions
 from drivers.errors import DeviceError, RobotConnectionError
 from service import store
+from service.checks import CheckPlan, check_plan, run_check
 from service.errors import ConflictError, ServiceError, UnprocessableError
 from service.models import Validation
 from service.motion import Motion
-from service.schemas import ValidationCreate
+from service.schemas import CheckCreate, ValidationCreate
 from service.validation_run import (
     BoardEstimate,
     CellChecks,
@@ -52,33 +57,56 @@ class Validations:
         self.db = motion.db
 
     def start(self, cal_id: str, body: ValidationCreate) -> Validation:
-        """Check the request, claim the robot and start the dot-hit run in a thread."""
+        """Check a dot-hit request, claim the robot and start the run in a thread."""
+        target, result, _ = self._calibration(cal_id)
+        plan = dot_hit_plan(result or {}, target, body)
+        return self._launch(cal_id, "dot_hit", lambda: self._dot_hit(plan))
+
+    def start_check(self, cal_id: str, body: CheckCreate) -> Validation:
+        """Check a re-check request, claim the robot and start the check in a thread."""
+        target, result, stations = self._calibration(cal_id)
+        plan = check_plan(result or {}, target, stations, body)
+        for k, pose in enumerate(plan.poses):
+            if (outside := self.motion.outside_workspace(pose)) is not None:
+                raise UnprocessableError(f"poses[{k}]: {outside}; the check was not started.",
+                                         code="outside_workspace")
+        return self._launch(cal_id, "check", lambda: self._check(plan))
+
+    def _calibration(self, cal_id: str) -> tuple[dict[str, Any], dict[str, Any] | None,
+                                                 list[tuple[int, list[float]]]]:
+        """The finished calibration's board, result and captured stations (index, commanded
+        pose); 409 if it is not finished, 422 if this service drives another robot."""
         with self.db.session() as s:
             cal = store.get_calibration(s, cal_id=cal_id)
             if cal.state != "done":
                 raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished "
                                     "calibration can be validated.", code="invalid_state")
             run = store.get_run(s, run_id=cal.run_id)
+            stations = [(st.index, st.target_pose)
+                        for st in store.captured_stations(s, run_id=run.id)]
             robot_url, target, result = run.robot, run.target, cal.result
         if robot_url != self.settings.robot:
             raise UnprocessableError(f"Calibration {cal_id} was captured with robot "
                                      f"{robot_url}; this service drives {self.settings.robot}.",
                                      code="other_robot")
-        plan = dot_hit_plan(result or {}, target, body)
+        return target, result, stations
+
+    def _launch(self, cal_id: str, kind: str, work: Callable[[], dict[str, Any]]) -> Validation:
+        """Store a running validation of ``kind`` and run ``work`` (its report) in a thread."""
         with self.motion.claim(), self.db.session() as s:
-            val = Validation(calibration_id=cal_id, kind="dot_hit", state="running")
+            val = Validation(calibration_id=cal_id, kind=kind, state="running")
             s.add(val)
             s.commit()
-        self.motion.start(val.id, self._validate, val.id, plan,
-                          name=f"validate-{val.id[:8]}")
+        self.motion.start(val.id, self._validate, val.id, work,
+                          name=f"{kind}-{val.id[:8]}")
         return val
 
-    def _validate(self, val_id: str, plan: DotHitPlan) -> None:
-        """The validation thread: observe the board, touch the points, store the report."""
+    def _validate(self, val_id: str, work: Callable[[], dict[str, Any]]) -> None:
+        """The validation thread: do the work holding the robot, store the report."""
         values: dict[str, Any] = {"state": "failed"}
         try:
             with self.motion.robot_lock:
-                values.update(state="done", result=self._dot_hit(plan))
+                values.update(state="done", result=work())
         except (DeviceError, ServiceError, ValueError) as exc:
             if isinstance(exc, RobotConnectionError):
                 self.motion.devices.reset()
@@ -89,6 +117,14 @@ class Validations:
             values["error"] = f"Internal error ({type(exc).__name__}: {exc})."
         with self.db.session() as s:
             store.finish_validation(s, val_id=val_id, **values)
+
+    def _check(self, plan: CheckPlan) -> dict[str, Any]:
+        """Revisit the plan's stations and compare them with the calibration."""
+        robot, camera = self.motion.devices.get()
+        options = CaptureOptions(settle_timeout=self.settings.settle_timeout_s,
+                                 grab_timeout=self.settings.grab_timeout_s,
+                                 speed=self.settings.move_speed)
+        return run_check(robot, camera, plan, options)
 
     def _dot_hit(self, plan: DotHitPlan) -> dict[str, Any]:
         """Observe the board from where the robot stands (eq. 24 needs a current view), then

@@ -16,7 +16,9 @@ from typing import Any
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from scipy.spatial.transform import Rotation
 
+from calib import make_transform
 from drivers.base import Camera, Robot
 from mocks.scene import default_scene
 from service.app import create_app
@@ -260,3 +262,59 @@ def add_calibration(client: TestClient, run_id: str, state: str = "done",
         s.add(cal)
         s.commit()
     return cal.id
+
+
+# ---- re-checks (POST /calibrations/{id}/checks) ----------------------------------------------
+
+def recheck(client: TestClient, cal_id: str, body: dict[str, Any] | None = None
+            ) -> dict[str, Any]:
+    r = client.post(f"/calibrations/{cal_id}/checks", json=body or {})
+    assert r.status_code == 202, r.text
+    check = wait_for(client, f"/validations/{r.json()['id']}")
+    assert (check["kind"], check["state"]) == ("check", "done"), check
+    return check["result"]
+
+
+@pytest.mark.timeout(240)
+def test_recheck_of_an_unchanged_cell_is_ok(app_on: Client,
+                                            calibrated: tuple[Path, str, str]) -> None:
+    report = recheck(app_on(), calibrated[2])
+    assert report["state"] == "ok", report
+    assert [s["station"] for s in report["stations"]] == [0, 2, 4, 5, 7]  # spread over 8
+    assert all(s["state"] == "ok" for s in report["stations"]), report["stations"]
+    assert report["offset"]["rot_deg"] < report["limits"]["rot_deg"]
+    assert report["offset"]["trans_mm"] < report["limits"]["trans_mm"]
+
+
+@pytest.mark.timeout(240)
+def test_recheck_flags_a_camera_mount_moved_by_2_mm_and_0_2_degrees(
+        app_on: Client, calibrated: tuple[Path, str, str]) -> None:
+    client = app_on()
+    rotation = Rotation.from_rotvec(np.deg2rad(0.2) * np.array([0.6, -0.8, 0.0])).as_matrix()
+    shift = make_transform(rotation, 2e-3 * np.array([0.0, 0.6, 0.8]))
+    client.app.state.devices.get()[1].shift_mount(shift)
+    report = recheck(client, calibrated[2], {"stations": 4})
+    assert report["state"] == "degraded", report
+    assert len(report["stations"]) == 4
+    # the mean offset is the shift itself, within the noise of four stations
+    assert report["offset"]["rot_deg"] == pytest.approx(0.2, abs=0.05)
+    assert report["offset"]["trans_mm"] == pytest.approx(2.0, abs=0.5)
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize(("body", "status", "code"), [
+    ({"stations": 2, "poses": [[0.5, 0, 0.5, 3.1, 0, 0]]}, 422, "invalid_request"),
+    ({"stations": 9}, 422, "too_few_stations"),
+    ({"poses": [[0.5, 0.0, -0.5, 3.1, 0.0, 0.0]]}, 422, "outside_workspace"),
+    ({"poses": [[0.5, 0.0, 0.5, 180.0, 0.0, 0.0]]}, 422, "invalid_pose"),
+])
+def test_recheck_requests_are_checked_before_the_robot_moves(
+        app_on: Client, calibrated: tuple[Path, str, str], body: dict[str, Any], status: int,
+        code: str) -> None:
+    client = app_on()
+    robot = client.app.state.devices.get()[0]
+    before = robot.true_pose.copy()
+    r = client.post(f"/calibrations/{calibrated[2]}/checks", json=body)
+    assert (r.status_code, r.json()["code"]) == (status, code), r.text
+    assert np.array_equal(robot.true_pose, before)
+    assert client.post("/calibrations/nope/checks", json={}).status_code == 404

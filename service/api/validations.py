@@ -1,4 +1,5 @@
-"""Validations of a calibration: the dot-hit run (SM eq. 24) on the run's robot."""
+"""Validations of a calibration on the run's robot: the dot-hit run (SM eq. 24) and the
+re-check (has the camera mount moved?)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from fastapi import APIRouter, status
 from service import store
 from service.api.deps import ValidationsDep
 from service.api.reads import Read, add_reads
-from service.schemas import Created, ValidationCreate, ValidationPublic
+from service.schemas import CheckCreate, Created, ValidationCreate, ValidationPublic
 
 router = APIRouter(tags=["validations"])
 
@@ -27,6 +28,26 @@ def create_validation(cal_id: str, validations: ValidationsDep,
     checked against the workspace limits before the robot moves.
     """
     return Created(id=validations.start(cal_id, body or ValidationCreate()).id)
+
+
+@router.post("/calibrations/{cal_id}/checks", status_code=status.HTTP_202_ACCEPTED,
+             responses={
+                 409: {"description": "the calibration is not done, or the robot is busy "
+                                      "(an active run or another validation)"},
+                 422: {"description": "malformed poses, more stations than the run captured, "
+                                      "or a result without camera model or cross-validation"}})
+def create_check(cal_id: str, validations: ValidationsDep,
+                 body: CheckCreate | None = None) -> Created:
+    """Has the cell changed since the calibration? Poll ``GET /validations/{id}``.
+
+    The robot revisits ``stations`` of the calibration's run (default 5, spread over its
+    captured stations) or the given ``poses``; at each the board is detected and compared with
+    the calibration's prediction from the robot pose. The report's ``state`` is ``degraded``
+    when the camera pose seen differs from the predicted one consistently (a moved mount) by
+    more than twice the calibration's cross-validated error, else ``ok``; each station has its
+    corner error and its own ``ok | degraded``.
+    """
+    return Created(id=validations.start_check(cal_id, body or CheckCreate()).id)
 
 
 add_reads(router, ValidationPublic,

@@ -1,0 +1,153 @@
+"""Re-checking a stored calibration: does the cell still look the way the calibration predicts?
+
+A re-check revisits stations: it reads the robot pose, grabs, detects the board and compares
+what the camera sees with what the stored calibration predicts from the robot pose alone,
+``C_pred = inv(X) inv(P) Y`` (eye-in-hand; ``inv(X) P Y`` eye-to-hand, ``calib.chain``). That
+is the prediction the calibration's cross-validation scored (``calib.crossval``: each station
+predicted from its robot reading by the estimator fitted on the other folds), so the
+cross-validated errors are what an unchanged cell shows, robot and detection noise included.
+
+Per station: the corner error (RMS px between detected and predicted corners) and the offset
+``D_k = C_pred inv(C_obs)`` (4, 4) between predicted and observed camera poses (``C_obs`` by
+PnP). A camera mount that moved by ``D`` (the camera frame now at ``X D``) gives ``D_k = D`` at
+every station, while robot and detection noise differ from station to station. The check's
+verdict therefore tests the *mean* offset over its stations: ``degraded`` when its rotation or
+its translation exceeds ``OFFSET_FACTOR`` times the cross-validated RMS pose error of a single
+held-out station. For one station that is a 0.6 % false alarm rate (the RMS of a 3-vector is
+√3 σ per axis; P(χ₃ > 2√3) = 0.006); for more stations the noise of the mean shrinks, but the
+calibration's own error is common to all of them and does not, so the limit stays. Rotation
+and translation are tested apart: in the image they can partly cancel, in ``D`` they cannot.
+A station is ``degraded`` when its corner error exceeds ``STATION_FACTOR`` times the
+cross-validated RMS (px).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib import so3
+from calib.camera import Pinhole, solve_pnp
+from calib.chain import camera_from_robot, check_setup
+from calib.geometry import invert
+
+#: The mean offset is degraded above this multiple of the cross-validated RMS pose error.
+OFFSET_FACTOR = 2.0
+#: A station's corner error is degraded above this multiple of the cross-validated RMS.
+STATION_FACTOR = 3.0
+#: Smallest limits on the mean offset (rad, m): detection noise of a perfect calibration.
+MIN_ROT_RAD = np.deg2rad(0.01)
+MIN_TRANS_M = 0.05e-3
+
+
+@dataclass(frozen=True)
+class StationCheck:
+    """One revisited station: corner error (px) and the camera pose offset ``D_k`` (4, 4)."""
+
+    rms_px: float
+    max_px: float
+    offset: np.ndarray  # shape (4, 4), C_pred inv(C_obs)
+
+    @property
+    def rot_rad(self) -> float:
+        """Angle of the station's offset."""
+        return float(np.linalg.norm(so3.log(self.offset[:3, :3])))
+
+    @property
+    def trans_m(self) -> float:
+        """Length of the station's offset translation."""
+        return float(np.linalg.norm(self.offset[:3, 3]))
+
+
+@dataclass(frozen=True)
+class StoredCell:
+    """What a calibration says about the cell (metres, radians).
+
+    ``grid`` (N, 3) are the board's corner positions in the target frame at the calibrated
+    κ, ν, in detection order; ``hand_eye`` and ``target_pose`` (4, 4) as in the result
+    document (X and Y of ``calib.chain``).
+    """
+
+    setup: str
+    K: np.ndarray  # shape (3, 3)
+    dist: np.ndarray  # shape (5,)
+    hand_eye: np.ndarray  # shape (4, 4)
+    target_pose: np.ndarray  # shape (4, 4)
+    grid: np.ndarray  # shape (N, 3)
+
+    def __post_init__(self) -> None:
+        check_setup(self.setup)
+
+    def predict(self, T_base_tcp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """T_cam_target (4, 4) and the corners' pixels (N, 2) seen from ``T_base_tcp``."""
+        C = camera_from_robot(T_base_tcp, self.hand_eye, self.target_pose, self.setup)
+        return C, Pinhole(self.K, self.dist).project(self.grid @ C[:3, :3].T + C[:3, 3])
+
+    def check(self, T_base_tcp: np.ndarray, corners: np.ndarray, *,
+              ambiguous: bool = False) -> StationCheck:
+        """Compare detected ``corners`` (N, 2) with the prediction from ``T_base_tcp``. A
+        180°-symmetric board (``ambiguous``) is read in the order that fits. ValueError if
+        PnP fails on the corners."""
+        C_pred, predicted = self.predict(T_base_tcp)
+        corners = np.asarray(corners, dtype=float)
+        seen = min((corners, corners[::-1]) if ambiguous else (corners,),
+                   key=lambda c: float(np.sum((c - predicted) ** 2)))
+        dists = np.linalg.norm(seen - predicted, axis=1)
+        C_obs, _ = solve_pnp(self.grid, seen, self.K, self.dist, guess=C_pred)
+        return StationCheck(rms_px=float(np.sqrt(np.mean(dists ** 2))),
+                            max_px=float(dists.max()), offset=C_pred @ invert(C_obs))
+
+
+@dataclass(frozen=True)
+class Expected:
+    """The calibration's cross-validated RMS errors: corners (px), camera pose (rad, m)."""
+
+    rms_px: float
+    rot_rad: float
+    trans_m: float
+
+    def __post_init__(self) -> None:
+        for name in ("rms_px", "rot_rad", "trans_m"):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value <= 0.0:
+                raise ValueError(f"the cross-validated {name} must be positive, got {value}")
+
+    @property
+    def station_limit_px(self) -> float:
+        """A station whose corner error exceeds this (px) is degraded."""
+        return STATION_FACTOR * self.rms_px
+
+    def station_state(self, check: StationCheck) -> str:
+        """``ok`` or ``degraded`` for one station's corner error."""
+        return "degraded" if check.rms_px > self.station_limit_px else "ok"
+
+
+@dataclass(frozen=True)
+class CheckVerdict:
+    """A re-check's outcome: ``ok`` or ``degraded``, the mean offset and its limits."""
+
+    state: str
+    rms_px: float  # over all stations
+    rot_rad: float  # angle of the mean offset
+    trans_m: float  # length of the mean offset's translation
+    rot_limit_rad: float
+    trans_limit_m: float
+    station_limit_px: float
+
+
+def check_verdict(stations: Sequence[StationCheck], expected: Expected) -> CheckVerdict:
+    """The check's verdict over its stations (at least one)."""
+    if not stations:
+        raise ValueError("a check needs at least one station with the board detected")
+    offsets = np.stack([s.offset for s in stations])
+    rot = float(np.linalg.norm(np.mean(so3.log(offsets[:, :3, :3]), axis=0)))
+    trans = float(np.linalg.norm(np.mean(offsets[:, :3, 3], axis=0)))
+    rot_limit = max(OFFSET_FACTOR * expected.rot_rad, MIN_ROT_RAD)
+    trans_limit = max(OFFSET_FACTOR * expected.trans_m, MIN_TRANS_M)
+    rms = float(np.sqrt(np.mean([s.rms_px ** 2 for s in stations])))
+    state = "degraded" if rot > rot_limit or trans > trans_limit else "ok"
+    return CheckVerdict(state=state, rms_px=rms, rot_rad=rot, trans_m=trans,
+                        rot_limit_rad=rot_limit, trans_limit_m=trans_limit,
+                        station_limit_px=expected.station_limit_px)

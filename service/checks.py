@@ -1,0 +1,130 @@
+"""Re-checks of a calibration (``POST /calibrations/{id}/checks``): has the camera mount moved?
+
+A check revisits stations of the calibration's run (or poses the caller gives), grabs and
+detects the board at each, and compares what the camera sees with the prediction of the stored
+calibration from the robot pose read after the grab (``calib.recheck``). The limits come from
+the calibration's own cross-validated errors, so a result without cross-validation cannot be
+checked (422). ``service.validations`` claims the robot and stores the report.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from calib import (
+    Expected,
+    StationCheck,
+    StoredCell,
+    board_points,
+    check_ur_poses,
+    check_verdict,
+    detect_checkerboard,
+    matrix_from_ur_pose,
+)
+from drivers.base import Camera, Robot
+from drivers.capture import CaptureOptions, capture_station
+from service.errors import UnprocessableError
+from service.schemas import CheckCreate
+
+#: Stations revisited when the request names neither a number nor poses.
+DEFAULT_STATIONS = 5
+
+
+@dataclass(frozen=True)
+class CheckPlan:
+    """A checked re-check request: where to go and what to expect there."""
+
+    cell: StoredCell
+    expected: Expected
+    inner_corners: tuple[int, int]
+    poses: list[list[float]]  # commanded UR poses, T_base_tcp
+    station_ids: list[int | None]  # the run's station index of each pose, or None
+
+
+def check_plan(result: dict[str, Any], target: dict[str, Any],
+               stations: list[tuple[int, list[float]]], body: CheckCreate) -> CheckPlan:
+    """Check a re-check request against a result document, the run's board and its captured
+    stations (index, commanded pose) (422 if the calibration cannot be checked that way)."""
+    camera, hand_eye, cv = result.get("camera"), result.get("hand_eye"), \
+        result.get("cross_validation")
+    if not camera or not hand_eye or not result.get("target_pose"):
+        raise UnprocessableError("A re-check compares images with the calibration's camera "
+                                 "model and hand-eye; this result has no camera model "
+                                 "(pose-only).", code="incomplete_result")
+    if not cv or not all(cv.get(k) for k in ("rms_px", "rot_deg", "trans_mm")):
+        raise UnprocessableError("A re-check takes its limits from the calibration's "
+                                 "cross-validated errors, which this result does not have; "
+                                 "calibrate again to get them.", code="no_cross_validation")
+    corners = (int(target["inner_corners"][0]), int(target["inner_corners"][1]))
+    grid = board_points(corners, float(target["square_size_m"]),
+                        kappa=float(result["target"]["kappa"]), nu=float(result["target"]["nu"]))
+    cell = StoredCell(setup=result["setup"], K=np.asarray(camera["K"], dtype=float),
+                      dist=np.asarray(camera["dist"], dtype=float),
+                      hand_eye=np.asarray(hand_eye["matrix"], dtype=float),
+                      target_pose=np.asarray(result["target_pose"]["matrix"], dtype=float),
+                      grid=grid)
+    expected = Expected(rms_px=float(cv["rms_px"]), rot_rad=float(np.radians(cv["rot_deg"])),
+                        trans_m=1e-3 * float(cv["trans_mm"]))
+    if body.poses is not None:
+        try:
+            check_ur_poses(np.asarray(body.poses, dtype=float), "poses")
+        except ValueError as exc:
+            raise UnprocessableError(str(exc), code="invalid_pose") from None
+        poses, ids = body.poses, [None] * len(body.poses)
+    else:
+        n = body.stations or DEFAULT_STATIONS
+        if len(stations) < n:
+            raise UnprocessableError(f"stations: {n} asked, the calibration's run captured "
+                                     f"{len(stations)}.", code="too_few_stations")
+        picked = [stations[int(k)] for k in np.round(np.linspace(0, len(stations) - 1, n))]
+        ids, poses = [index for index, _ in picked], [pose for _, pose in picked]
+    return CheckPlan(cell=cell, expected=expected, inner_corners=corners, poses=poses,
+                     station_ids=ids)
+
+
+def run_check(robot: Robot, camera: Camera, plan: CheckPlan,
+              options: CaptureOptions) -> dict[str, Any]:
+    """Visit the plan's poses, compare each view with the prediction; the report document.
+
+    A station where the board is not detected is reported with its reason and left out of
+    the verdict; if none is left, the check fails (ValueError)."""
+    stations: list[dict[str, Any]] = []
+    seen: list[StationCheck] = []
+    for pose, station_id in zip(plan.poses, plan.station_ids, strict=True):
+        taken = capture_station(robot, camera, np.asarray(pose), options)
+        det = detect_checkerboard(taken.image, plan.inner_corners)
+        entry: dict[str, Any] = {"station": station_id, "pose": list(pose),
+                                 "tcp_pose": [float(v) for v in taken.tcp_pose]}
+        if not det.ok or det.corners is None:
+            stations.append({**entry, "state": "not_detected", "reason": det.reason})
+            continue
+        check = plan.cell.check(matrix_from_ur_pose(taken.tcp_pose), det.corners,
+                                ambiguous=det.ambiguous)
+        seen.append(check)
+        stations.append({**entry, "state": plan.expected.station_state(check),
+                         "rms_px": check.rms_px, "max_px": check.max_px,
+                         "offset": {"rot_deg": float(np.degrees(check.rot_rad)),
+                                    "trans_mm": 1e3 * check.trans_m}})
+    if not seen:
+        raise ValueError("The board was not detected at any of the checked stations: "
+                         "is it still in place and lit?")
+    v = check_verdict(seen, plan.expected)
+    return {
+        "kind": "check", "state": v.state,
+        "offset": {"rot_deg": float(np.degrees(v.rot_rad)), "trans_mm": 1e3 * v.trans_m},
+        "limits": {"rot_deg": float(np.degrees(v.rot_limit_rad)),
+                   "trans_mm": 1e3 * v.trans_limit_m, "station_px": v.station_limit_px},
+        "rms_px": v.rms_px,
+        "expected": {"rms_px": plan.expected.rms_px,
+                     "rot_deg": float(np.degrees(plan.expected.rot_rad)),
+                     "trans_mm": 1e3 * plan.expected.trans_m},
+        "stations": stations,
+        "note": "offset: mean over the stations of the predicted camera pose against the "
+                "observed one (a moved mount shifts every station alike); degraded when its "
+                "rotation or translation is more than twice the calibration's cross-validated "
+                "error of a single station. A station is degraded when its corner error "
+                "(rms_px) exceeds limits.station_px.",
+    }
