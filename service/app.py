@@ -33,6 +33,7 @@ from service.api import (
     validations,
 )
 from service.api.deps import require_api_key
+from service.api.openapi import document_errors
 from service.db import TRANSIENT_ERRORS, DatabaseUnavailableError
 from service.devices import DeviceOpener, Devices
 from service.errors import (
@@ -106,6 +107,7 @@ def create_app(settings: Settings | None = None, *,
     app.add_exception_handler(Exception, _internal_error)
     app.add_middleware(RequestGuard, api_key=settings.api_key,
                        max_body_bytes=settings.max_body_bytes, refuse=error_response)
+    document_errors(app)
     return app
 
 

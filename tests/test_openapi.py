@@ -1,0 +1,98 @@
+"""The OpenAPI document declares the error answers the service really sends: every error
+status of every operation carries the one JSON error body ``{"detail", "code"}`` (``errors``
+for 422), and real answers of each kind validate against it."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.api.openapi import ErrorBody
+from service.app import create_app
+from tests.test_service_api import AUTH, settings
+
+ERROR_REF = {"$ref": "#/components/schemas/ErrorBody"}
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient]:
+    with TestClient(create_app(settings(tmp_path_factory.mktemp("openapi")))) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def doc(client: TestClient) -> dict[str, Any]:
+    return client.get("/openapi.json").json()
+
+
+def operations(doc: dict[str, Any]) -> Iterator[tuple[str, str, dict[str, Any]]]:
+    for path, ops in doc["paths"].items():
+        for method, op in ops.items():
+            yield method, path, op
+
+
+def test_every_error_status_has_the_error_body(doc: dict[str, Any]) -> None:
+    errors = [(m, p, s) for m, p, op in operations(doc) for s in op["responses"]
+              if int(s) >= 400]
+    assert len(errors) > 100
+    for method, path, status in errors:
+        schema = doc["paths"][path][method]["responses"][status]["content"][
+            "application/json"]["schema"]
+        assert schema == ERROR_REF, (method, path, status)
+    assert "HTTPValidationError" not in doc["components"]["schemas"]
+
+
+def test_each_operation_declares_the_statuses_it_can_answer(doc: dict[str, Any]) -> None:
+    for method, path, op in operations(doc):
+        statuses = set(op["responses"])
+        assert {"500", "503"} <= statuses, (method, path)
+        if path != "/health":
+            assert {"401", "422"} <= statuses, (method, path)
+        assert "{" not in path or "404" in statuses, (method, path)
+        assert ("413" in statuses) == ("requestBody" in op), (method, path)
+
+
+@dataclass(frozen=True)
+class Case:
+    """A request that fails, the operation's path template and the status it gets."""
+
+    method: str
+    path: str
+    template: str
+    status: int
+    kwargs: dict[str, Any] = field(default_factory=dict)
+
+
+@pytest.mark.parametrize("case", [
+    Case("get", "/runs", "/runs", 401, {"headers": {}}),
+    Case("get", "/runs/nope", "/runs/{run_id}", 404),
+    Case("post", "/runs", "/runs", 422, {"json": {"stations": 2}}),
+    Case("get", "/calibrations?limit=0", "/calibrations", 422),
+    Case("post", "/calibrations/nope/checks", "/calibrations/{cal_id}/checks", 422,
+         {"json": {"stations": 0}}),
+    Case("get", "/calibrations/active", "/calibrations/active", 404),
+], ids=lambda c: f"{c.status}-{c.method}-{c.path}")
+def test_real_error_answers_match_the_document(client: TestClient, doc: dict[str, Any],
+                                               case: Case) -> None:
+    r = client.request(case.method, case.path, **{"headers": AUTH, **case.kwargs})
+    assert r.status_code == case.status, r.text
+    assert str(case.status) in doc["paths"][case.template][case.method]["responses"]
+    body = ErrorBody.model_validate(r.json())
+    assert body.detail and body.code
+    assert (body.errors is not None) == (case.status == 422)
+    assert set(r.json()) <= set(ErrorBody.model_fields)
+
+
+def test_error_body_schema_is_the_model(doc: dict[str, Any]) -> None:
+    schema = doc["components"]["schemas"]["ErrorBody"]
+    assert schema["required"] == ["detail", "code"]
+    assert set(schema["properties"]) == {"detail", "code", "errors"}
+    assert "ErrorItem" in doc["components"]["schemas"]
+
+
+def test_page_and_docs_are_not_operations(doc: dict[str, Any]) -> None:
+    assert not any(p.startswith(("/ui", "/docs", "/redoc")) or p == "/" for p in doc["paths"])
