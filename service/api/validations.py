@@ -3,6 +3,9 @@ re-check (has the camera mount moved?)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TypeVar
+
 from fastapi import APIRouter, status
 
 from service import store
@@ -11,14 +14,22 @@ from service.api.reads import Read, add_reads
 from service.schemas import CheckCreate, Created, ValidationCreate, ValidationPublic
 
 router = APIRouter(tags=["validations"])
+F = TypeVar("F", bound=Callable[..., Created])
 
 
-@router.post("/calibrations/{cal_id}/validations", status_code=status.HTTP_202_ACCEPTED,
-             responses={
-                 409: {"description": "the calibration is not done, or the robot is busy "
-                                      "(an active run or another validation)"},
-                 422: {"description": "malformed probe, unknown point id, or a calibration "
-                                      "the dot-hit run cannot test (eye-to-hand)"}})
+def starts_validation(path: str, unprocessable: str) -> Callable[[F], F]:
+    """The route of a request that starts a validation: 202, 409 when the calibration is not
+    done or the robot is busy, 422 when ``unprocessable``."""
+    busy = "the calibration is not done, or the robot is busy (an active run or another " \
+           "validation)"
+    return router.post(path, status_code=status.HTTP_202_ACCEPTED,
+                       responses={409: {"description": busy},
+                                  422: {"description": unprocessable}})
+
+
+@starts_validation("/calibrations/{cal_id}/validations",
+                   "malformed probe, unknown point id, or a calibration the dot-hit run "
+                   "cannot test (eye-to-hand)")
 def create_validation(cal_id: str, validations: ValidationsDep,
                       body: ValidationCreate | None = None) -> Created:
     """Touch board points with a probe; poll ``GET /validations/{id}``.
@@ -30,12 +41,9 @@ def create_validation(cal_id: str, validations: ValidationsDep,
     return Created(id=validations.start(cal_id, body or ValidationCreate()).id)
 
 
-@router.post("/calibrations/{cal_id}/checks", status_code=status.HTTP_202_ACCEPTED,
-             responses={
-                 409: {"description": "the calibration is not done, or the robot is busy "
-                                      "(an active run or another validation)"},
-                 422: {"description": "malformed poses, more stations than the run captured, "
-                                      "or a result without camera model or cross-validation"}})
+@starts_validation("/calibrations/{cal_id}/checks",
+                   "malformed poses, more stations than the run captured, or a result "
+                   "without camera model or cross-validation")
 def create_check(cal_id: str, validations: ValidationsDep,
                  body: CheckCreate | None = None) -> Created:
     """Has the cell changed since the calibration? Poll ``GET /validations/{id}``.
