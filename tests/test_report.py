@@ -6,7 +6,6 @@ from __future__ import annotations
 import base64
 import json
 import shutil
-import time
 from html.parser import HTMLParser
 from pathlib import Path
 from typing import Any
@@ -17,7 +16,7 @@ import pytest
 
 from service.cli.main import main
 from service.report import report_plots
-from tests.helpers import SHARED
+from tests.helpers import SHARED, wait_for
 from tests.test_service_api import client, finished, start_run, wait_run  # noqa: F401
 
 UR_SET = SHARED / "data" / "ur-kinect-lowR_highT"
@@ -168,15 +167,14 @@ def test_intrinsics_only_and_pose_only_results_have_reports(ur_result, tmp_path)
             f"<td>{s['residual_trans_m'] * 1e3:.2f}</td>") in html
 
 
-@pytest.mark.timeout(90)
+@pytest.mark.timeout(300)
 def test_rest_report_of_a_capture_run(client) -> None:  # noqa: F811
     run_id = start_run(client, 8)
     wait_run(client, run_id, finished)
     cal_id = client.post(f"/runs/{run_id}/calibrations", json={}).json()["id"]
-    deadline = time.monotonic() + 60
-    while (cal := client.get(f"/calibrations/{cal_id}").json())["state"] == "running":
-        assert time.monotonic() < deadline
-        time.sleep(0.2)
+    cal = wait_for("the calibration to end", lambda: (
+        c if (c := client.get(f"/calibrations/{cal_id}").json())["state"] != "running"
+        else None), timeout=240)
     assert cal["state"] == "done", cal["error"]
     r = client.get(f"/calibrations/{cal_id}/report")
     assert r.status_code == 200
