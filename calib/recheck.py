@@ -31,7 +31,7 @@ import numpy as np
 from calib import so3
 from calib.camera import Pinhole, solve_pnp
 from calib.chain import camera_from_robot, check_setup
-from calib.geometry import invert
+from calib.geometry import invert, rotation_angle
 
 #: The mean offset is degraded above this multiple of the cross-validated RMS pose error.
 OFFSET_FACTOR = 2.0
@@ -53,7 +53,7 @@ class StationCheck:
     @property
     def rot_rad(self) -> float:
         """Angle of the station's offset."""
-        return float(np.linalg.norm(so3.log(self.offset[:3, :3])))
+        return float(rotation_angle(self.offset[:3, :3]))
 
     @property
     def trans_m(self) -> float:
