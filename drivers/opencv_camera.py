@@ -36,7 +36,6 @@ recording then restarts from its first frame).
 
 from __future__ import annotations
 
-import contextlib
 import re
 import time
 from collections.abc import Callable
@@ -145,9 +144,10 @@ class OpenCVCamera(CameraSession):
         """Open (again) the device or recording; ``CameraError`` saying what is wrong.
 
         Works after a loss (``camera_disconnected``, ``camera_stalled``) once the device is
-        back; a camera that is open is closed and opened anew.
+        back and its old handle has let go of it (``CameraTimeoutError`` until then); a camera
+        that is open is closed and opened anew.
         """
-        self.close()
+        release = self._release()
         path = Path(self._path)
         if self._kind == "v4l2" and not path.exists():
             raise CameraError(f"No camera at {path}: check that it is plugged in and look for "
@@ -159,6 +159,7 @@ class OpenCVCamera(CameraSession):
             raise CameraError(f"{self.url}: no such file or directory.", code="camera_not_found")
         if self._kind == "file" and path.is_dir():
             self._kind = "directory"
+        self._await_release(release, reopening=True)
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="opencv-camera")
         self._cap = self._call(self._open_capture, self.open_timeout, "opening the camera")
         if not self._cap.isOpened():
@@ -171,10 +172,25 @@ class OpenCVCamera(CameraSession):
 
     def close(self) -> None:
         """Release the device. Safe to call twice; never blocks longer than ``open_timeout``."""
-        release = self._release()
+        self._await_release(self._release(), reopening=False)
+
+    def _await_release(self, release: Future | None, *, reopening: bool) -> None:
+        """Wait up to ``open_timeout`` for ``release`` (from ``_release``) to let go of the device.
+
+        A V4L2 device cannot be opened again before it is let go, so when ``reopening`` a release
+        still running raises ``CameraTimeoutError`` and is waited for again by the next ``open``;
+        ``close`` gives up waiting without an error.
+        """
         if release is not None:
-            with contextlib.suppress(FutureTimeout, cv2.error):
+            try:
                 release.result(self.open_timeout)
+            except FutureTimeout:
+                if reopening:
+                    raise CameraTimeoutError(
+                        f"{self.url}: the device was not let go within {self.open_timeout:g} s "
+                        "of being closed, so it cannot be opened yet; try again.") from None
+            except cv2.error:
+                pass  # a release that fails has let go too
         self._releasing = self._lost = None
 
     def _release(self) -> Future | None:

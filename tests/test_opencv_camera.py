@@ -192,7 +192,8 @@ class FakeV4L2:
         self.blocked = threading.Event()  # a grab is waiting on ``stuck``
         self.supported_exposure = True
         self.releases = 0
-        self.release_delay = 0.0  # a device that takes this long to let go
+        self.let_go = threading.Event()  # cleared: a device that does not let go until set
+        self.let_go.set()
 
     def arrival(self, k: int) -> float:
         return self.t0 + (k + 1) * self.period
@@ -235,7 +236,7 @@ class FakeV4L2:
         return True
 
     def release(self) -> None:
-        time.sleep(self.release_delay)
+        self.let_go.wait()
         self.releases += 1
 
 
@@ -256,6 +257,7 @@ def live(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[Fake
     yield fakes[0], device
     for fake in fakes:
         fake.stuck.set()  # let a capture thread left blocked in the backend finish
+        fake.let_go.set()
 
 
 @pytest.mark.timeout(20)
@@ -279,15 +281,15 @@ def test_live_grab_drops_stale_buffered_frames(live: tuple[FakeV4L2, Path]) -> N
 @pytest.mark.timeout(20)
 def test_live_camera_unplugged_then_replugged(live: tuple[FakeV4L2, Path]) -> None:
     fake, device = live
-    with OpenCVCamera(f"v4l2://{device}", open_timeout=0.5) as cam:
+    with OpenCVCamera(f"v4l2://{device}", open_timeout=2.0) as cam:
         fake.streaming = False
         with pytest.raises(CameraTimeoutError, match=r"delivered no frame within 0\.2 s"):
             cam.grab(timeout=0.2)
         assert cam.opened  # one timeout is not a loss
-        fake.release_delay = 0.5  # the lost device is let go late: reopen must wait for it
+        fake.let_go.clear()  # the lost device is let go late: reopen must wait for it
         device.unlink()  # unplugged
         with pytest.raises(CameraError, match="was disconnected") as err:
-            cam.grab(timeout=0.5)
+            cam.grab(timeout=5.0)
         assert err.value.code == "camera_disconnected"
         assert not cam.opened
         with pytest.raises(CameraError, match=r"not open \(closed after: The camera"):
@@ -296,8 +298,12 @@ def test_live_camera_unplugged_then_replugged(live: tuple[FakeV4L2, Path]) -> No
             cam.open()
         assert err.value.code == "camera_not_found"
         device.write_text("")  # plugged back in
+        with pytest.raises(CameraTimeoutError, match="not let go within 2 s"):
+            cam.open()  # the old handle still holds the device
+        assert not cam.opened and fake.releases == 0
+        fake.let_go.set()
         cam.open()
-        assert cam.opened
+        assert cam.opened and fake.releases == 1
         assert cam.grab(timeout=5.0).shape == (4, 4)
 
 
