@@ -18,6 +18,7 @@ from calib.boards import (
     detect_checkerboard,
     target_from_board,
 )
+from calib.boards.detection import refine_corners
 
 BOARD = Charuco((8, 6), 0.04, 0.03, "DICT_5X5_100")
 PX = 80  # pixels per square in the flat print
@@ -187,3 +188,27 @@ def test_target_union_parses_both_types_and_builds_the_board():
                        ({**doc, "inner_corners": [3, 3]}, "Extra inputs")]:
         with pytest.raises(ValidationError, match=words):
             TargetAdapter.validate_python(bad)
+
+
+@pytest.mark.parametrize("spacing", [9.0, 40.0])
+def test_refinement_in_tiles_equals_refinement_on_the_whole_smoothed_image(spacing):
+    """``refine_corners`` smooths only a tile around each corner (for speed); the corners
+    are those of ``cornerSubPix`` on the whole smoothed image, also for windows next to the
+    border (where the smoothing mirrors the image) and on an image smaller than a tile."""
+    image, truth = _view(BOARD, _homography(1.5, -3.0, (-250.0, 60.0)))
+    inside = ((truth > 2) & (truth < np.array(IMAGE) - 3)).all(axis=1)
+    w, h = IMAGE
+    edge = [[9.6, 400.3], [w - 10.2, 500.7], [300.4, 9.8], [700.2, h - 10.4]]  # tiles cross it
+    start = np.vstack([truth[inside] + np.random.default_rng(4).normal(0.0, 0.4, (inside.sum(),
+                                                                               2)), edge])
+    small = image[:24, :30].copy()
+    start_small = np.array([[12.3, 11.8], [16.2, 12.1]])
+    for grey, corners in ((image, start), (small, start_small)):
+        half = int(np.clip(0.3 * spacing, 2, 5))
+        smooth = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), 1.2)
+        criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
+        whole = cv2.cornerSubPix(smooth, corners.astype(np.float32).reshape(-1, 1, 2),
+                                 (half, half), (-1, -1), criteria).reshape(-1, 2)
+        moved = np.linalg.norm(whole - corners, axis=1) > 0.6 * half
+        whole[moved] = corners[moved]
+        np.testing.assert_allclose(refine_corners(grey, corners, spacing), whole, atol=2e-4)
