@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib import so3
+from calib.boards import Board
 from calib.camera import Pinhole, solve_pnp
 from calib.chain import camera_from_robot, check_setup
 from calib.geometry import invert, rotation_angle
@@ -62,12 +63,31 @@ class StationCheck:
 
 
 @dataclass(frozen=True)
+class StationView:
+    """A station's board view against the calibration's prediction (:meth:`StoredCell.observe`).
+
+    ``corners`` (N, 2) are the detected corners of the points ``ids`` (N,), in the order that
+    fits the prediction (a 180°-symmetric board read from its other end is turned back);
+    ``predicted`` (N, 2) their pixels predicted from the robot pose, ``C_pred`` and ``C_obs``
+    (4, 4) the predicted and the observed (PnP) T_cam_target, ``residuals_px`` (N, 2) the PnP
+    fit's projection minus ``corners``.
+    """
+
+    corners: np.ndarray
+    ids: np.ndarray
+    predicted: np.ndarray
+    C_pred: np.ndarray
+    C_obs: np.ndarray
+    residuals_px: np.ndarray
+
+
+@dataclass(frozen=True)
 class StoredCell:
     """What a calibration says about the cell (metres, radians).
 
-    ``grid`` (N, 3) are the board's corner positions in the target frame at the calibrated
-    κ, ν, in detection order; ``hand_eye`` and ``target_pose`` (4, 4) as in the result
-    document (X and Y of ``calib.chain``).
+    ``hand_eye`` and ``target_pose`` (4, 4) as in the result document (X and Y of
+    ``calib.chain``); ``board`` with the calibrated print scale ``kappa`` and aspect ``nu``
+    places the board points (``Board.points``), taken by point id, so partial views work.
     """
 
     setup: str
@@ -75,29 +95,48 @@ class StoredCell:
     dist: np.ndarray  # shape (5,)
     hand_eye: np.ndarray  # shape (4, 4)
     target_pose: np.ndarray  # shape (4, 4)
-    grid: np.ndarray  # shape (N, 3)
+    board: Board
+    kappa: float = 1.0
+    nu: float = 1.0
 
     def __post_init__(self) -> None:
         check_setup(self.setup)
 
-    def predict(self, T_base_tcp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """T_cam_target (4, 4) and the corners' pixels (N, 2) seen from ``T_base_tcp``."""
-        C = camera_from_robot(T_base_tcp, self.hand_eye, self.target_pose, self.setup)
-        return C, Pinhole(self.K, self.dist).project(self.grid @ C[:3, :3].T + C[:3, 3])
+    def points(self, ids: np.ndarray | None = None) -> np.ndarray:
+        """Board points ``ids`` (all when None) at the calibrated κ, ν, target frame, (N, 3)."""
+        return self.board.points(ids, kappa=self.kappa, nu=self.nu)
 
-    def check(self, T_base_tcp: np.ndarray, corners: np.ndarray, *,
-              ambiguous: bool = False) -> StationCheck:
-        """Compare detected ``corners`` (N, 2) with the prediction from ``T_base_tcp``. A
-        180°-symmetric board (``ambiguous``) is read in the order that fits. ValueError if
-        PnP fails on the corners."""
-        C_pred, predicted = self.predict(T_base_tcp)
+    def predict(self, T_base_tcp: np.ndarray,
+                ids: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """T_cam_target (4, 4) and the pixels (N, 2) of points ``ids`` (all when None) seen
+        from ``T_base_tcp``."""
+        C = camera_from_robot(T_base_tcp, self.hand_eye, self.target_pose, self.setup)
+        return C, Pinhole(self.K, self.dist).project(self.points(ids) @ C[:3, :3].T + C[:3, 3])
+
+    def observe(self, T_base_tcp: np.ndarray, corners: np.ndarray, *,
+                ids: np.ndarray | None = None, ambiguous: bool = False) -> StationView:
+        """Detected ``corners`` (N, 2) of points ``ids`` (default all) seen from
+        ``T_base_tcp``, against the prediction. A 180°-symmetric board (``ambiguous``, a
+        whole checkerboard) is read in the order that fits the prediction, so its origin is
+        the calibration's. ValueError if PnP fails on the corners."""
         corners = np.asarray(corners, dtype=float)
+        ids = (self.board.point_ids if ids is None
+               else np.asarray(ids, dtype=np.int64).reshape(-1))
+        C_pred, predicted = self.predict(T_base_tcp, ids)
         seen = min((corners, corners[::-1]) if ambiguous else (corners,),
                    key=lambda c: float(np.sum((c - predicted) ** 2)))
-        dists = np.linalg.norm(seen - predicted, axis=1)
-        C_obs, _ = solve_pnp(self.grid, seen, self.K, self.dist, guess=C_pred)
+        C_obs, residuals = solve_pnp(self.points(ids), seen, self.K, self.dist, guess=C_pred)
+        return StationView(corners=seen, ids=ids, predicted=predicted, C_pred=C_pred,
+                           C_obs=C_obs, residuals_px=residuals)
+
+    def check(self, T_base_tcp: np.ndarray, corners: np.ndarray, *,
+              ids: np.ndarray | None = None, ambiguous: bool = False) -> StationCheck:
+        """Compare detected ``corners`` (N, 2) of points ``ids`` (default all) with the
+        prediction from ``T_base_tcp`` (see :meth:`observe`)."""
+        view = self.observe(T_base_tcp, corners, ids=ids, ambiguous=ambiguous)
+        dists = np.linalg.norm(view.corners - view.predicted, axis=1)
         return StationCheck(rms_px=float(np.sqrt(np.mean(dists ** 2))),
-                            max_px=float(dists.max()), offset=C_pred @ invert(C_obs))
+                            max_px=float(dists.max()), offset=view.C_pred @ invert(view.C_obs))
 
 
 @dataclass(frozen=True)

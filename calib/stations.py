@@ -10,14 +10,13 @@ from __future__ import annotations
 
 import os
 from collections import deque
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
-from calib.boards import Board, Detection
+from calib.boards import Board, CharucoTarget, CheckerboardTarget, Detection, TargetAdapter
 from calib.camera import solve_pnp
 from calib.geometry import check_ur_poses, invert, make_transform, rotation_angle
 from calib.intrinsics import MIN_IMAGES
@@ -78,14 +77,19 @@ class Station:
 class Stations:
     """A station set: the setup, the board, known intrinsics (K (3, 3), dist) and the stations.
 
-    ``target`` describes the board as the station-set file and the REST API do (``type``,
-    ``inner_corners`` [cols, rows], nominal ``square_size_m``); None for pose-only sets.
+    ``target`` is the board's configuration, the one target type of ``calib.boards``
+    (checkerboard or ChArUco; :func:`calib.boards.board_from_target` makes the board); None
+    for pose-only sets.
     """
 
     setup: str
     stations: tuple[Station, ...]
-    target: Mapping[str, Any] | None = None
+    target: CheckerboardTarget | CharucoTarget | None = None
     intrinsics: tuple[np.ndarray, np.ndarray] | None = None
+
+    def __post_init__(self) -> None:
+        if self.target is not None:  # a configuration given as data is parsed here, once
+            object.__setattr__(self, "target", TargetAdapter.validate_python(self.target))
 
     @property
     def pose_only(self) -> bool:

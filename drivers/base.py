@@ -19,6 +19,8 @@ from typing import Any, ClassVar, Protocol, Self, runtime_checkable
 
 import numpy as np
 
+from calib import CharucoTarget, CheckerboardTarget
+
 
 @dataclass(frozen=True)
 class RobotStatus:
@@ -109,13 +111,12 @@ class CellHints:
     """What is known roughly about a cell before it is calibrated (None: not known).
 
     ``hand_eye`` is T_tcp_cam (eye-in-hand) or T_base_cam (eye-to-hand), shape (4, 4); ``K``
-    shape (3, 3) and ``dist`` shape (n,) in pixels; the board as ``inner_corners`` (cols,
-    rows) with its nominal ``square_size_m``.
+    shape (3, 3) and ``dist`` shape (n,) in pixels; ``target`` the board, as the one target
+    type of ``calib.boards`` (checkerboard or ChArUco).
     """
 
     setup: str | None = None
-    inner_corners: tuple[int, int] | None = None
-    square_size_m: float | None = None
+    target: CheckerboardTarget | CharucoTarget | None = None
     hand_eye: np.ndarray | None = None
     K: np.ndarray | None = None
     dist: np.ndarray | None = None

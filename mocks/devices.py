@@ -171,9 +171,8 @@ class MockRobot(RobotSession):
     def describe_cell(cls, config: Any) -> CellHints:
         """``drivers.base.DescribesCell``: the scene's setup, board, hand-eye and camera."""
         scene = read_scene(config)
-        t = scene.target
-        return CellHints(setup=scene.setup, inner_corners=tuple(t.inner_corners),
-                         square_size_m=t.square_size_m, hand_eye=scene.hand_eye_matrix,
+        return CellHints(setup=scene.setup, target=scene.nominal_target(),
+                         hand_eye=scene.hand_eye_matrix,
                          K=scene.camera.k_matrix, dist=scene.camera.dist_coeffs)
 
     def true_tcp_pose(self) -> np.ndarray:

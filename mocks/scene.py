@@ -32,7 +32,10 @@ from pydantic import (
 )
 from scipy.spatial.transform import Rotation
 
+from calib import CharucoTarget as CalibCharucoTarget
 from calib import (
+    CheckerboardTarget,
+    TargetAdapter,
     board_points,
     camera_from_robot,
     check_transforms,
@@ -241,6 +244,11 @@ class MockScene(_Strict):
     def target_pose_matrix(self) -> np.ndarray:
         """True target pose, shape (4, 4)."""
         return np.asarray(self.target_pose, dtype=float)
+
+    def nominal_target(self) -> CheckerboardTarget | CalibCharucoTarget:
+        """The board as a user configures it (``calib.boards``' target type): the printed
+        layout without the truth κ, ν."""
+        return TargetAdapter.validate_python(self.target.model_dump(exclude={"kappa", "nu"}))
 
     def true_board_points(self) -> np.ndarray:
         """True (κ, ν-scaled) inner corners in the target frame, shape (N, 3), row-major."""

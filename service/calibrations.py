@@ -18,9 +18,9 @@ import numpy as np
 
 from calib import (
     MIN_IMAGES,
-    Checkerboard,
     PipelineOptions,
     RobotNoise,
+    board_from_target,
     calibrate_stations,
 )
 from service import store
@@ -144,9 +144,9 @@ def solve_calibration(payload: dict[str, Any]) -> dict[str, Any]:
         else float(np.deg2rad(opts["robot_noise_rot_deg"])),
         default.trans_m if opts["robot_noise_trans_mm"] is None
         else opts["robot_noise_trans_mm"] * 1e-3)
-    target = stations.target
+    assert stations.target is not None  # a run always has its board
     result = calibrate_stations(
-        stations.inputs(), Checkerboard(tuple(target["inner_corners"]), target["square_size_m"]),
+        stations.inputs(), board_from_target(stations.target),
         PipelineOptions(setup=stations.setup, method=opts["method"],
                         estimate_nu=opts["estimate_nu"], estimate_kappa=opts["estimate_kappa"],
                         kappa=opts.get("kappa", "auto"), nu_method=opts["nu_method"],

@@ -18,15 +18,15 @@ from calib import (
     Expected,
     StationCheck,
     StoredCell,
-    board_points,
+    Target,
     check_ur_poses,
     check_verdict,
-    detect_checkerboard,
     matrix_from_ur_pose,
 )
 from drivers.base import Camera, Robot
 from drivers.capture import CaptureOptions, capture_station
 from service.errors import UnprocessableError
+from service.results import stored_cell
 from service.schemas import CheckCreate
 
 #: Stations revisited when the request names neither a number nor poses.
@@ -39,33 +39,19 @@ class CheckPlan:
 
     cell: StoredCell
     expected: Expected
-    inner_corners: tuple[int, int]
     poses: list[list[float]]  # commanded UR poses, T_base_tcp
     station_ids: list[int | None]  # the run's station index of each pose, or None
 
 
-def check_plan(result: dict[str, Any], target: dict[str, Any],
+def check_plan(result: dict[str, Any], target: Target,
                stations: list[tuple[int, list[float]]], body: CheckCreate) -> CheckPlan:
     """Check a re-check request against a result document, the run's board and its captured
     stations (index, commanded pose) (422 if the calibration cannot be checked that way)."""
-    camera, hand_eye, cv = result.get("camera"), result.get("hand_eye"), \
-        result.get("cross_validation")
-    if not camera or not hand_eye or not result.get("target_pose"):
-        raise UnprocessableError("A re-check compares images with the calibration's camera "
-                                 "model and hand-eye; this result has no camera model "
-                                 "(pose-only).", code="incomplete_result")
+    cell, cv = stored_cell(result, target, use="A re-check"), result.get("cross_validation")
     if not cv or not all(cv.get(k) for k in ("rms_px", "rot_deg", "trans_mm")):
         raise UnprocessableError("A re-check takes its limits from the calibration's "
                                  "cross-validated errors, which this result does not have; "
                                  "calibrate again to get them.", code="no_cross_validation")
-    corners = (int(target["inner_corners"][0]), int(target["inner_corners"][1]))
-    grid = board_points(corners, float(target["square_size_m"]),
-                        kappa=float(result["target"]["kappa"]), nu=float(result["target"]["nu"]))
-    cell = StoredCell(setup=result["setup"], K=np.asarray(camera["K"], dtype=float),
-                      dist=np.asarray(camera["dist"], dtype=float),
-                      hand_eye=np.asarray(hand_eye["matrix"], dtype=float),
-                      target_pose=np.asarray(result["target_pose"]["matrix"], dtype=float),
-                      grid=grid)
     expected = Expected(rms_px=float(cv["rms_px"]), rot_rad=float(np.radians(cv["rot_deg"])),
                         trans_m=1e-3 * float(cv["trans_mm"]))
     if body.poses is not None:
@@ -81,8 +67,7 @@ def check_plan(result: dict[str, Any], target: dict[str, Any],
                                      f"{len(stations)}.", code="too_few_stations")
         picked = [stations[int(k)] for k in np.round(np.linspace(0, len(stations) - 1, n))]
         ids, poses = [index for index, _ in picked], [pose for _, pose in picked]
-    return CheckPlan(cell=cell, expected=expected, inner_corners=corners, poses=poses,
-                     station_ids=ids)
+    return CheckPlan(cell=cell, expected=expected, poses=poses, station_ids=ids)
 
 
 def run_check(robot: Robot, camera: Camera, plan: CheckPlan,
@@ -95,14 +80,14 @@ def run_check(robot: Robot, camera: Camera, plan: CheckPlan,
     seen: list[StationCheck] = []
     for pose, station_id in zip(plan.poses, plan.station_ids, strict=True):
         taken = capture_station(robot, camera, np.asarray(pose), options)
-        det = detect_checkerboard(taken.image, plan.inner_corners)
+        det = plan.cell.board.detect(taken.image)
         entry: dict[str, Any] = {"station": station_id, "pose": list(pose),
                                  "tcp_pose": [float(v) for v in taken.tcp_pose]}
         if not det.ok or det.corners is None:
             stations.append({**entry, "state": "not_detected", "reason": det.reason})
             continue
         check = plan.cell.check(matrix_from_ur_pose(taken.tcp_pose), det.corners,
-                                ambiguous=det.ambiguous)
+                                ids=det.ids, ambiguous=det.ambiguous)
         seen.append(check)
         stations.append({**entry, "state": plan.expected.station_state(check),
                          "rms_px": check.rms_px, "max_px": check.max_px,

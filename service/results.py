@@ -1,4 +1,5 @@
-"""The result file (``cellcal/result@1``, product.md): estimate, uncertainty, provenance."""
+"""The result file (``cellcal/result@1``, product.md): estimate, uncertainty, provenance; and a
+stored result read back as the cell it describes (:func:`stored_cell`)."""
 
 from __future__ import annotations
 
@@ -18,9 +19,31 @@ from calib import (
     PoseError,
     Selection,
     StationReport,
+    StoredCell,
+    Target,
     Trust,
+    board_from_target,
     ur_pose_from_matrix,
 )
+from service.errors import UnprocessableError
+
+
+def stored_cell(result: dict[str, Any], target: Target, *, use: str) -> StoredCell:
+    """The cell a stored result document describes (camera, hand-eye, target pose) with the
+    run's board at the calibrated κ, ν: what a validation (``use``, said in the 422 message)
+    tests against. 422 ``incomplete_result`` for a result without a camera model."""
+    camera, hand_eye, target_pose = (result.get(k) for k in ("camera", "hand_eye",
+                                                              "target_pose"))
+    if not camera or not hand_eye or not target_pose:
+        raise UnprocessableError(f"{use} compares the board with the calibration's camera "
+                                 "model, hand-eye and target pose; this result has none "
+                                 "(pose-only).", code="incomplete_result")
+    return StoredCell(setup=result["setup"], K=np.asarray(camera["K"], dtype=float),
+                      dist=np.asarray(camera["dist"], dtype=float),
+                      hand_eye=np.asarray(hand_eye["matrix"], dtype=float),
+                      target_pose=np.asarray(target_pose["matrix"], dtype=float),
+                      board=board_from_target(target), kappa=float(result["target"]["kappa"]),
+                      nu=float(result["target"]["nu"]))
 
 
 def software_version() -> str:
@@ -125,6 +148,7 @@ def _station_json(station: StationReport) -> dict[str, Any]:
             "chain_rms_px": station.chain_rms_px,
             **_pose_error_json("correction", station.correction),
             "mahalanobis": station.mahalanobis, **_pose_error_json("loo", station.loo),
+            "point_ids": None if station.point_ids is None else station.point_ids.tolist(),
             "corners_px": np.round(station.corners_px, 3),
             "residuals_px": np.round(station.residuals_px, 3)}
 

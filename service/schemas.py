@@ -11,7 +11,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from calib import METHODS
+from calib import METHODS, Target
 from service.exports import FORMATS
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
@@ -27,14 +27,6 @@ class _Input(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
-class TargetIn(_Input):
-    """The checkerboard to detect: ``inner_corners`` [cols, rows], nominal square size."""
-
-    inner_corners: Annotated[list[Annotated[int, Field(ge=2, le=100)]],
-                             Field(min_length=2, max_length=2)]
-    square_size_m: Annotated[float, Field(gt=0.0, lt=1.0, allow_inf_nan=False)]
-
-
 class RunCreate(_Input):
     """Either ``stations`` (automatic planning) or explicit ``poses``; ``target`` optional.
     In ``external`` mode neither: a cell controller posts the stations."""
@@ -47,7 +39,10 @@ class RunCreate(_Input):
         None, description="number of stations to plan automatically")
     poses: Annotated[list[Pose], Field(min_length=1)] | None = Field(
         None, description="TCP poses to visit in order")
-    target: TargetIn | None = Field(None, description="default: the configured checkerboard")
+    target: Target | None = Field(
+        None, description="the board to detect: a checkerboard (type 'checkerboard', the "
+                          "default when 'type' is left out) or a ChArUco board (type "
+                          "'charuco'); default: the configured board")
 
     @model_validator(mode="after")
     def _one_plan(self) -> RunCreate:
@@ -82,7 +77,7 @@ class RunPublic(BaseModel):
     mode: Literal["robot", "external"]
     robot: str
     setup: str
-    target: dict[str, Any]
+    target: Target
     stations_planned: int
     stations_captured: int
     stations_skipped: int
@@ -101,7 +96,12 @@ class DetectionPublic(BaseModel):
     mean_contrast: float | None = None
     ambiguous: bool = False
     corners: list[list[float]] | None = Field(
-        None, description="pixels, shape (cols * rows, 2); only on the single-station view")
+        None, description="pixels, shape (N, 2), of the board points ``ids``; only on the "
+                          "single-station view")
+    ids: list[int] | None = Field(
+        None, description="board point ids of ``corners`` (a ChArUco view may show part of "
+                          "the board; a checkerboard shows all, 0 .. cols * rows - 1); only "
+                          "on the single-station view")
 
 
 class StationPublic(BaseModel):

@@ -16,7 +16,7 @@ import numpy as np
 from pydantic import Field, SecretStr, ValidationInfo, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from calib import matrix_from_ur_pose
+from calib import Target, TargetAdapter, matrix_from_ur_pose
 from drivers import registry
 from drivers.base import CellHints
 
@@ -54,10 +54,17 @@ class Settings(BaseSettings):
     setup: Literal["eye_in_hand", "eye_to_hand"] | None = Field(
         None, description="default: what the robot's backend knows (a mock scene's setup), "
                           "else eye_in_hand")
+    target: Target | None = Field(
+        None, description="the board as JSON, the target type of station sets and of POST "
+                          "/runs: a checkerboard {\"inner_corners\": [cols, rows], "
+                          "\"square_size_m\": s} (\"type\": \"checkerboard\", the default) or a "
+                          "ChArUco board {\"type\": \"charuco\", \"squares\": [cols, rows], "
+                          "\"square_size_m\", \"marker_size_m\", \"dictionary\"}; default: what "
+                          "the robot's backend knows (a mock scene's board)")
     target_inner_corners: tuple[int, int] | None = Field(
-        None, description="[cols, rows] of the checkerboard; default: what the robot's "
-                          "backend knows (a mock scene's board)")
-    target_square_size_m: Annotated[float, Field(gt=0.0, lt=1.0)] | None = None
+        None, exclude=True, description="the older spelling of a checkerboard target, with "
+                                        "target_square_size_m; read into target")
+    target_square_size_m: float | None = Field(None, exclude=True)
     workspace_min: Vector3 = Field((-1.5, -1.5, 0.0),
                                    description="lower corner of the TCP box, base frame, m")
     workspace_max: Vector3 = Field((1.5, 1.5, 1.5),
@@ -115,15 +122,24 @@ class Settings(BaseSettings):
         if self.api_key is not None and len(self.api_key.get_secret_value()) < 16:
             raise ValueError("api_key must be at least 16 characters")
         registry.check_pair(self.robot, self.camera)
-        if (self.target_inner_corners is None) != (self.target_square_size_m is None):
-            raise ValueError("give target_inner_corners and target_square_size_m together")
-        if self.target_inner_corners is None and self.cell_hints().inner_corners is None:
-            raise ValueError("a real robot needs the checkerboard: set "
-                             "CELLCAL_TARGET_INNER_CORNERS (e.g. [11, 8]) and "
-                             "CELLCAL_TARGET_SQUARE_SIZE_M")
-        if self.target_inner_corners is not None and min(self.target_inner_corners) < 2:
-            raise ValueError("target_inner_corners must be at least [2, 2] (cols, rows)")
+        self._read_older_target()
+        if self.target is None and self.cell_hints().target is None:
+            raise ValueError("a real robot needs the board: set CELLCAL_TARGET, e.g. "
+                             '\'{"inner_corners": [11, 8], "square_size_m": 0.03}\' for a '
+                             "checkerboard")
         return self
+
+    def _read_older_target(self) -> None:
+        """``target_inner_corners`` with ``target_square_size_m`` (settings written before
+        ``target``) become ``target``, a checkerboard parsed by the one target type."""
+        older = (self.target_inner_corners, self.target_square_size_m)
+        if older == (None, None):
+            return
+        if None in older or self.target is not None:
+            raise ValueError("give target (CELLCAL_TARGET), or its older spelling "
+                             "target_inner_corners with target_square_size_m, not a mix")
+        self.target = TargetAdapter.validate_python(
+            {"inner_corners": older[0], "square_size_m": older[1]})
 
     @property
     def database(self) -> str:
@@ -135,9 +151,8 @@ class Settings(BaseSettings):
         robot's backend knows (``drivers.base.DescribesCell``; a mock scene)."""
         known = registry.describe_cell(self.robot, self.scene)
         hints = dataclasses.replace(known, setup=self.setup or known.setup)
-        if self.target_inner_corners is not None:
-            hints = dataclasses.replace(hints, inner_corners=tuple(self.target_inner_corners),
-                                        square_size_m=self.target_square_size_m)
+        if self.target is not None:
+            hints = dataclasses.replace(hints, target=self.target)
         if self.hand_eye_guess is not None:
             hints = dataclasses.replace(
                 hints, hand_eye=matrix_from_ur_pose(np.asarray(self.hand_eye_guess)))
@@ -145,12 +160,11 @@ class Settings(BaseSettings):
             hints = dataclasses.replace(hints, K=None, dist=None)
         return hints
 
-    def target(self) -> dict[str, object]:
-        """The checkerboard captured runs look for (``inner_corners``, nominal square size)."""
-        hints = self.cell_hints()
-        assert hints.inner_corners is not None  # checked at startup
-        return {"inner_corners": list(hints.inner_corners),
-                "square_size_m": hints.square_size_m}
+    def run_target(self) -> Target:
+        """The board captured runs look for: the setting, else the robot backend's."""
+        target = self.cell_hints().target
+        assert target is not None  # checked at startup
+        return target
 
     def calibration_setup(self) -> str:
         """``eye_in_hand`` or ``eye_to_hand``: the setting, else the backend's, else

@@ -1,5 +1,6 @@
 """The stored station (``models.Station`` row, its ``detection`` JSON) and the one station model
-(``calib.Station``): the service's converter at its storage boundary, written once.
+(``calib.Station``), and a run's stored ``target`` and the one target type
+(``calib.boards``): the service's converters at its storage boundary, written once.
 
 A row keeps what the capture loop knows besides the station (state, commanded pose, attempts,
 error code, time); the model keeps what the solver, a station-set file and a report need.
@@ -13,7 +14,7 @@ from typing import Any
 import numpy as np
 from sqlalchemy.orm import Session
 
-from calib import Detection, Station, Stations
+from calib import Detection, Station, Stations, Target, TargetAdapter
 from service import store
 from service.models import Run
 from service.models import Station as StationRow
@@ -24,14 +25,17 @@ def detection_json(det: Detection) -> dict[str, Any]:
     return {"ok": det.ok, "reason": det.reason, "sharpness": det.sharpness,
             "coverage": det.coverage, "mean_contrast": det.mean_contrast,
             "ambiguous": det.ambiguous,
-            "corners": None if det.corners is None else det.corners.tolist()}
+            "corners": None if det.corners is None else det.corners.tolist(),
+            "ids": None if det.ids is None else det.ids.tolist()}
 
 
 def detection_of(doc: dict[str, Any]) -> Detection:
-    """The stored ``detection`` column as a :class:`calib.Detection`."""
-    corners = doc.get("corners")
+    """The stored ``detection`` column as a :class:`calib.Detection`; a row stored before
+    point ids were kept holds a whole checkerboard (ids 0 .. N-1)."""
+    corners, ids = doc.get("corners"), doc.get("ids")
     return Detection(ok=bool(doc["ok"]), reason=doc.get("reason"),
                      corners=None if corners is None else np.asarray(corners, dtype=float),
+                     ids=None if ids is None else np.asarray(ids, dtype=np.int64),
                      sharpness=doc.get("sharpness"), coverage=doc.get("coverage", 0.0),
                      mean_contrast=doc.get("mean_contrast"),
                      ambiguous=bool(doc.get("ambiguous", False)))
@@ -62,9 +66,20 @@ def row_values(station: Station) -> dict[str, Any]:
             "error": station.rejected}
 
 
+def run_target(run: Run) -> Target:
+    """The run's stored ``target`` column as the one target type (a configuration stored
+    without ``type`` is a checkerboard)."""
+    return TargetAdapter.validate_python(run.target)
+
+
+def target_json(target: Target) -> dict[str, Any]:
+    """A target as the run's ``target`` column stores it."""
+    return TargetAdapter.dump_python(target, mode="json")
+
+
 def stations_of(run: Run, rows: Sequence[StationRow]) -> Stations:
     """A run's stations ``rows`` as a station set of the run's setup and target."""
-    return Stations(setup=run.setup, target=dict(run.target),
+    return Stations(setup=run.setup, target=run_target(run),
                     stations=tuple(station_of(r) for r in rows))
 
 

@@ -28,7 +28,7 @@ from pydantic import (
     model_validator,
 )
 
-from calib import Station, Stations, check_ur_pose
+from calib import Station, Stations, Target, TargetAdapter, check_ur_pose
 from drivers.config_files import describe_validation_error
 
 STATIONS_FILE = "stations.json"
@@ -39,19 +39,6 @@ FILE_BYTES_PER_STATION = 2048
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 PoseVector = Annotated[list[FiniteFloat], Field(min_length=6, max_length=6)]
-
-
-class Target(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    type: Literal["checkerboard"] = "checkerboard"
-    inner_corners: Annotated[list[int], Field(min_length=2, max_length=2)]
-    square_size_m: Annotated[float, Field(gt=0.0, lt=1.0, allow_inf_nan=False)]
-
-    @model_validator(mode="after")
-    def _corners_positive(self) -> Target:
-        if min(self.inner_corners) < 2:
-            raise ValueError("inner_corners must be at least [2, 2] (cols, rows)")
-        return self
 
 
 class Intrinsics(BaseModel):
@@ -105,7 +92,7 @@ class StationSet(BaseModel):
         """The file's stations as the one station model (``calib.Stations``); images stay
         references relative to the set's directory."""
         return Stations(
-            setup=self.setup, target=None if self.target is None else self.target.model_dump(),
+            setup=self.setup, target=self.target,
             intrinsics=None if self.intrinsics is None else (np.asarray(self.intrinsics.K),
                                                              np.asarray(self.intrinsics.dist)),
             stations=tuple(Station(id=s.id, T_base_tcp=_vector(s.tcp_pose), image=s.image,
@@ -172,7 +159,8 @@ def write_station_set(directory: str | Path, stations: Stations, *,
     path = directory / STATIONS_FILE
     names = [f"{k:03d}.png" for k in range(len(stations.stations))]
     doc: dict[str, Any] = {"format": "cellcal/stations@1", "setup": stations.setup,
-                           "target": None if stations.target is None else dict(stations.target)}
+                           "target": None if stations.target is None
+                           else TargetAdapter.dump_python(stations.target, mode="json")}
     if stations.intrinsics is not None:
         K, dist = stations.intrinsics
         doc["intrinsics"] = {"K": np.asarray(K).tolist(), "dist": np.asarray(dist).tolist()}

@@ -36,7 +36,7 @@ from scipy.spatial.transform import Rotation
 
 from calib import (
     SETUPS,
-    board_points,
+    Board,
     check_transforms,
     invert,
     make_transform,
@@ -111,17 +111,21 @@ class DotHitReport:
         return "\n".join(lines)
 
 
-def probe_points(inner_corners: tuple[int, int], square_size: float, *, kappa: float = 1.0,
-                 nu: float = 1.0) -> dict[str, np.ndarray]:
-    """The default points to touch: the four outer inner corners and the pattern centre.
+def probe_points(board: Board, *, kappa: float = 1.0, nu: float = 1.0) -> dict[str, np.ndarray]:
+    """The default points to touch: the four outermost corners of the board's point grid and
+    the grid's centre.
 
     Returns id -> position, shape (3,), in the (κ, ν-scaled) target frame; corner ids are
-    ``corner_i_j`` with (i, j) the corner's grid index (``docs/conventions.md``).
+    ``corner_i_j`` with (i, j) the point's grid index, its nominal position over the square
+    size (``docs/conventions.md``; the same for a checkerboard and a ChArUco board).
     """
-    cols, rows = inner_corners
-    grid = board_points(inner_corners, square_size, kappa=kappa, nu=nu).reshape(rows, cols, 3)
-    out = {f"corner_{i}_{j}": grid[j, i] for j in (0, rows - 1) for i in (0, cols - 1)}
-    out["centre"] = (grid[0, 0] + grid[-1, -1]) / 2
+    ids = board.point_ids
+    grid_index = np.rint(board.points(ids)[:, :2] / board.square_size).astype(int)
+    scaled = board.points(ids, kappa=kappa, nu=nu)
+    at = {(int(i), int(j)): p for (i, j), p in zip(grid_index, scaled, strict=True)}
+    (i0, j0), (i1, j1) = grid_index.min(axis=0), grid_index.max(axis=0)
+    out = {f"corner_{i}_{j}": at[(int(i), int(j))] for j in (j0, j1) for i in (i0, i1)}
+    out["centre"] = (at[(int(i0), int(j0))] + at[(int(i1), int(j1))]) / 2
     return out
 
 

@@ -18,13 +18,10 @@ import numpy as np
 
 from calib import (
     Detection,
-    board_points,
+    StoredCell,
+    Target,
     check_ur_poses,
-    detect_checkerboard,
     matrix_from_ur_pose,
-    rotation_angle,
-    solve_pnp,
-    target_from_station,
     ur_pose_from_matrix,
 )
 from drivers.base import GroundTruthSource, Robot
@@ -35,7 +32,9 @@ from service.checks import CheckPlan, check_plan, run_check
 from service.errors import ConflictError, ServiceError, UnprocessableError
 from service.models import Validation
 from service.motion import Motion
+from service.results import stored_cell
 from service.schemas import CheckCreate, ValidationCreate
+from service.station_rows import run_target
 from service.validation_run import (
     BoardEstimate,
     CellChecks,
@@ -72,7 +71,7 @@ class Validations:
                                          code="outside_workspace")
         return self._launch(cal_id, "check", lambda: self._check(plan))
 
-    def _calibration(self, cal_id: str) -> tuple[dict[str, Any], dict[str, Any] | None,
+    def _calibration(self, cal_id: str) -> tuple[Target, dict[str, Any] | None,
                                                  list[tuple[int, list[float]]]]:
         """The finished calibration's board, result and captured stations (index, commanded
         pose); 409 if it is not finished, 422 if this service drives another robot."""
@@ -84,7 +83,7 @@ class Validations:
             run = store.get_run(s, run_id=cal.run_id)
             stations = [(st.index, st.target_pose)
                         for st in store.captured_stations(s, run_id=run.id)]
-            robot_url, target, result = run.robot, run.target, cal.result
+            robot_url, target, result = run.robot, run_target(run), cal.result
         if robot_url != self.settings.robot:
             raise UnprocessableError(f"Calibration {cal_id} was captured with robot "
                                      f"{robot_url}; this service drives {self.settings.robot}.",
@@ -132,17 +131,18 @@ class Validations:
         robot, camera = self.motion.devices.get()
         tcp_pose = robot.tcp_pose()
         image = camera.grab(timeout=self.settings.grab_timeout_s)
-        det = detect_checkerboard(image, plan.inner_corners)
+        det = plan.cell.board.detect(image)
         if not det.ok:
             raise UnprocessableError(
                 f"The board is not in view at the robot's current pose ({det.reason}); move "
-                "the robot so the camera sees the whole board, then validate again.",
+                "the robot so the camera sees the board, then validate again.",
                 code="board_not_visible")
         P = matrix_from_ur_pose(tcp_pose)
         C, rms_px = plan.observe(det, P)
         truth = self._ground_truth(robot, plan)
         report = run_dot_hit(
-            robot, plan.points, BoardEstimate(plan.setup, plan.hand_eye, observation=(P, C)),
+            robot, plan.points, BoardEstimate(plan.cell.setup, plan.cell.hand_eye,
+                                              observation=(P, C)),
             Probe(plan.probe), CellChecks(workspace_check=self.motion.check_workspace,
                                           ground_truth=None if truth is None else truth[0]))
         return {"kind": "dot_hit", "probe": ur_pose_from_matrix(plan.probe).tolist(),
@@ -162,9 +162,9 @@ class Validations:
         """
         if not isinstance(robot, GroundTruthSource):
             return None
-        board = robot.true_board()
-        s = board.square_size_m / (plan.square_size * plan.kappa)
-        scale = np.diag([s * board.nu / plan.nu, s, 1.0, 1.0])
+        board, cell = robot.true_board(), plan.cell
+        s = board.square_size_m / (cell.board.square_size * cell.kappa)
+        scale = np.diag([s * board.nu / cell.nu, s, 1.0, 1.0])
         return GroundTruth(board_pose=board.T_base_target @ scale,
                            tcp_pose=robot.true_tcp_pose), board.source
 
@@ -173,54 +173,33 @@ class Validations:
 class DotHitPlan:
     """A checked dot-hit request with the calibration it tests (arrays in metres)."""
 
-    setup: str
-    K: np.ndarray  # shape (3, 3)
-    dist: np.ndarray  # shape (n,)
-    hand_eye: np.ndarray  # shape (4, 4)
-    target_pose: np.ndarray  # shape (4, 4)
-    inner_corners: tuple[int, int]
-    square_size: float
-    kappa: float
-    nu: float
+    cell: StoredCell
     probe: np.ndarray  # shape (4, 4), T_tcp_probe
     points: dict[str, np.ndarray]  # id -> shape (3,), (κ, ν-scaled) target frame
 
     def observe(self, det: Detection, T_base_tcp: np.ndarray) -> tuple[np.ndarray, float]:
         """T_cam_target (4, 4) at true scale by PnP on the κ, ν-scaled board, and its RMS (px).
 
-        A symmetric board's origin is taken at the end that agrees with the calibration's
-        target pose.
-        """
-        grid = board_points(self.inner_corners, self.square_size, kappa=self.kappa, nu=self.nu)
+        A symmetric board's origin is taken at the end the calibration predicts
+        (``StoredCell.observe``)."""
         assert det.corners is not None
-        best: tuple[float, np.ndarray, np.ndarray] | None = None
-        for corners in ([det.corners, det.corners[::-1]] if det.ambiguous else [det.corners]):
-            try:
-                C, residuals = solve_pnp(grid, corners, self.K, self.dist)
-            except ValueError:
-                continue
-            board = target_from_station(T_base_tcp, self.hand_eye, C, self.setup)
-            miss = float(rotation_angle(board[:3, :3].T @ self.target_pose[:3, :3]))
-            if best is None or miss < best[0]:
-                best = (miss, C, residuals)
-        if best is None:
+        try:
+            view = self.cell.observe(T_base_tcp, det.corners, ids=det.ids,
+                                     ambiguous=det.ambiguous)
+        except ValueError:
             raise UnprocessableError("PnP failed on the board seen at the robot's current "
-                                     "pose.", code="board_not_visible")
-        return best[1], float(np.sqrt(np.mean(np.sum(best[2] ** 2, axis=1))))
+                                     "pose.", code="board_not_visible") from None
+        return view.C_obs, float(np.sqrt(np.mean(np.sum(view.residuals_px ** 2, axis=1))))
 
 
-def dot_hit_plan(result: dict[str, Any], target: dict[str, Any],
-                 body: ValidationCreate) -> DotHitPlan:
+def dot_hit_plan(result: dict[str, Any], target: Target, body: ValidationCreate) -> DotHitPlan:
     """Check a dot-hit request against a result document and the run's board (422 if not)."""
     if result.get("setup") != "eye_in_hand":
         raise UnprocessableError(
             "The dot-hit validation probes the calibration board, which an eye-to-hand cell "
             "carries on the tool; it is available for eye-in-hand calibrations only.",
             code="unsupported_setup")
-    camera, hand_eye = result.get("camera"), result.get("hand_eye")
-    if not camera or not hand_eye or not result.get("target_pose"):
-        raise UnprocessableError("The dot-hit validation needs a camera model and a hand-eye "
-                                 "in the result.", code="incomplete_result")
+    cell = stored_cell(result, target, use="The dot-hit validation")
     try:
         probe = check_ur_poses(np.asarray(body.probe, dtype=float), "probe")[0]
     except ValueError as exc:
@@ -228,20 +207,11 @@ def dot_hit_plan(result: dict[str, Any], target: dict[str, Any],
     if np.linalg.norm(probe[:3, 3]) > 1.0:
         raise UnprocessableError(f"probe: the tip is {np.linalg.norm(probe[:3, 3]):.3g} m from "
                                  "the TCP, more than 1 m: give metres.", code="invalid_probe")
-    kappa, nu = float(result["target"]["kappa"]), float(result["target"]["nu"])
-    corners = (int(target["inner_corners"][0]), int(target["inner_corners"][1]))
-    square = float(target["square_size_m"])
-    points = probe_points(corners, square, kappa=kappa, nu=nu)
+    points = probe_points(cell.board, kappa=cell.kappa, nu=cell.nu)
     if body.points is not None:
         unknown = [p for p in body.points if p not in points]
         if unknown:
             raise UnprocessableError(f"points: unknown id {unknown[0]!r}; choose from "
                                      f"{', '.join(points)}.", code="unknown_point")
         points = {p: points[p] for p in dict.fromkeys(body.points)}
-    return DotHitPlan(
-        setup="eye_in_hand", K=np.asarray(camera["K"], dtype=float),
-        dist=np.asarray(camera["dist"], dtype=float),
-        hand_eye=np.asarray(hand_eye["matrix"], dtype=float),
-        target_pose=np.asarray(result["target_pose"]["matrix"], dtype=float),
-        inner_corners=corners, square_size=square, kappa=kappa, nu=nu, probe=probe,
-        points=points)
+    return DotHitPlan(cell=cell, probe=probe, points=points)

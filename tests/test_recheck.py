@@ -18,9 +18,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from calib import (
+    Checkerboard,
     Expected,
     StoredCell,
-    board_points,
     check_verdict,
     detect_checkerboard,
     make_transform,
@@ -40,8 +40,7 @@ def calibrated_cell(seed: int) -> tuple[StoredCell, Expected]:
     result = calibrate([detect_checkerboard(im, BOARD) for im in images], poses)
     cv = result.trust.cross_validation
     cell = StoredCell(result.setup, result.K, np.asarray(result.dist), result.hand_eye,
-                      result.target_pose,
-                      board_points(BOARD, SQUARE, kappa=result.kappa, nu=result.nu))
+                      result.target_pose, Checkerboard(BOARD, SQUARE), result.kappa, result.nu)
     return cell, Expected(cv.rms_px, cv.rot_rad, cv.trans_m)
 
 
@@ -72,7 +71,7 @@ def true_cell(T_mount_cam: np.ndarray | None = None) -> StoredCell:
     moved = np.eye(4) if T_mount_cam is None else T_mount_cam
     return StoredCell(SCENE.setup, SCENE.camera.k_matrix, np.asarray(SCENE.camera.dist_coeffs),
                       SCENE.hand_eye_matrix @ moved, SCENE.target_pose_matrix,
-                      board_points(BOARD, SQUARE, kappa=SCENE.target.kappa, nu=SCENE.target.nu))
+                      Checkerboard(BOARD, SQUARE), SCENE.target.kappa, SCENE.target.nu)
 
 
 def test_offset_of_noise_free_views_is_the_mount_shift() -> None:

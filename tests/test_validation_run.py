@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calib.boards import board_points
+from calib.boards import Checkerboard, board_points
 from calib.geometry import (
     invert,
     make_transform,
@@ -32,7 +32,7 @@ X_TRUE = SCENE.hand_eye_matrix
 Y_TRUE = SCENE.target_pose_matrix
 PROBE = make_transform(Rotation.from_euler("z", 30, degrees=True).as_matrix(), [0.0, 0.01, 0.15])
 T = SCENE.target
-TRUE_POINTS = probe_points(T.inner_corners, T.square_size_m, kappa=T.kappa, nu=T.nu)
+TRUE_POINTS = probe_points(Checkerboard(T.inner_corners, T.square_size_m), kappa=T.kappa, nu=T.nu)
 
 
 class FakeRobot:
@@ -67,7 +67,7 @@ class FakeRobot:
 
 
 def test_probe_points_are_the_outer_corners_and_the_centre():
-    pts = probe_points((4, 3), 0.02, kappa=1.01, nu=0.99)
+    pts = probe_points(Checkerboard((4, 3), 0.02), kappa=1.01, nu=0.99)
     grid = board_points((4, 3), 0.02, kappa=1.01, nu=0.99)
     assert list(pts) == ["corner_0_0", "corner_3_0", "corner_0_2", "corner_3_2", "centre"]
     np.testing.assert_array_equal(pts["corner_3_0"], grid[3])

@@ -21,7 +21,7 @@ from service.errors import ConflictError, NotFoundError
 from service.events import EventBus, ends_stream
 from service.models import Run
 from service.schemas import Created, ErrorInfo, RunCreate, RunPublic, StationError
-from service.station_rows import captured_station_set
+from service.station_rows import captured_station_set, run_target
 from service.stationset import zip_station_set
 
 router = APIRouter(prefix="/runs", tags=["runs"])
@@ -42,7 +42,7 @@ def runs_public(session: SessionDep, runs: list[Run]) -> list[RunPublic]:
     errors = store.runs_station_errors(session, run_ids=[run.id for run in runs])
     return [RunPublic(
         id=run.id, state=run.state, mode=run.mode, robot=run.robot, setup=run.setup,
-        target=run.target, **counts[run.id],
+        target=run_target(run), **counts[run.id],
         error=None if run.error is None else ErrorInfo(code=run.error_code or "error",
                                                        detail=run.error),
         station_errors=[StationError(index=i, code=code, detail=detail)

@@ -27,13 +27,13 @@ import numpy as np
 from calib import (
     KAPPA_MODES,
     METHODS,
-    Checkerboard,
     Detection,
     PipelineOptions,
     PoseStations,
     RefineOptions,
     Station,
     Stations,
+    board_from_target,
     calibrate_stations,
     choose_pose_only,
 )
@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         result, trust = choose_pose_only(
             PoseStations(P, C, stations.setup), ids, method=method,
             options=RefineOptions(estimate_kappa=args.estimate_kappa),
-            square_size_m=None if stations.target is None else stations.target["square_size_m"])
+            square_size_m=None if stations.target is None else stations.target.square_size_m)
         doc = hand_eye_result_json(result, ids, options=options, command=command, trust=trust)
     else:
         doc = _calibrate_images(args, stations, command)
@@ -149,7 +149,7 @@ def _calibrate_images(args: argparse.Namespace, stations: Stations,
 
     result = calibrate_stations(
         stations.inputs(image),
-        Checkerboard(tuple(target["inner_corners"]), target["square_size_m"]),
+        board_from_target(target),
         PipelineOptions(setup=stations.setup, method=args.method or "joint",
                         nu_method=args.nu_method, kappa=args.kappa), progress=progress)
     return calibration_result_json(result, command=command)

@@ -38,7 +38,7 @@ import numpy as np
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from calib import Station, detect_checkerboard
+from calib import Board, Station, board_from_target
 from drivers.capture import CaptureOptions, capture_station
 from drivers.errors import (
     CameraError,
@@ -56,7 +56,7 @@ from service.events import EventBus, state_event
 from service.models import Run
 from service.models import Station as StationRow
 from service.motion import Motion
-from service.station_rows import row_values
+from service.station_rows import row_values, run_target
 
 log = logging.getLogger("cellcal.service")
 T = TypeVar("T")
@@ -124,6 +124,8 @@ class Capture:
         self.options = CaptureOptions(settle_timeout=self.settings.settle_timeout_s,
                                       grab_timeout=self.settings.grab_timeout_s,
                                       speed=self.settings.move_speed)
+        #: The run's board, read with the run (``_plan``, ``develop_posted``).
+        self.board: Board | None = None
 
     # ---- the thread body: every way a capture ends -----------------------------------------
 
@@ -229,7 +231,7 @@ class Capture:
         if run is None or run.owner != self.token or run.state != "capturing":
             return None
         stored = store.stored_indices(s, run_id=self.run_id)
-        self.inner = tuple(run.target["inner_corners"])
+        self.board = board_from_target(run_target(run))
         return [k for k in range(len(run.poses)) if k not in stored], run.poses
 
     def _visit(self, todo: list[int], poses: list[list[float]]) -> bool:
@@ -314,7 +316,7 @@ class Capture:
         a captured one (``_develop``), without the retry: the controller took the image.
         ``problem`` (detail, code) says why there is no usable image. True if stored."""
         with self.db.session() as s:
-            self.inner = tuple(store.get_run(s, run_id=self.run_id).target["inner_corners"])
+            self.board = board_from_target(run_target(store.get_run(s, run_id=self.run_id)))
         detail, code = problem or (None, None)
         taken = None if image is None else Station(
             f"{index:03d}", T_base_tcp=np.asarray(pose, dtype=float), image=image,
@@ -331,11 +333,12 @@ class Capture:
         if taken is None or not isinstance(taken.image, np.ndarray):
             station = Station(f"{shot.index:03d}", rejected=shot.error or "No image.")
         else:
-            det = detect_checkerboard(taken.image, self.inner)
+            assert self.board is not None  # read with the run
+            det = self.board.detect(taken.image)
             if not det.ok and shot.attempt < ATTEMPTS:
                 return _RETRY
             station = replace(taken, detection=det, rejected=None if det.ok
-                              else f"Checkerboard not found: {det.reason}.")
+                              else f"{self.board.kind.capitalize()} not found: {det.reason}.")
             code = None if det.ok else "not_detected"
         return _STORED if self._store(shot, station, code) else _LOST
 

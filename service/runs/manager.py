@@ -17,6 +17,7 @@ from service.runs.capture import Capture
 from service.runs.external import ExternalStations
 from service.runs.planning import check_poses, plan_poses
 from service.schemas import RunCreate
+from service.station_rows import target_json
 
 
 class RunManager:
@@ -32,8 +33,7 @@ class RunManager:
 
     def create(self, body: RunCreate) -> Run:
         """Validate the plan, store the run and start capturing; 409 if the robot is busy."""
-        target = (body.target.model_dump() if body.target is not None
-                  else self.settings.target())
+        target = body.target or self.settings.run_target()
         setup = self.settings.calibration_setup()
         if body.mode == "external":
             poses: list[list[float]] = []
@@ -46,7 +46,7 @@ class RunManager:
                                                         target=target, setup=setup))
         token = new_id()
         run = Run(robot=self.settings.robot, state="capturing", owner=token, setup=setup,
-                  target=target, poses=poses, mode=body.mode)
+                  target=target_json(target), poses=poses, mode=body.mode)
         with self.motion.claim(), self.db.session() as s:
             s.add(run)
             try:

@@ -3,18 +3,16 @@ or poses given by the user, checked against the robot's limits and the workspace
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from calib import (
     CellGuess,
-    Checkerboard,
     Pinhole,
     PlanOptions,
+    Target,
+    board_from_target,
     camera_from_robot,
     check_ur_poses,
-    detect_checkerboard,
     matrix_from_ur_pose,
     plan_stations,
     rough_target_from_image,
@@ -24,7 +22,7 @@ from service.errors import UnprocessableError
 from service.motion import Motion
 
 
-def plan_poses(motion: Motion, *, n: int, target: dict[str, Any],
+def plan_poses(motion: Motion, *, n: int, target: Target,
                setup: str) -> list[list[float]]:
     """Plan ``n`` stations around the board as seen from the robot's current pose.
 
@@ -49,16 +47,17 @@ def plan_poses(motion: Motion, *, n: int, target: dict[str, Any],
     if K is None:
         f = float(settings.focal_px_guess or 0.0)
         K = np.array([[f, 0.0, w / 2.0], [0.0, f, h / 2.0], [0.0, 0.0, 1.0]])
-    corners = tuple(target["inner_corners"])
-    det = detect_checkerboard(image, corners)
+    board = board_from_target(target)
+    det = board.detect(image)
     if not det.ok:
         raise UnprocessableError(
             f"Cannot plan: the board is not in view at the robot's current pose "
             f"({det.reason}). Move the robot so the camera sees the whole board.",
             code="planning_failed")
     try:
-        pinhole, board = Pinhole(K, dist), Checkerboard(corners, target["square_size_m"])
-        Y = rough_target_from_image(det.corners, pinhole, board, CellGuess(P0, X, setup=setup))
+        pinhole = Pinhole(K, dist)
+        Y = rough_target_from_image(det.corners, pinhole, board, CellGuess(P0, X, setup=setup),
+                                    det.ids)
         d0 = float(np.linalg.norm(camera_from_robot(P0, X, Y, setup)[:3, 3]))
         plan = plan_stations(n, CellGuess(P0, X, Y, setup), pinhole, board, PlanOptions(
             image_size=(w, h), distance_band=(0.8 * d0, 1.3 * d0),
