@@ -124,9 +124,9 @@ class Settings(BaseSettings):
         registry.check_pair(self.robot, self.camera)
         self._read_older_target()
         if self.target is None and self.cell_hints().target is None:
-            raise ValueError("a real robot needs the board: set CELLCAL_TARGET, e.g. "
-                             '\'{"inner_corners": [11, 8], "square_size_m": 0.03}\' for a '
-                             "checkerboard")
+            raise ValueError("a real robot needs the checkerboard or ChArUco board it sees: "
+                             "set CELLCAL_TARGET, e.g. '{\"inner_corners\": [11, 8], "
+                             "\"square_size_m\": 0.03}' for a checkerboard")
         return self
 
     def _read_older_target(self) -> None:
