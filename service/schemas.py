@@ -9,27 +9,55 @@ from __future__ import annotations
 import datetime as dt
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from fastapi import Path as PathParam
+from pydantic import BaseModel, ConfigDict, Field, field_serializer, model_validator
 
 from calib import METHODS, Target
 from service.exports import FORMATS
+from service.result_schema import Result
 
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False, strict=True)]
 Pose = Annotated[list[FiniteFloat], Field(min_length=6, max_length=6,
                                           description="[x, y, z, rx, ry, rz], m and rad")]
 RunState = Literal["capturing", "paused", "done", "failed", "cancelled", "interrupted"]
 ExportFormat = Literal[FORMATS]  # type: ignore[valid-type]
+#: The largest station index or listing offset: any larger number is no row, and SQL integers
+#: (64 bit) could not even hold it.
+MAX_INDEX = 2**31 - 1
+StationIndex = Annotated[int, PathParam(ge=0, le=MAX_INDEX, description="station index")]
 #: T_tcp_probe of the default dot-hit probe: 10 cm along tool z.
 DEFAULT_PROBE = (0.0, 0.0, 0.1, 0.0, 0.0, 0.0)
 
 
 class _Input(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """A request body: unknown fields refused, and JSON types as documented (strict: no
+    ``true`` for a number, no ``"5"`` for an integer)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+
+def _only(mode: str | None, given: str | None) -> dict[str, Any]:
+    """The JSON schema of a run-creation body with ``mode`` and exactly ``given`` of
+    stations / poses (None: neither)."""
+    kinds = {"stations": {"type": "integer"}, "poses": {"type": "array"}}
+    props: dict[str, Any] = {k: v if k == given else {"type": "null"} for k, v in kinds.items()}
+    branch: dict[str, Any] = {"properties": props}
+    if mode == "external":
+        props["mode"] = {"const": "external"}
+        branch["required"] = ["mode"]
+    else:
+        props["mode"] = {"const": "robot"}
+        branch["required"] = [given]
+    return branch
 
 
 class RunCreate(_Input):
     """Either ``stations`` (automatic planning) or explicit ``poses``; ``target`` optional.
     In ``external`` mode neither: a cell controller posts the stations."""
+
+    # the rule of ``_one_plan`` in the OpenAPI document: exactly one of the three shapes
+    model_config = ConfigDict(json_schema_extra={"oneOf": [
+        _only("robot", "stations"), _only("robot", "poses"), _only("external", None)]})
 
     mode: Literal["robot", "external"] = Field(
         "robot", description="robot: the service moves the robot through the stations; "
@@ -146,10 +174,17 @@ class CalibrationPublic(BaseModel):
     run_id: str
     state: Literal["running", "done", "failed"]
     options: dict[str, Any]
-    result: dict[str, Any] | None = Field(None, description="cellcal/result@1 document")
+    result: Result | None = Field(None, description="the cellcal/result@1 document once done")
     error: str | None
     created_at: dt.datetime
     finished_at: dt.datetime | None
+
+    # No return annotation: with one, pydantic would document the answer by it instead of
+    # by ``Result``.
+    @field_serializer("result")
+    def _as_stored(self, result: Result | None):
+        """The document as stored: no field added that it did not have."""
+        return None if result is None else result.document()
 
 
 class ValidationCreate(_Input):
@@ -168,6 +203,11 @@ class ValidationCreate(_Input):
 class CheckCreate(_Input):
     """A re-check: revisit ``stations`` of the calibration's run (spread over its captured
     stations; default 5) or the given ``poses``, not both."""
+
+    # the rule of ``_one_plan`` in the OpenAPI document
+    model_config = ConfigDict(json_schema_extra={"not": {
+        "properties": {"stations": {"type": "integer"}, "poses": {"type": "array"}},
+        "required": ["stations", "poses"]}})
 
     stations: Annotated[int, Field(ge=1, le=50)] | None = Field(
         None, description="how many of the calibration's stations to revisit (default 5)")
@@ -249,7 +289,7 @@ class CalibrationQuery(BaseModel):
     state: Literal["running", "done", "failed"] | None = None
     setup: Literal["eye_in_hand", "eye_to_hand"] | None = None
     limit: int = Field(50, ge=1, le=200)
-    offset: int = Field(0, ge=0)
+    offset: int = Field(0, ge=0, le=MAX_INDEX)
 
 
 class CalibrationSummary(BaseModel):

@@ -6,9 +6,10 @@ import os
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
+from pydantic import BaseModel
 from scipy.spatial.transform import Rotation
 
 from calib.geometry import make_transform, pose_error
@@ -50,3 +51,18 @@ def wait_for(what: str, condition: Callable[[], T], timeout: float = 120.0) -> T
 #: ``../shared`` beside the repository (CI and developers have it there), e.g. the real images.
 SHARED = Path(os.environ.get("CELLCAL_SHARED", Path(__file__).resolve().parents[2] / "shared"))
 OPENCV_LEFT = SHARED / "data" / "opencv-left"
+
+
+def undeclared_fields(model: Any, path: str = "result") -> list[str]:
+    """Fields of a parsed document (pydantic, ``extra="allow"``) that its schema does not
+    declare, as dotted paths; a quality finding's figures are free by design."""
+    out: list[str] = []
+    if isinstance(model, BaseModel):
+        if not path.endswith("findings[]"):
+            out += [f"{path}.{k}" for k in model.model_extra or {}]
+        for name in type(model).model_fields:
+            out += undeclared_fields(getattr(model, name), f"{path}.{name}")
+    elif isinstance(model, list):
+        for item in model:
+            out += undeclared_fields(item, f"{path}[]")
+    return sorted(set(out))

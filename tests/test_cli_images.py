@@ -11,6 +11,8 @@ import pytest
 
 from calib.geometry import pose_error
 from service.cli.main import main
+from service.result_schema import parse_result
+from tests.helpers import undeclared_fields
 from tests.test_pipeline import BOARD, SCENE, SQUARE, rendered_stations
 
 N = 12
@@ -52,6 +54,7 @@ def test_image_set_gives_the_full_result(tmp_path, capsys):
         "003": "image file '003.png' is not a readable image (PNG or JPEG expected)",
         "004": "cannot read image file '004.png': No such file or directory"}
     assert doc["format"] == "cellcal/result@1" and doc["method"] == "joint"
+    assert undeclared_fields(parse_result(doc)) == []  # the schema documents every field
     cam = doc["camera"]
     assert cam["image_size"] == list(SCENE.camera.image_size) and len(cam["dist"]) == 5
     assert np.abs(np.array(cam["K"]) - SCENE.camera.k_matrix).max() < 3.0

@@ -8,11 +8,14 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
+import jsonschema_rs
 import pytest
 from fastapi.testclient import TestClient
+from pydantic import ValidationError
 
 from service.api.openapi import ErrorBody
 from service.app import create_app
+from service.schemas import CheckCreate, RunCreate
 from tests.test_service_api import AUTH, settings
 
 ERROR_REF = {"$ref": "#/components/schemas/ErrorBody"}
@@ -96,3 +99,52 @@ def test_error_body_schema_is_the_model(doc: dict[str, Any]) -> None:
 
 def test_page_and_docs_are_not_operations(doc: dict[str, Any]) -> None:
     assert not any(p.startswith(("/ui", "/docs", "/redoc")) or p == "/" for p in doc["paths"])
+
+
+def body_schema(doc: dict[str, Any], name: str) -> jsonschema_rs.Validator:
+    """A validator of the document's request body schema ``name`` (references resolved in
+    the document)."""
+    return jsonschema_rs.validator_for({"$ref": f"#/components/schemas/{name}",
+                                        "components": doc["components"]})
+
+
+RUN_BODIES = [
+    {"stations": 5}, {"mode": "robot", "stations": 5, "poses": None}, {"poses": [[0.1] * 6]},
+    {"mode": "external"}, {"mode": "external", "stations": None},
+    {}, {"mode": "robot"}, {"stations": 5, "poses": [[0.1] * 6]},
+    {"mode": "external", "stations": 5}, {"mode": "external", "poses": [[0.1] * 6]},
+    {"stations": None, "poses": None}, {"mode": "fast", "stations": 5},
+]
+
+
+@pytest.mark.parametrize("body", RUN_BODIES)
+def test_run_body_schema_says_exactly_one_of_stations_or_poses(doc: dict[str, Any],
+                                                               body: dict[str, Any]) -> None:
+    """The document accepts exactly the bodies the service accepts (``RunCreate``)."""
+    try:
+        RunCreate.model_validate(body)
+        accepted = True
+    except ValidationError:
+        accepted = False
+    assert body_schema(doc, "RunCreate").is_valid(body) == accepted
+    assert len(doc["components"]["schemas"]["RunCreate"]["oneOf"]) == 3
+
+
+@pytest.mark.parametrize("body", [{}, {"stations": 3}, {"poses": [[0.1] * 6]},
+                                  {"stations": 3, "poses": [[0.1] * 6]},
+                                  {"stations": 3, "poses": None}])
+def test_check_body_schema_says_not_both(doc: dict[str, Any], body: dict[str, Any]) -> None:
+    try:
+        CheckCreate.model_validate(body)
+        accepted = True
+    except ValidationError:
+        accepted = False
+    assert body_schema(doc, "CheckCreate").is_valid(body) == accepted
+
+
+def test_both_stations_and_poses_is_the_json_422(client: TestClient) -> None:
+    r = client.post("/runs", json={"stations": 5, "poses": [[0.1] * 6]}, headers=AUTH)
+    assert r.status_code == 422
+    body = r.json()
+    assert ErrorBody.model_validate(body).code == "invalid_request"
+    assert "either 'stations'" in body["detail"]

@@ -25,7 +25,9 @@ from drivers.errors import RobotConnectionError
 from mocks.scene import default_scene, sample_station_poses
 from service.app import create_app
 from service.devices import DeviceOpener, settings_opener
+from service.result_schema import parse_result
 from service.settings import Settings
+from tests.helpers import undeclared_fields
 
 KEY = "test-key-0123456789abcdef"
 AUTH = {"Authorization": f"Bearer {KEY}"}
@@ -420,6 +422,7 @@ def test_calibration_of_a_run(client: TestClient) -> None:
     assert cal["state"] == "done", cal["error"]
     result = cal["result"]
     assert result["format"] == "cellcal/result@1"
+    assert undeclared_fields(parse_result(result)) == []
     scene = default_scene()
     assert result["target"]["kappa"] == pytest.approx(scene.target.kappa, abs=3e-3)
     assert np.allclose(result["hand_eye"]["matrix"], scene.hand_eye, atol=3e-3)

@@ -13,6 +13,7 @@ from service.api.deps import CalibrationsDep, SessionDep
 from service.api.reads import Read, add_reads
 from service.errors import ConflictError, UnprocessableError
 from service.exports import ExportNames, export
+from service.result_schema import parse_result
 from service.schemas import CalibrationCreate, CalibrationPublic, Created, ExportQuery
 
 router = APIRouter(tags=["calibrations"])
@@ -55,7 +56,7 @@ def export_calibration(cal_id: str, session: SessionDep,
     try:
         names = ExportNames(camera_name=query.camera_name, parent_frame=query.parent_frame,
                             child_frame=query.child_frame)
-        content, media_type, filename = export(cal.result, query.format, names)
+        content, media_type, filename = export(parse_result(cal.result), query.format, names)
     except ValueError as exc:
         raise UnprocessableError(str(exc), code="export_unavailable") from None
     return Response(content, media_type=media_type,

@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from service.exports import FORMATS, ExportNames, export
+from service.result_schema import Result, parse_result
 
 #: Larger files are not result documents (a result with 10,000 stations is about 30 MB).
 MAX_RESULT_BYTES = 256 * 1024 * 1024
@@ -42,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the camera's frame (default <camera-name>_optical_frame)")
 
 
-def read_result(path: str) -> dict[str, object]:
+def read_result(path: str) -> Result:
     """A ``cellcal/result@1`` document from a file; ValueError naming what is wrong."""
     file = Path(path)
     if file.stat().st_size > MAX_RESULT_BYTES:
@@ -55,7 +56,7 @@ def read_result(path: str) -> dict[str, object]:
     if not isinstance(doc, dict) or doc.get("format") != "cellcal/result@1":
         raise ValueError(f"{path}: not a cellcal result (expected \"format\": "
                          "\"cellcal/result@1\")")
-    return doc
+    return parse_result(doc, path)
 
 
 def run(args: argparse.Namespace) -> int:

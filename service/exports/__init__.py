@@ -17,12 +17,12 @@ written into XML and Python without quoting.
 
 from __future__ import annotations
 
-import json
+from collections.abc import Mapping
 from typing import Any
 
-from calib import SETUPS
 from service.exports import camera, transforms
 from service.exports.common import ExportNames
+from service.result_schema import Result, parse_result
 
 __all__ = ["CAMERA_FORMATS", "FORMATS", "TRANSFORM_FORMATS", "ExportNames", "export"]
 
@@ -31,13 +31,14 @@ CAMERA_FORMATS = tuple(camera.WRITERS)
 TRANSFORM_FORMATS = tuple(transforms.WRITERS)
 FORMATS = ("json", *CAMERA_FORMATS, *TRANSFORM_FORMATS)
 
-def export(result_json: dict[str, Any], fmt: str,
+def export(result: Result | Mapping[str, Any], fmt: str,
            names: ExportNames | None = None) -> tuple[str, str, str]:
     """Render a result document as ``fmt``.
 
     Parameters
     ----------
-    result_json : the result document (``product.md``, "Result").
+    result : the result (``service.result_schema.Result``), or its JSON document, which is
+        validated first (ValueError naming the first problem).
     fmt : one of ``FORMATS``.
     names : camera and frame names (default ``ExportNames()``).
 
@@ -48,30 +49,27 @@ def export(result_json: dict[str, Any], fmt: str,
     names = names or ExportNames()
     if fmt not in FORMATS:
         raise ValueError(f"unknown export format '{fmt}': choose one of {', '.join(FORMATS)}")
+    doc = result if isinstance(result, Result) else parse_result(result)
     if fmt == "json":
-        return json.dumps(result_json, indent=2) + "\n", "application/json", "calibration.json"
-    setup = result_json.get("setup")
-    if setup not in SETUPS:
-        raise ValueError(f"result has unknown setup {setup!r}: expected eye_in_hand or "
-                         "eye_to_hand")
+        return doc.model_dump_json(indent=2, exclude_unset=True) + "\n", "application/json", \
+            "calibration.json"
     if fmt in CAMERA_FORMATS:
-        if not (result_json.get("camera") or {}).get("K"):
+        if doc.camera is None:
             raise ValueError(f"format '{fmt}' needs a camera model, but this result has none "
                              f"(pose-only hand-eye calibration): export it as "
-                             f"{_available(result_json)}")
-        return camera.WRITERS[fmt](result_json, setup, names.camera_name)
-    if not (result_json.get("hand_eye") or {}).get("matrix"):
+                             f"{_available(doc)}")
+        return camera.WRITERS[fmt](doc, doc.camera, names.camera_name)
+    if doc.hand_eye is None:
         raise ValueError(f"format '{fmt}' needs a hand-eye transform, but this result has none "
-                         f"(intrinsics-only calibration): export it as "
-                         f"{_available(result_json)}")
-    return transforms.WRITERS[fmt](result_json, setup, names)
+                         f"(intrinsics-only calibration): export it as {_available(doc)}")
+    return transforms.WRITERS[fmt](doc, doc.hand_eye, names)
 
 
-def _available(result_json: dict[str, Any]) -> str:
+def _available(result: Result) -> str:
     """The formats a result can be exported as, for error messages."""
     usable = ["json"]
-    if (result_json.get("camera") or {}).get("K"):
+    if result.camera is not None:
         usable += CAMERA_FORMATS
-    if (result_json.get("hand_eye") or {}).get("matrix"):
+    if result.hand_eye is not None:
         usable += TRANSFORM_FORMATS
     return ", ".join(usable)

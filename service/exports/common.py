@@ -5,24 +5,20 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from calib import check_transforms
+from service.result_schema import Transform
 
 #: What ``hand_eye`` / ``target_pose`` mean in each setup (``docs/conventions.md``).
 FRAMES = {"eye_in_hand": ("tcp_T_cam", "base_T_target"),
           "eye_to_hand": ("base_T_cam", "tcp_T_target")}
 
 
-def matrix(result_json: dict[str, Any], key: str) -> np.ndarray:
-    """The validated 4x4 ``result_json[key]['matrix']``, shape (4, 4)."""
-    try:
-        T = result_json[key]["matrix"]
-    except (KeyError, TypeError):
-        raise ValueError(f"result has no {key}.matrix") from None
-    return check_transforms(T, key)[0]
+def matrix(transform: Transform, name: str) -> np.ndarray:
+    """The transform's matrix, shape (4, 4), checked to be rigid (ValueError naming ``name``)."""
+    return check_transforms(np.asarray(transform.matrix, dtype=float), name)[0]
 
 
 def num(v: float) -> str:

@@ -1,23 +1,23 @@
 """Exports of the hand-eye transform: a URDF joint, a UR pose line and a ROS 2 launch file
 publishing it as a static transform.
 
-Each writer takes ``(result_json, setup, names)`` of a result that has a hand-eye and returns
-``(content, media_type, filename)``. The transform is taken from ``hand_eye.matrix`` (the
-``pose`` vector is derived from it). The camera frame is OpenCV's (x right, y down, z along
-the optical axis), which is ROS's *optical* frame convention (REP 103), hence the default
-``*_optical_frame`` child name.
+Each writer takes ``(result, hand_eye, names)``: a result and its hand-eye (a result without
+one never gets here) and returns ``(content, media_type, filename)``. The transform is taken
+from ``hand_eye.matrix`` (the ``pose`` vector is derived from it). The camera frame is
+OpenCV's (x right, y down, z along the optical axis), which is ROS's *optical* frame convention
+(REP 103), hence the default ``*_optical_frame`` child name.
 """
 
 from __future__ import annotations
 
 import warnings
 from collections.abc import Callable
-from typing import Any
 
 from scipy.spatial.transform import Rotation
 
 from calib import ur_pose_from_matrix
 from service.exports.common import FRAMES, ExportNames, matrix, num
+from service.result_schema import Result, Transform
 
 #: What the default parent frame must stand for, per setup.
 _PARENT_NOTE = {
@@ -28,9 +28,9 @@ _PARENT_NOTE = {
 }
 
 
-def urdf(result_json: dict[str, Any], setup: str, names: ExportNames) -> tuple[str, str, str]:
+def urdf(result: Result, hand_eye: Transform, names: ExportNames) -> tuple[str, str, str]:
     """A URDF with the camera joint; ``rpy`` is URDF's fixed-axis roll-pitch-yaw."""
-    X = matrix(result_json, "hand_eye")
+    X, setup = matrix(hand_eye, "hand_eye"), result.setup
     parent, child = names.frames(setup)
     with warnings.catch_warnings():  # at pitch = ±90 deg any split of roll and yaw is exact
         warnings.simplefilter("ignore", UserWarning)
@@ -56,10 +56,10 @@ def urdf(result_json: dict[str, Any], setup: str, names: ExportNames) -> tuple[s
     return text, "application/xml", f"{camera}_joint.urdf"
 
 
-def ur_pose(result_json: dict[str, Any], setup: str,
-            names: ExportNames) -> tuple[str, str, str]:
+def ur_pose(result: Result, hand_eye: Transform, names: ExportNames) -> tuple[str, str, str]:
     """The hand-eye as a UR pose line with a comment saying what it is and how to use it."""
-    pose = ", ".join(num(v) for v in ur_pose_from_matrix(matrix(result_json, "hand_eye")))
+    pose = ", ".join(num(v) for v in ur_pose_from_matrix(matrix(hand_eye, "hand_eye")))
+    setup = result.setup
     if setup == "eye_in_hand":
         what = ("tcp_T_cam: the camera's optical frame relative to the TCP used during "
                 "calibration (the flange if its TCP offset was zero); set it as the TCP offset "
@@ -71,11 +71,11 @@ def ur_pose(result_json: dict[str, Any], setup: str,
     return text, "text/plain", "hand_eye_ur_pose.txt"
 
 
-def ros2_static_tf(result_json: dict[str, Any], setup: str,
+def ros2_static_tf(result: Result, hand_eye: Transform,
                    names: ExportNames) -> tuple[str, str, str]:
     """A ROS 2 Python launch file running ``tf2_ros static_transform_publisher`` with the
     hand-eye as T_parent_child (translation in m, unit quaternion x, y, z, w with w >= 0)."""
-    X = matrix(result_json, "hand_eye")
+    X, setup = matrix(hand_eye, "hand_eye"), result.setup
     parent, child = names.frames(setup)
     q = Rotation.from_matrix(X[:3, :3]).as_quat(canonical=True)
     values = dict(zip(("x", "y", "z", "qx", "qy", "qz", "qw"), (*X[:3, 3], *q), strict=True))
@@ -110,5 +110,5 @@ def generate_launch_description():
 
 
 #: Format name -> writer, in the order the formats are listed.
-WRITERS: dict[str, Callable[[dict[str, Any], str, ExportNames], tuple[str, str, str]]] = {
+WRITERS: dict[str, Callable[[Result, Transform, ExportNames], tuple[str, str, str]]] = {
     "urdf": urdf, "ur-pose": ur_pose, "ros2-static-tf": ros2_static_tf}

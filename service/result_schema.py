@@ -1,0 +1,226 @@
+"""The result document ``cellcal/result@1`` as pydantic models: what ``service.results``
+writes, ``GET /calibrations/{id}`` answers (so the OpenAPI document shows every field) and the
+exports read.
+
+Only ``format``, ``setup``, ``camera``, ``target``, ``hand_eye`` and ``target_pose`` are required
+(product.md, "Result"); every other block is optional, so older and hand-written documents
+still validate. ``camera`` is None for a pose-only hand-eye calibration, ``hand_eye`` and
+``target_pose`` None for an intrinsics-only one. Version 1 only grows: unknown fields are kept
+(``extra="allow"``), and the tests check that what cellcal itself writes has none.
+
+Data in metres and radians; names ending in ``_mm``, ``_deg`` or ``_px`` are figures for
+people (millimetres, degrees, pixels).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+RESULT_FORMAT = "cellcal/result@1"
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+#: A 1-sigma figure: a scalar, or a small-angle / translation vector (3,); None = not estimated.
+Sigma = float | list[float] | None
+Row4 = Annotated[list[FiniteFloat], Field(min_length=4, max_length=4)]
+Row3 = Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]
+
+
+class _Block(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+
+class Transform(_Block):
+    """A rigid transform ``a_T_b`` (maps points of b into a), docs/conventions.md."""
+
+    matrix: Annotated[list[Row4], Field(min_length=4, max_length=4,
+                                        description="4x4 homogeneous matrix, metres")]
+    pose: Annotated[list[FiniteFloat], Field(min_length=6, max_length=6)] | None = Field(
+        None, description="the same as a UR pose [x, y, z, rx, ry, rz] (m, rad)")
+
+
+class CameraModel(_Block):
+    """The pinhole camera with OpenCV's distortion model."""
+
+    image_size: Annotated[list[Annotated[int, Field(gt=0)]],
+                          Field(min_length=2, max_length=2, description="[width, height] px")]
+    K: Annotated[list[Row3], Field(min_length=3, max_length=3,
+                                   description="camera matrix (3, 3), pixels")]
+    dist: list[FiniteFloat] = Field(description="OpenCV distortion k1, k2, p1, p2, k3[, ...]")
+    rms_px: float | None = Field(None, description="RMS reprojection error")
+    sigma_px: float | None = Field(None, description="estimated corner noise, 1-sigma")
+
+
+class BoardScale(_Block):
+    """The board's scale factors (Strobl & Hirzinger eq. 4: true point (κν x, κ y, 0))."""
+
+    kappa: float = Field(description="κ: true / nominal square size")
+    nu: float = Field(1.0, description="ν: x / y scale of the printed board")
+    kappa_sigma: float | None = None
+    nu_sigma: float | None = None
+
+
+class Uncertainty(_Block):
+    """1-sigma uncertainties; rotations as small angles (rad) about the axes of the frame
+    named first, translations in metres; 0 = held fixed."""
+
+    note: str | None = Field(None, description="which sigma is reported and where it came from")
+    variance_factor: float | None = None
+    camera: dict[str, float | None] | None = Field(
+        None, description="fx, fy, cx, cy (px), k1, k2, p1, p2, k3, nu, kappa")
+    hand_eye_rot_rad: list[float] | None = None
+    hand_eye_trans_m: list[float] | None = None
+    target_pose_rot_rad: list[float] | None = None
+    target_pose_trans_m: list[float] | None = None
+    kappa: float | None = Field(None, description="pose-only results: κ's sigma")
+    jackknife_folds: int | None = None
+    source: dict[str, Literal["formal", "jackknife"]] | None = Field(
+        None, description="per parameter, which figure was reported")
+    formal: dict[str, Sigma] | None = Field(None, description="from the Jacobian")
+    jackknife: dict[str, Sigma] | None = Field(None, description="spread over the folds")
+
+
+class StationFit(_Block):
+    """Per-station residuals. Image-based: corners and their residuals; pose-only: the
+    residual of the robot pose predicted through the estimate."""
+
+    id: str
+    n_corners: int | None = None
+    rms_px: float | None = None
+    chain_rms_px: float | None = Field(
+        None, description="image predicted from the uncorrected robot reading")
+    correction_rot_rad: float | None = None
+    correction_trans_m: float | None = None
+    mahalanobis: float | None = None
+    loo_rot_rad: float | None = None
+    loo_trans_m: float | None = None
+    corners_px: list[list[float]] | None = Field(None, description="detected corners (N, 2)")
+    residuals_px: list[list[float]] | None = Field(None, description="projection - corners")
+    point_ids: list[int] | None = Field(None, description="board point id of each corner")
+    residual_rot_rad: float | None = None
+    residual_trans_m: float | None = None
+
+
+class Rejected(_Block):
+    id: str
+    reason: str
+
+
+class Motions(_Block):
+    used: int
+    skipped: int
+
+
+class HeldOutStation(_Block):
+    id: str
+    fold: int | None = None
+    rms_px: float | None = None
+    max_px: float | None = None
+    rms_mm: float | None = None
+    rot_deg: float | None = None
+    trans_mm: float | None = None
+
+
+class CrossValidationBlock(_Block):
+    """Held-out stations predicted from their robot poses alone."""
+
+    kind: str = Field(description="k-fold or leave-one-out")
+    folds: int
+    rms_px: float | None = None
+    rms_mm: float | None = None
+    rot_deg: float | None = None
+    trans_mm: float | None = None
+    stations: list[HeldOutStation] = Field(default_factory=list)
+    note: str | None = None
+
+
+class Candidate(_Block):
+    """A model tried in model selection, with its cross-validated figures."""
+
+    name: str
+    chosen: bool
+    cv_rms_px: float | None = None
+    cv_rms_mm: float | None = None
+    cv_trans_mm: float | None = None
+    cv_range_mm: float | None = None
+    cv_rot_deg: float | None = None
+    kappa: str | None = None
+    nu: str | None = None
+    robot_noise: str | None = None
+    kappa_value: float | None = None
+    nu_value: float | None = None
+    robot_noise_rot_rad: float | None = None
+    robot_noise_trans_m: float | None = None
+    sigma_px: float | None = None
+
+
+class ModelSelection(_Block):
+    chosen: str
+    decisions: list[str] = Field(default_factory=list)
+    rule: str | None = None
+    candidates: list[Candidate] = Field(default_factory=list)
+
+
+class Finding(_Block):
+    """One quality finding; its figures (named per code) follow as further fields."""
+
+    code: str
+    severity: str
+    message: str
+
+
+class QualityBlock(_Block):
+    verdict: Literal["pass", "warn", "fail"]
+    findings: list[Finding] = Field(default_factory=list)
+
+
+class Software(_Block):
+    name: str
+    version: str
+    command: str | None = None
+
+
+class Result(_Block):
+    """A calibration result, ``cellcal/result@1``."""
+
+    format: Literal["cellcal/result@1"]
+    setup: Literal["eye_in_hand", "eye_to_hand"]
+    camera: CameraModel | None = Field(description="None: pose-only hand-eye calibration")
+    target: BoardScale
+    hand_eye: Transform | None = Field(
+        description="tcp_T_cam (eye-in-hand) or base_T_cam (eye-to-hand); None: intrinsics "
+                    "only")
+    target_pose: Transform | None = Field(
+        description="base_T_target (eye-in-hand) or tcp_T_target (eye-to-hand)")
+    uncertainty: Uncertainty | None = None
+    noise_estimate: dict[str, float | None] | None = Field(
+        None, description="pose-only: the robot noise the refinement estimated")
+    stations: list[StationFit] | None = None
+    rejected: list[Rejected] | None = None
+    motions: Motions | None = None
+    validation: dict[str, float | int | str | None] | None = Field(
+        None, description="E_R, E_t (eq. 21-22), leave-one-out prediction errors (eq. 23)")
+    method: str | None = None
+    options: dict[str, Any] | None = Field(None, description="the solver options used")
+    cross_validation: CrossValidationBlock | None = None
+    model_selection: ModelSelection | None = None
+    quality: QualityBlock | None = None
+    software: Software | None = None
+    created: str | None = Field(None, description="ISO 8601 time, UTC")
+
+    def document(self) -> dict[str, Any]:
+        """The JSON document: the fields it was read with (none added), unknown ones kept."""
+        return self.model_dump(mode="json", exclude_unset=True)
+
+
+def parse_result(doc: Any, where: str = "result") -> Result:
+    """A result document as ``Result``; ValueError with one line naming the first problem."""
+    try:
+        return Result.model_validate(doc)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        loc = ".".join(str(p) for p in first["loc"])
+        more = f" (and {exc.error_count() - 1} more problems)" if exc.error_count() > 1 else ""
+        raise ValueError(f"{where}: not a {RESULT_FORMAT} document: "
+                         f"{loc or 'document'}: {first['msg']}{more}") from None
