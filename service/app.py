@@ -20,6 +20,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi_offline import FastAPIOffline
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 from drivers.errors import DeviceError, WorkspaceError
 from service.api import (
@@ -161,9 +162,27 @@ async def _validation_error(request: Request, exc: Exception) -> JSONResponse:
 
 
 async def _http_error(request: Request, exc: Exception) -> JSONResponse:
+    """Starlette's own answers (unknown path, method not allowed) with the JSON error body and
+    their headers (``Allow`` on 405, RFC 9110)."""
     assert isinstance(exc, StarletteHTTPException)
-    return _error(exc.status_code, str(exc.detail), _HTTP_CODES.get(exc.status_code,
-                                                                    "http_error"))
+    if exc.status_code == 400:  # FastAPI's answer to an optional JSON body it cannot parse
+        return _error(422, "body: not valid JSON", "invalid_request",
+                      errors=[{"loc": ["body"], "msg": "not valid JSON"}])
+    response = _error(exc.status_code, str(exc.detail), _HTTP_CODES.get(exc.status_code,
+                                                                        "http_error"))
+    response.headers.update(exc.headers or {})
+    if exc.status_code == 405:  # every method of the path, not only the first route's
+        response.headers["Allow"] = ", ".join(_allowed_methods(request))
+    return response
+
+
+def _allowed_methods(request: Request) -> list[str]:
+    """The methods of every route whose path matches the request's."""
+    methods: set[str] = set()
+    for route in request.app.router.routes:
+        if route.matches(request.scope)[0] != Match.NONE:
+            methods |= getattr(route, "methods", None) or set()
+    return sorted(methods)
 
 
 def _where(loc: tuple[Any, ...] | list[Any]) -> str:

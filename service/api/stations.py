@@ -15,7 +15,13 @@ from service.api.deps import RunsDep, SessionDep, SettingsDep
 from service.errors import NotFoundError, UnprocessableError
 from service.models import Station
 from service.runs.external import PostedStation
-from service.schemas import DetectionPublic, ErrorInfo, FiniteFloat, StationPublic
+from service.schemas import (
+    DetectionPublic,
+    ErrorInfo,
+    FiniteFloat,
+    StationIndex,
+    StationPublic,
+)
 
 router = APIRouter(prefix="/runs/{run_id}/stations", tags=["stations"])
 
@@ -75,7 +81,7 @@ def _vector(text: str | None, name: str) -> list[float] | None:
         return None
     try:
         value: Any = json.loads(text)
-        return _VECTOR.validate_python(value, strict=False)
+        return _VECTOR.validate_python(value)
     except (json.JSONDecodeError, ValidationError):
         raise UnprocessableError(f"{name}: expected a JSON list of numbers like "
                                  "[0.4, -0.1, 0.5, 3.14, 0.0, 0.0], got "
@@ -83,14 +89,14 @@ def _vector(text: str | None, name: str) -> list[float] | None:
 
 
 @router.get("/{index}")
-def get_station(run_id: str, index: int, session: SessionDep) -> StationPublic:
+def get_station(run_id: str, index: StationIndex, session: SessionDep) -> StationPublic:
     """One station with its detected corners."""
     return station_public(store.get_station(session, run_id=run_id, index=index), corners=True)
 
 
 @router.get("/{index}/image", response_class=FileResponse,
             responses={200: {"content": {"image/png": {}}}})
-def get_station_image(run_id: str, index: int, session: SessionDep,
+def get_station_image(run_id: str, index: StationIndex, session: SessionDep,
                       settings: SettingsDep) -> FileResponse:
     """The captured image as PNG."""
     station = store.get_station(session, run_id=run_id, index=index)
