@@ -148,3 +148,32 @@ def test_both_stations_and_poses_is_the_json_422(client: TestClient) -> None:
     body = r.json()
     assert ErrorBody.model_validate(body).code == "invalid_request"
     assert "either 'stations'" in body["detail"]
+
+
+def test_method_not_allowed_names_every_method_of_the_path(client: TestClient) -> None:
+    r = client.request("TRACE", "/calibrations/abc", headers=AUTH)
+    assert r.status_code == 405 and r.json()["code"] == "method_not_allowed"
+    assert r.headers["allow"] == "GET, HEAD"
+    r = client.request("PUT", "/runs/abc/calibrations", headers=AUTH)
+    assert r.headers["allow"] == "GET, HEAD, POST"
+
+
+def test_an_optional_body_that_is_not_utf8_is_the_json_422(client: TestClient) -> None:
+    r = client.post("/calibrations/abc/checks", content=b'{"stations": "\xc3\x28"}',
+                    headers={**AUTH, "Content-Type": "application/json"})
+    assert r.status_code == 422
+    assert r.json()["code"] == "invalid_request" and r.json()["detail"] == "body: not valid JSON"
+
+
+@pytest.mark.parametrize("url", ["/calibrations?offset=9223372036854775808",
+                                 "/runs/abc/stations/9223372036854775808"])
+def test_numbers_beyond_any_row_are_422_not_500(client: TestClient, url: str) -> None:
+    r = client.get(url, headers=AUTH)
+    assert r.status_code == 422 and r.json()["code"] == "invalid_request"
+
+
+@pytest.mark.parametrize("body", [{"poses": [[False, 0, 0, 0, 0, 0]]}, {"stations": True},
+                                  {"stations": "5"}])
+def test_json_types_are_as_documented(client: TestClient, body: dict[str, Any]) -> None:
+    r = client.post("/runs", json=body, headers=AUTH)
+    assert r.status_code == 422 and r.json()["code"] == "invalid_request"
