@@ -12,7 +12,7 @@ from typing import Annotated, Any, Literal
 from fastapi import Path as PathParam
 from pydantic import BaseModel, ConfigDict, Field, field_serializer, model_validator
 
-from calib import METHODS, Target
+from calib import METHODS, Detection, Target
 from service.exports import FORMATS
 from service.result_schema import Result
 
@@ -117,6 +117,8 @@ class RunPublic(BaseModel):
 
 
 class DetectionPublic(BaseModel):
+    """The public view of a :class:`calib.Detection`."""
+
     ok: bool
     reason: str | None = None
     sharpness: float | None = None
@@ -131,8 +133,20 @@ class DetectionPublic(BaseModel):
                           "the board; a checkerboard shows all, 0 .. cols * rows - 1); only "
                           "on the single-station view")
 
+    @classmethod
+    def of(cls, det: Detection, *, corners: bool) -> DetectionPublic:
+        """``det`` as the API shows it; ``corners`` and ``ids`` only when asked for."""
+        return cls(ok=det.ok, reason=det.reason, sharpness=det.sharpness,
+                   coverage=det.coverage, mean_contrast=det.mean_contrast,
+                   ambiguous=det.ambiguous,
+                   corners=det.corners.tolist() if corners and det.corners is not None else None,
+                   ids=det.ids.tolist() if corners and det.ids is not None else None)
+
 
 class StationPublic(BaseModel):
+    """The public view of a stored station: the one station model (``calib.Station``) and
+    the capture's bookkeeping (``api.stations.station_public`` converts)."""
+
     index: int
     state: Literal["captured", "skipped"]
     target_pose: list[float] = Field(description="commanded TCP pose")

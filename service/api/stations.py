@@ -22,24 +22,28 @@ from service.schemas import (
     StationIndex,
     StationPublic,
 )
+from service.station_rows import station_of
 
 router = APIRouter(prefix="/runs/{run_id}/stations", tags=["stations"])
 
 
-def station_public(station: Station, *, corners: bool) -> StationPublic:
-    det = None
-    if station.detection is not None:
-        det = DetectionPublic(**{**station.detection,
-                                 "corners": station.detection["corners"] if corners else None})
+def station_public(row: Station, *, corners: bool) -> StationPublic:
+    """The public view of a stored station: the one station model (``calib.Station``, read
+    by ``station_rows.station_of``) with the row's capture bookkeeping (index, commanded pose,
+    joints, attempts, error code, time); ``corners`` adds the detected corners and ids."""
+    station = station_of(row)
     return StationPublic(
-        index=station.index, state=station.state, target_pose=station.target_pose,
-        tcp_pose=station.tcp_pose, joint_positions=station.joint_positions, detection=det,
-        image_size=station.image_size,
-        image_url=None if station.image_path is None
-        else f"/runs/{station.run_id}/stations/{station.index}/image",
-        error=None if station.error is None else ErrorInfo(code=station.error_code or "error",
-                                                           detail=station.error),
-        attempts=station.attempts, captured_at=station.captured_at)
+        index=row.index, state=row.state, target_pose=row.target_pose,
+        tcp_pose=None if station.T_base_tcp is None else station.T_base_tcp.tolist(),
+        joint_positions=row.joint_positions,
+        detection=None if station.detection is None
+        else DetectionPublic.of(station.detection, corners=corners),
+        image_size=None if station.image_size is None else list(station.image_size),
+        image_url=None if row.image_path is None
+        else f"/runs/{row.run_id}/stations/{row.index}/image",
+        error=None if station.rejected is None
+        else ErrorInfo(code=row.error_code or "error", detail=station.rejected),
+        attempts=row.attempts, captured_at=row.captured_at)
 
 
 @router.get("")
