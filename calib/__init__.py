@@ -17,6 +17,7 @@ the layout is in ``docs/architecture.md``:
 from calib.boards import (
     MIN_CONTRAST,
     Board,
+    BoardTarget,
     Charuco,
     CharucoTarget,
     Checkerboard,
@@ -111,6 +112,7 @@ __all__ = [
     "SELECTION_RULE",
     "SETUPS",
     "Board",
+    "BoardTarget",
     "CalibrationResult",
     "Candidate",
     "CellGuess",

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.boards import Board, CharucoTarget, CheckerboardTarget, Detection, TargetAdapter
+from calib.boards import Board, BoardTarget, Detection, TargetAdapter
 from calib.camera import solve_pnp
 from calib.geometry import check_ur_poses, invert, make_transform, rotation_angle
 from calib.intrinsics import MIN_IMAGES
@@ -84,7 +84,7 @@ class Stations:
 
     setup: str
     stations: tuple[Station, ...]
-    target: CheckerboardTarget | CharucoTarget | None = None
+    target: BoardTarget | None = None
     intrinsics: tuple[np.ndarray, np.ndarray] | None = None
 
     def __post_init__(self) -> None:

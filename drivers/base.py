@@ -19,7 +19,7 @@ from typing import Any, ClassVar, Protocol, Self, runtime_checkable
 
 import numpy as np
 
-from calib import CharucoTarget, CheckerboardTarget
+from calib import BoardTarget
 
 
 @dataclass(frozen=True)
@@ -116,7 +116,7 @@ class CellHints:
     """
 
     setup: str | None = None
-    target: CheckerboardTarget | CharucoTarget | None = None
+    target: BoardTarget | None = None
     hand_eye: np.ndarray | None = None
     K: np.ndarray | None = None
     dist: np.ndarray | None = None

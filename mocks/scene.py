@@ -32,9 +32,8 @@ from pydantic import (
 )
 from scipy.spatial.transform import Rotation
 
-from calib import CharucoTarget as CalibCharucoTarget
 from calib import (
-    CheckerboardTarget,
+    BoardTarget,
     TargetAdapter,
     board_points,
     camera_from_robot,
@@ -245,7 +244,7 @@ class MockScene(_Strict):
         """True target pose, shape (4, 4)."""
         return np.asarray(self.target_pose, dtype=float)
 
-    def nominal_target(self) -> CheckerboardTarget | CalibCharucoTarget:
+    def nominal_target(self) -> BoardTarget:
         """The board as a user configures it (``calib.boards``' target type): the printed
         layout without the truth κ, ν."""
         return TargetAdapter.validate_python(self.target.model_dump(exclude={"kappa", "nu"}))

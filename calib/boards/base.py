@@ -1,12 +1,17 @@
-"""The one board interface: what the calibration needs to know about a printed target."""
+"""The one board interface: what the calibration needs to know about a printed target, and
+the base of every board type's configuration (:class:`BoardTarget`)."""
 
 from __future__ import annotations
 
-from typing import Protocol, runtime_checkable
+from typing import Annotated, Protocol, runtime_checkable
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from calib.boards.detection import Detection
+
+#: A nominal length of a board configuration (metres).
+TargetLength = Annotated[float, Field(gt=0.0, lt=1.0, allow_inf_nan=False)]
 
 
 @runtime_checkable
@@ -16,8 +21,8 @@ class Board(Protocol):
     ``point_ids`` numbers the board's points; ``points(ids)`` gives their positions in the
     target frame with the print's scale κ and aspect ν (true point (κν x, κ y, 0), Strobl &
     Hirzinger eq. 4); ``detect`` finds the points in an image, with their ids; ``outline``
-    is the printed edge, for planning views. Implementations: :class:`Checkerboard`,
-    :class:`Charuco`.
+    is the printed edge, for planning views; ``target`` its configuration. Implementations:
+    :class:`Checkerboard`, :class:`Charuco`.
     """
 
     kind: str
@@ -40,3 +45,26 @@ class Board(Protocol):
     def outline(self, per_side: int = 8) -> np.ndarray:
         """Points along the printed board's outer edge, shape (4 * per_side, 3)."""
         ...
+
+    def target(self) -> BoardTarget:
+        """The board's configuration (the inverse of :meth:`BoardTarget.board`)."""
+        ...
+
+
+class BoardTarget(BaseModel):
+    """Base of every board type's configuration, as station-set files, REST, settings and
+    mock scenes give it: a pydantic model whose ``type`` literal names the board type and
+    whose :meth:`board` makes the :class:`Board`.
+
+    A board module defines its subclass next to its :class:`Board` class;
+    ``calib.boards.targets`` finds every subclass in the package's modules and makes the one
+    target union of them, so a new board type is one new module.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    type: str
+
+    def board(self) -> Board:
+        """The :class:`Board` this configuration describes."""
+        raise NotImplementedError(f"{type(self).__name__} makes no board")

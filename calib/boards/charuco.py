@@ -22,12 +22,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import ClassVar
+from typing import Annotated, ClassVar, Literal
 
 import cv2
 import numpy as np
+from pydantic import Field, model_validator
 
 from calib.boards import detection as imaging
+from calib.boards.base import BoardTarget, TargetLength
 from calib.boards.checkerboard import board_points, rectangle_outline
 from calib.boards.detection import MIN_CONTRAST, MIN_SHARPNESS, Detection
 from calib.boards.markers import (
@@ -115,6 +117,37 @@ class Charuco:
         black = np.ones((rows, cols), bool)
         black[b, a] = False
         return black
+
+    def target(self) -> CharucoTarget:
+        """This board's configuration."""
+        return CharucoTarget(type="charuco", squares=self.squares,
+                             square_size_m=self.square_size, marker_size_m=self.marker_size,
+                             dictionary=self.dictionary, legacy_pattern=self.legacy_pattern)
+
+
+class CharucoTarget(BoardTarget):
+    """A ChArUco board's configuration in OpenCV's layout: ``squares`` [cols, rows], nominal
+    square and marker sizes, the ArUco ``dictionary`` by OpenCV's name, ``legacy_pattern``
+    for boards made by OpenCV before 4.6."""
+
+    type: Literal["charuco"]
+    squares: tuple[Annotated[int, Field(ge=3, le=100)], Annotated[int, Field(ge=3, le=100)]] = (
+        Field(description="[cols, rows] of squares; x runs along cols"))
+    square_size_m: TargetLength = Field(description="nominal square size in metres")
+    marker_size_m: TargetLength = Field(description="nominal marker size in metres")
+    dictionary: str = Field(description="OpenCV's ArUco dictionary name, e.g. DICT_5X5_100")
+    legacy_pattern: bool = Field(False, description="OpenCV's pre-4.6 ChArUco pattern")
+
+    @model_validator(mode="after")
+    def _fits(self) -> CharucoTarget:
+        if self.marker_size_m >= self.square_size_m:
+            raise ValueError("marker_size_m must be smaller than square_size_m")
+        self.board()  # the board's own checks: a known dictionary with enough markers
+        return self
+
+    def board(self) -> Charuco:
+        return Charuco(self.squares, self.square_size_m, self.marker_size_m, self.dictionary,
+                       self.legacy_pattern)
 
 
 def detect_charuco(image: np.ndarray, board: Charuco, *, min_sharpness: float = MIN_SHARPNESS,

@@ -23,11 +23,13 @@ order. Then:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Annotated, ClassVar, Literal
 
 import cv2
 import numpy as np
+from pydantic import Field
 
+from calib.boards.base import BoardTarget, TargetLength
 from calib.boards.detection import (
     MIN_CONTRAST,
     MIN_SHARPNESS,
@@ -96,6 +98,25 @@ class Checkerboard:
         cols, rows = self.inner_corners
         s = self.square_size
         return rectangle_outline((-s, -s), (cols * s, rows * s), per_side)
+
+    def target(self) -> CheckerboardTarget:
+        """This board's configuration."""
+        return CheckerboardTarget(inner_corners=self.inner_corners,
+                                  square_size_m=self.square_size)
+
+
+class CheckerboardTarget(BoardTarget):
+    """A checkerboard's configuration: ``inner_corners`` [cols, rows], nominal
+    ``square_size_m``; ``type`` may be left out (the default board type)."""
+
+    type: Literal["checkerboard"] = "checkerboard"
+    inner_corners: tuple[Annotated[int, Field(ge=2, le=100)],
+                         Annotated[int, Field(ge=2, le=100)]] = Field(
+        description="[cols, rows] of inner corners; x runs along cols")
+    square_size_m: TargetLength = Field(description="nominal square size in metres")
+
+    def board(self) -> Checkerboard:
+        return Checkerboard(self.inner_corners, self.square_size_m)
 
 
 def rectangle_outline(lo: tuple[float, float], hi: tuple[float, float],
