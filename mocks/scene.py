@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 
 from calib import (
     BoardTarget,
-    TargetAdapter,
+    CheckerboardTarget,
     board_points,
     camera_from_robot,
     check_transforms,
@@ -44,8 +44,8 @@ from calib import (
     matrix_from_ur_pose,
     robot_from_camera,
 )
+from calib import CharucoTarget as CalibCharucoTarget
 from drivers.config_files import describe_validation_error
-from mocks.markers import aruco_dictionary, marker_count
 from mocks.ur_kinematics import DHOffsets, kinematic_error
 
 #: Fraction of the image the pattern spans (along its tighter axis) at the working distance.
@@ -99,43 +99,24 @@ class Camera(_Strict):
         return np.asarray(self.dist, dtype=float)
 
 
-class Target(_Strict):
-    """Checkerboard as printed: nominal ``square_size_m`` and the true scale κ and aspect ν."""
+class _Printed(_Strict):
+    """The truth of a printed board: its scale κ and its extra scale ν along x."""
 
-    type: Literal["checkerboard"] = "checkerboard"
-    inner_corners: tuple[Annotated[int, Field(ge=2)], Annotated[int, Field(ge=2)]] = Field(
-        description="[cols, rows] of inner corners; x runs along cols")
-    square_size_m: float = Field(gt=0.0, le=0.5, description="nominal square size in metres")
     kappa: float = Field(1.0, gt=0.9, lt=1.1, description="true scale of the printed board")
     nu: float = Field(1.0, gt=0.9, lt=1.1, description="true extra scale along x")
 
 
-class CharucoTarget(_Strict):
-    """ChArUco board as printed, in OpenCV's layout (``mocks.markers``), with the true κ, ν.
+class Target(_Printed, CheckerboardTarget):
+    """Checkerboard as printed: its configuration (``calib.boards``) and the true κ, ν."""
+
+
+class CharucoTarget(_Printed, CalibCharucoTarget):
+    """ChArUco board as printed: its configuration (``calib.boards``, OpenCV's layout, drawn
+    by ``mocks.markers``) and the true κ, ν.
 
     Corner id k (OpenCV's charuco corner id) is inner corner k of the (cols - 1) x (rows - 1)
     grid, row-major: id 0 at the target origin, x along cols.
     """
-
-    type: Literal["charuco"]
-    squares: tuple[Annotated[int, Field(ge=3)], Annotated[int, Field(ge=3)]] = Field(
-        description="[cols, rows] of squares; x runs along cols")
-    square_size_m: float = Field(gt=0.0, le=0.5, description="nominal square size in metres")
-    marker_size_m: float = Field(gt=0.0, description="nominal marker side in metres")
-    dictionary: str = Field(description="OpenCV's ArUco dictionary name, e.g. DICT_5X5_100")
-    legacy_pattern: bool = Field(False, description="OpenCV's pre-4.6 ChArUco layout")
-    kappa: float = Field(1.0, gt=0.9, lt=1.1, description="true scale of the printed board")
-    nu: float = Field(1.0, gt=0.9, lt=1.1, description="true extra scale along x")
-
-    @model_validator(mode="after")
-    def _check_markers(self) -> CharucoTarget:
-        if self.marker_size_m >= self.square_size_m:
-            raise ValueError("marker_size_m must be smaller than square_size_m")
-        need, have = marker_count(self.squares), aruco_dictionary(self.dictionary).bytesList
-        if need > have.shape[0]:
-            raise ValueError(f"a {self.squares[0]}x{self.squares[1]} board needs {need} "
-                             f"markers; {self.dictionary} has only {have.shape[0]}")
-        return self
 
     @property
     def inner_corners(self) -> tuple[int, int]:
@@ -247,7 +228,7 @@ class MockScene(_Strict):
     def nominal_target(self) -> BoardTarget:
         """The board as a user configures it (``calib.boards``' target type): the printed
         layout without the truth κ, ν."""
-        return TargetAdapter.validate_python(self.target.model_dump(exclude={"kappa", "nu"}))
+        return self.target.board().target()
 
     def true_board_points(self) -> np.ndarray:
         """True (κ, ν-scaled) inner corners in the target frame, shape (N, 3), row-major."""
