@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -32,8 +33,10 @@ from tqdm import tqdm
 
 from calib import (
     OPENCV_HAND_EYE_METHODS,
+    Board,
     CellParameters,
     Checkerboard,
+    Detection,
     JointOptions,
     RobotNoise,
     StationInputs,
@@ -50,7 +53,13 @@ from calib import (
     ur_pose_from_matrix,
 )
 from mocks.render import RenderParams, render_board
-from mocks.scene import MockScene, camera_pose_for_tcp, default_scene, sample_station_poses
+from mocks.scene import (
+    MockScene,
+    StationSpread,
+    camera_pose_for_tcp,
+    default_scene,
+    sample_station_poses,
+)
 from service.cli.main import main as cellcal
 
 matplotlib.use("Agg")
@@ -61,9 +70,11 @@ ROBOT_ROT, ROBOT_TRANS = np.deg2rad(0.05), 0.25e-3
 CV_METHODS = list(OPENCV_HAND_EYE_METHODS)
 
 
-def bench_scene(*, kappa: float = 1.005, nu: float = 0.9975) -> MockScene:
-    """The default scene with UR-class robot noise and the given true board scale."""
-    s = default_scene()
+def bench_scene(scene: MockScene | None = None, *, kappa: float = 1.005,
+                nu: float = 0.9975) -> MockScene:
+    """``scene`` (default: the default scene) with UR-class robot noise and the given true
+    board scale."""
+    s = default_scene() if scene is None else scene
     return s.model_copy(update={
         "target": s.target.model_copy(update={"kappa": kappa, "nu": nu}),
         "noise": s.noise.model_copy(update={"robot_rot_deg": 0.05, "robot_trans_mm": 0.25})})
@@ -126,57 +137,76 @@ def trends(seeds: int) -> dict[str, np.ndarray]:
 
 # ---- (b) ours vs OpenCV with the Cramer-Rao bound ----------------------------------------------
 
-def rendered_station_set(scene: MockScene, n: int, rng: np.random.Generator):
-    """Rendered images, noisy robot readings (n, 4, 4) and the true robot poses."""
-    P_true = sample_station_poses(scene, n, rng)
+def rendered_station_set(scene: MockScene, n: int, rng: np.random.Generator,
+                         spread: StationSpread | None = None):
+    """Rendered images, noisy robot readings (n, 4, 4) and the true robot poses; stations
+    spread by ``spread`` (default: whole-board views)."""
+    P_true = sample_station_poses(scene, n, rng, spread or StationSpread())
     params = RenderParams.from_scene(scene)
     images = [render_board(params, C, rng=rng) for C in camera_pose_for_tcp(scene, P_true)]
     P = perturb(P_true, ROBOT_ROT, ROBOT_TRANS, rng)
     return images, P, P_true
 
 
+def corner_noise(scene: MockScene, detections: Sequence[Detection],
+                 T_cam_target: np.ndarray) -> float:
+    """RMS (px, per coordinate) of the usable detections' corners against the true
+    projections of their points from the true camera poses (n, 4, 4): the σ_px of the
+    Cramér-Rao bound."""
+    cam = scene.camera
+    truth = scene.true_board_points()
+    err = np.concatenate([
+        d.corners - cv2.projectPoints(truth[d.ids], cv2.Rodrigues(C[:3, :3])[0], C[:3, 3],
+                                      cam.k_matrix, cam.dist_coeffs)[0].reshape(-1, 2)
+        for d, C in zip(detections, T_cam_target, strict=True) if d.ok])
+    return float(np.sqrt(np.mean(err ** 2)))
+
+
+def scene_bound(scene: MockScene, board: Board, T_base_tcp: np.ndarray, sigma_px: float,
+                point_ids: Sequence[np.ndarray] | None = None) -> dict[str, float]:
+    """Cramér-Rao bound (``calib.bounds.cramer_rao_bound``) of the scene's truth seen from the
+    true robot poses (n, 4, 4) with σ_px corner noise and the benchmark's robot noise: the
+    hand-eye rotation (rad) and translation (m) as root traces, κ and ν."""
+    t, cam = scene.target, scene.camera
+    bound = cramer_rao_bound(
+        T_base_tcp, board, CellParameters(cam.k_matrix, cam.dist_coeffs, t.nu, t.kappa,
+                                          scene.hand_eye_matrix, scene.target_pose_matrix),
+        JointOptions(sigma_px=sigma_px, noise=RobotNoise(ROBOT_ROT, ROBOT_TRANS)), point_ids)
+    return {"rot": float(np.sqrt(np.trace(bound["hand_eye_rot"]))),
+            "trans": float(np.sqrt(np.trace(bound["hand_eye_trans"]))),
+            "kappa": bound["kappa"], "nu": bound["nu"]}
+
+
 def comparison(seeds: int, stations: int = 15) -> dict[str, np.ndarray]:
     scene = bench_scene()
     t = scene.target
     cam = scene.camera
-    grid_nominal = board_points(t.inner_corners, t.square_size_m).astype(np.float32)
-    grid_true = board_points(t.inner_corners, t.square_size_m, kappa=t.kappa, nu=t.nu)
-    X_true, Y_true = scene.hand_eye_matrix, scene.target_pose_matrix
+    board = Checkerboard(tuple(t.inner_corners), t.square_size_m)
+    grid_nominal = board.points().astype(np.float32)
+    X_true = scene.hand_eye_matrix
     rows = []
     for seed in tqdm(range(seeds), desc="rendered scenes", leave=False):
         rng = np.random.default_rng(seed)
         images, P, P_true = rendered_station_set(scene, stations, rng)
         dets = [detect_checkerboard(im, t.inner_corners) for im in images]
         ok = [d for d in dets if d.ok]
-        # empirical corner noise, for the bound
-        C_true = camera_pose_for_tcp(scene, P_true)
-        err = np.concatenate([
-            d.corners - cv2.projectPoints(grid_true, cv2.Rodrigues(C[:3, :3])[0], C[:3, 3],
-                                          cam.k_matrix, cam.dist_coeffs)[0].reshape(-1, 2)
-            for d, C in zip(dets, C_true, strict=True) if d.ok])
-        sigma_px = float(np.sqrt(np.mean(err ** 2)))
-
+        sigma_px = corner_noise(scene, dets, camera_pose_for_tcp(scene, P_true))
         ours = calibrate_stations(
-            StationInputs(dets, ur_pose_from_matrix(P), image_size=cam.image_size),
-            Checkerboard(tuple(t.inner_corners), t.square_size_m))
+            StationInputs(dets, ur_pose_from_matrix(P), image_size=cam.image_size), board)
         _, _, _, rv, tv = cv2.calibrateCamera(
             [grid_nominal] * len(ok), [d.corners.astype(np.float32) for d in ok],
             tuple(cam.image_size), None, None)
         P_ok = P[[d.ok for d in dets]]
         cv_err = [pose_error(calibrate_hand_eye(P_ok, _cv_poses(rv, tv), method=m).hand_eye,
                              X_true) for m in CV_METHODS]
-        bound = cramer_rao_bound(
-            P_true, Checkerboard(tuple(t.inner_corners), t.square_size_m),
-            CellParameters(cam.k_matrix, cam.dist_coeffs, t.nu, t.kappa, X_true, Y_true),
-            JointOptions(sigma_px=sigma_px, noise=RobotNoise(ROBOT_ROT, ROBOT_TRANS)))
+        bound = scene_bound(scene, board, P_true, sigma_px)
         er, et = pose_error(ours.hand_eye, X_true)
         s = ours.sigmas
         rows.append([
             er, et, ours.kappa - t.kappa, ours.nu - t.nu,
             np.linalg.norm(s["hand_eye_rot_rad"]), np.linalg.norm(s["hand_eye_trans_m"]),
             s["kappa"], s["nu"],
-            np.sqrt(np.trace(bound["hand_eye_rot"])), np.sqrt(np.trace(bound["hand_eye_trans"])),
-            bound["kappa"], bound["nu"], sigma_px,
+            bound["rot"], bound["trans"], bound["kappa"], bound["nu"], sigma_px,
             *[e[0] for e in cv_err], *[e[1] for e in cv_err]])
     return np.array(rows)
 

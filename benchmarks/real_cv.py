@@ -40,7 +40,7 @@ from __future__ import annotations
 import argparse
 import json
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -48,7 +48,7 @@ import matplotlib
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calib.boards import Checkerboard, board_points, detect_checkerboard
+from calib.boards import Board, Checkerboard, Detection, detect_checkerboard
 from calib.geometry import check_ur_poses, invert, make_transform
 from calib.peers import solve_opencv
 from calib.pipeline import CalibrationResult, PipelineOptions, calibrate_stations
@@ -67,15 +67,33 @@ SB_FLAGS = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB
 
 @dataclass(frozen=True)
 class StationData:
-    """One set's usable stations: both detectors read the board in each."""
+    """One set's usable stations: both detectors read the board in each.
+
+    ``ids`` / ``ids_cv``: the board point ids of each station's ``corners`` / ``corners_cv``
+    (partial views, e.g. ChArUco); None when every station shows the whole board in point id
+    order.
+    """
 
     name: str
-    board: tuple[int, int]
-    square: float
+    target: Board
     image_size: tuple[int, int]
     corners: list[np.ndarray]  # cellcal's detections, (N, 2) each
     corners_cv: list[np.ndarray]  # OpenCV's, in cellcal's corner order
     T_base_tcp: np.ndarray | None  # (n, 4, 4), None for intrinsics-only sets
+    ids: list[np.ndarray] | None = None
+    ids_cv: list[np.ndarray] | None = None
+
+    def observations(self, stations: np.ndarray) -> list[np.ndarray | Detection]:
+        """cellcal's input for ``stations``: whole-board corners, or corners with ids."""
+        if self.ids is None:
+            return [self.corners[i] for i in stations]
+        return [Detection(ok=True, corners=self.corners[i], ids=self.ids[i]) for i in stations]
+
+    def seen(self, grid: np.ndarray, k: int, *, opencv: bool = False) -> np.ndarray:
+        """The rows of ``grid`` (all board points, (N, ...)) that station ``k`` shows in
+        cellcal's (or OpenCV's) detection."""
+        ids = self.ids_cv if opencv else self.ids
+        return grid if ids is None else grid[ids[k]]
 
 
 @dataclass(frozen=True)
@@ -128,7 +146,8 @@ def load_ur_set(name: str) -> StationData:
     keep, ours, theirs = _detect_both(images, board)
     P = check_ur_poses([doc["stations"][k]["tcp_pose"] for k in keep], "tcp_pose")
     h, w = images[0].shape
-    return StationData(name, board, doc["target"]["square_size_m"], (w, h), ours, theirs, P)
+    return StationData(name, Checkerboard(board, doc["target"]["square_size_m"]), (w, h), ours,
+                       theirs, P)
 
 
 def load_opencv_left() -> StationData:
@@ -137,7 +156,7 @@ def load_opencv_left() -> StationData:
     _, ours, theirs = _detect_both(images, (9, 6))
     h, w = images[0].shape
     # The square size is unknown and irrelevant to intrinsics; 1 unit.
-    return StationData("opencv-left", (9, 6), 1.0, (w, h), ours, theirs, None)
+    return StationData("opencv-left", Checkerboard((9, 6), 1.0), (w, h), ours, theirs, None)
 
 
 # ---- fits ----------------------------------------------------------------------------------------
@@ -148,18 +167,17 @@ def fit_cellcal(data: StationData, train: np.ndarray):
         np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
         for T in data.T_base_tcp[train]]
     res = calibrate_stations(
-        StationInputs([data.corners[i] for i in train], poses, image_size=data.image_size),
-        Checkerboard(data.board, data.square))
-    grid = board_points(data.board, data.square, kappa=res.kappa, nu=res.nu)
+        StationInputs(data.observations(train), poses, image_size=data.image_size), data.target)
+    grid = data.target.points(kappa=res.kappa, nu=res.nu)
     return Fit(res.K, res.dist, grid, res.hand_eye, res.target_pose), res
 
 
 def _opencv_camera(data: StationData, train: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    grid = board_points(data.board, data.square).astype(np.float32)
+    grid = data.target.points().astype(np.float32)
     _, K, dist, rvecs, tvecs = cv2.calibrateCamera(
-        [grid] * len(train), [data.corners_cv[i].astype(np.float32) for i in train],
-        data.image_size, None, None)
+        [data.seen(grid, i, opencv=True) for i in train],
+        [data.corners_cv[i].astype(np.float32) for i in train], data.image_size, None, None)
     C = np.stack([make_transform(cv2.Rodrigues(r)[0], t.ravel())
                   for r, t in zip(rvecs, tvecs, strict=True)])
     return K, dist.ravel()[:5], grid.astype(float), C
@@ -190,14 +208,14 @@ def chain_errors(data: StationData, fit: Fit, held: np.ndarray) -> np.ndarray:
     out = []
     for i in held:
         C = invert(fit.X) @ invert(data.T_base_tcp[i]) @ fit.Y
-        uv = _project(fit, C, fit.grid)
+        uv = _project(fit, C, data.seen(fit.grid, i))
         out.append(np.sqrt(np.mean(np.sum((uv - data.corners[i]) ** 2, axis=1))))
     return np.array(out)
 
 
 def half_board_errors(data: StationData, fit: Fit, held: np.ndarray) -> np.ndarray:
     """Per held-out image RMS px on the odd checkerboard half, pose by PnP on the even half."""
-    cols, rows = data.board
+    cols, rows = data.target.inner_corners
     j, i = np.mgrid[0:rows, 0:cols]
     even = ((i + j) % 2 == 0).ravel()
     out = []
@@ -225,8 +243,10 @@ def jackknife_sd(estimates: Sequence[np.ndarray], reference: np.ndarray) -> np.n
 
 # ---- per set -----------------------------------------------------------------------------------
 
-def run_set(data: StationData, methods: Sequence[str]) -> dict:
-    """CV errors per method (per-station arrays) and, for hand-eye sets, σ vs jackknife."""
+def cross_validate(data: StationData, methods: Sequence[str]
+                   ) -> tuple[dict[str, np.ndarray], list[np.ndarray]]:
+    """k-fold CV error of each held-out station per method (``cellcal``, ``opencv-<m>``),
+    and cellcal's hand-eye of each fold."""
     n = len(data.corners)
     errors: dict[str, np.ndarray] = {m: np.full(n, np.nan) for m in methods}
     predict = half_board_errors if data.T_base_tcp is None else chain_errors
@@ -240,8 +260,19 @@ def run_set(data: StationData, methods: Sequence[str]) -> dict:
             else:
                 fit = fit_opencv(data, train, m.removeprefix("opencv-"))
             errors[m][held] = predict(data, fit, held)
-    out = {"n": n, "errors": errors,
-           "cv_px": {m: float(np.sqrt(np.mean(e ** 2))) for m, e in errors.items()}}
+    return errors, estimates
+
+
+def cv_rms(errors: np.ndarray) -> float:
+    """A method's CV figure: the RMS over stations of the per-station RMS errors (px)."""
+    return float(np.sqrt(np.mean(np.square(errors))))
+
+
+def run_set(data: StationData, methods: Sequence[str]) -> dict:
+    """CV errors per method (per-station arrays) and, for hand-eye sets, σ vs jackknife."""
+    n = len(data.corners)
+    errors, estimates = cross_validate(data, methods)
+    out = {"n": n, "errors": errors, "cv_px": {m: cv_rms(e) for m, e in errors.items()}}
     if data.T_base_tcp is not None:
         full_fit, full = fit_cellcal(data, np.arange(n))
         reported = np.concatenate([full.sigmas["hand_eye_rot_rad"],
@@ -267,9 +298,10 @@ def measured_board_check(data: StationData, auto: CalibrationResult) -> dict:
     entered = round(measured, 3)  # what a calliper gives
     poses = [np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
              for T in data.T_base_tcp]
-    fixed = calibrate_stations(StationInputs(list(data.corners), poses,
+    fixed = calibrate_stations(StationInputs(data.observations(np.arange(len(poses))), poses,
                                              image_size=data.image_size),
-                               Checkerboard(data.board, entered), PipelineOptions(kappa="fixed"))
+                               replace(data.target, square_size=entered),
+                               PipelineOptions(kappa="fixed"))
     d = _delta(fixed.hand_eye, auto.hand_eye)
     out.update(entered_square_m=entered, fixed_kappa=fixed.kappa,
                fixed_vs_auto_rot_rad=float(np.linalg.norm(d[:3])),

@@ -31,7 +31,7 @@ from calib.boards import (
     target_from_board,
 )
 from calib.bounds import cramer_rao_bound
-from calib.camera import Pinhole, solve_pnp
+from calib.camera import Pinhole, image_corner_error, solve_pnp
 from calib.chain import (
     SETUPS,
     Motions,
@@ -169,6 +169,7 @@ __all__ = [
     "detect_checkerboard",
     "dot_hit",
     "hand_eye_from_station",
+    "image_corner_error",
     "invert",
     "leave_one_out",
     "make_transform",

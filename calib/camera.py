@@ -190,6 +190,19 @@ def solve_pnp(points_target: np.ndarray, image_points: np.ndarray, K: np.ndarray
     return T_cam_target, Pinhole(K, dist).project(obj, rvec.ravel(), tvec.ravel()) - img
 
 
+def image_corner_error(estimate: Pinhole, truth: Pinhole, image_size: tuple[int, int]) -> float:
+    """Largest pixel error of ``estimate`` at the four image corners: the rays that ``truth``
+    sees at those pixels, projected by ``estimate``. The image corners are where distortion
+    is largest and whole-board views leave it least constrained."""
+    w, h = image_size
+    uv = np.array([[0.0, 0.0], [w - 1, 0.0], [0.0, h - 1], [w - 1, h - 1]])
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    xy = cv2.undistortPointsIter(uv.reshape(-1, 1, 2), truth.K, truth.dist, None, None,
+                                 criteria).reshape(-1, 2)
+    rays = np.column_stack([xy, np.ones(4)])
+    return float(np.linalg.norm(estimate.project(rays) - uv, axis=1).max())
+
+
 def _matmul_vec(M: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Stacked ``M @ v``, shapes (N, 3, 3), (N, 3) -> (N, 3)."""
     return M[:, :, 0] * v[:, None, 0] + M[:, :, 1] * v[:, None, 1] + M[:, :, 2] * v[:, None, 2]

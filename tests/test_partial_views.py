@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from functools import cache
 
-import cv2
 import numpy as np
 import pytest
 
@@ -16,6 +15,7 @@ from calib import (
     PipelineOptions,
     StationInputs,
     calibrate_stations,
+    image_corner_error,
     make_transform,
     perturb,
     pose_error,
@@ -62,16 +62,6 @@ def station_set(n: int = 15, seed: int = 3, cut: bool = True
     return detections, ur_pose_from_matrix(P), cell
 
 
-def image_corner_error(K: np.ndarray, dist: np.ndarray, cell) -> float:
-    """Largest pixel error at the four image corners of a camera (K, dist) against the true
-    one: the true rays of those pixels projected by the estimate."""
-    w, h = cell.image_size
-    uv = np.array([[0.0, 0.0], [w - 1, 0.0], [0.0, h - 1], [w - 1, h - 1]])
-    xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), cell.K, DIST).reshape(-1, 2)
-    rays = np.column_stack([xy, np.ones(4)])
-    return float(np.linalg.norm(Pinhole(K, dist).project(rays) - uv, axis=1).max())
-
-
 def test_station_set_has_the_intended_views():
     detections, _, _ = station_set()
     counts = np.array([len(d.ids) for d in detections])
@@ -116,8 +106,9 @@ def test_partial_views_with_known_intrinsics_and_intrinsics_only():
     # corners project better than from the same number of whole-board views
     full = station_set(cut=False)[0]
     whole = calibrate_stations(StationInputs(full, image_size=cell.image_size), BOARD)
-    partial_err = image_corner_error(alone.K, alone.dist, cell)
-    whole_err = image_corner_error(whole.K, whole.dist, cell)
+    truth = Pinhole(cell.K, DIST)
+    partial_err = image_corner_error(Pinhole(alone.K, alone.dist), truth, cell.image_size)
+    whole_err = image_corner_error(Pinhole(whole.K, whole.dist), truth, cell.image_size)
     assert partial_err * 1.5 < whole_err, (partial_err, whole_err)
 
 
