@@ -168,9 +168,7 @@ OPENCV = "opencv-park"
 
 def scene_board(scene: MockScene) -> Charuco:
     """The nominal board of a ChArUco scene, as the user enters it."""
-    t = scene.target
-    return Charuco(tuple(t.squares), t.square_size_m, t.marker_size_m, t.dictionary,
-                   t.legacy_pattern)
+    return scene.nominal_target().board()
 
 
 @dataclass(frozen=True)
