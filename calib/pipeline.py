@@ -221,7 +221,8 @@ class _Stage:
 def calibrate_stations(stations: StationInputs, board: Board,
                        options: PipelineOptions | None = None, *,
                        progress: Callable[[Iterable[Observation]], Iterable[Observation]]
-                       | None = None) -> CalibrationResult:
+                       | None = None,
+                       on_stage: Callable[[str], None] | None = None) -> CalibrationResult:
     """Calibrate a station set: camera, board κ and ν, hand-eye and target pose, validation.
 
     BLAS runs on one thread meanwhile: the solvers' matrices are small (tens of columns), so
@@ -230,7 +231,9 @@ def calibrate_stations(stations: StationInputs, board: Board,
         ``board`` is the printed target (:class:`calib.boards.Board`: checkerboard, ChArUco);
     each station may see part of it (its detection's point ids), with at least
     ``MIN_STATION_POINTS`` points. ``progress`` wraps the observation iterable, e.g. a
-    progress bar.
+    progress bar; ``on_stage`` is called with the name of each stage as it begins
+    (``intrinsics``, ``hand-eye``, ``model selection by cross-validation`` (joint method),
+    ``validation``, ``cross-validation``), e.g. for a service's progress events.
 
     Raises
     ------
@@ -245,6 +248,8 @@ def calibrate_stations(stations: StationInputs, board: Board,
     corners = [detections[k][0].corners for k in usable]
     measured = CornerStations(corners, np.zeros((len(usable), 4, 4)), board,
                               [detections[k][0].ids for k in usable])
+    begin = on_stage or (lambda name: None)
+    begin("intrinsics")
     stage = _camera_stage(measured, size, stations.intrinsics, options)
     stage.image_size = size
     common = dict(setup=options.setup, image_size=size, options=options.record(
@@ -270,12 +275,16 @@ def calibrate_stations(stations: StationInputs, board: Board,
         stage.C, corners = resolve_symmetric_origin(robot_chain(T_base_tcp, options.setup),
                                                      stage.C, corners, board.points(), stage.nu)
     measured = replace(measured, image_points=corners, T_base_tcp=T_base_tcp)
+    begin("hand-eye")
     _hand_eye_stage(stage, measured, size, options, stations.intrinsics is not None)
     station_ids = [ids[k] for k in usable]
     if stage.joint is not None:
+        begin("model selection by cross-validation")
         _choose_model(stage, measured, station_ids, options)
         rejected += [(ids[usable[i]], reason) for i, reason in stage.joint.rejected]
+    begin("validation")
     reports, validation = _validate(stage, measured, station_ids, options.setup)
+    begin("cross-validation")
     joint = stage.joint
     rms = (joint.rms_px if joint is not None
            else float(np.sqrt(np.mean(stage.rms_img[stage.keep] ** 2))))
