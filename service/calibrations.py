@@ -5,6 +5,11 @@ Calibrations are CPU-bound: they run in worker processes (``service.workers``: t
 the service, however it dies) so the API stays responsive, and the result is stored when the
 future completes. At most ``Settings.max_queued_calibrations`` solves wait or run at a time;
 beyond, a request is refused (429 ``queue_full``) instead of piling up work and memory.
+
+A solve's progress (the board detected station by station, then the stages of
+``calib.calibrate_stations``) comes back from the worker as ``progress`` events of the
+calibration's stream (``GET /calibrations/{id}/events``), which ends with its final ``state``;
+a progress message that arrives after the outcome is stored is dropped, so none follows it.
 """
 
 from __future__ import annotations
@@ -12,6 +17,8 @@ from __future__ import annotations
 import concurrent.futures as cf
 import logging
 import threading
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -26,11 +33,12 @@ from calib import (
 from service import store
 from service.db import Database
 from service.errors import ConflictError, QueueFullError, UnprocessableError
-from service.models import Calibration
+from service.events import EventBus
+from service.models import Calibration, Topic
 from service.schemas import CalibrationOptions
 from service.settings import Settings
 from service.station_rows import captured_station_set
-from service.workers import CalibrationPool
+from service.workers import CalibrationPool, report_progress
 
 log = logging.getLogger("cellcal.service")
 
@@ -38,12 +46,15 @@ log = logging.getLogger("cellcal.service")
 class Calibrations:
     """Queues solves in worker processes and records their results."""
 
-    def __init__(self, settings: Settings, db: Database) -> None:
+    def __init__(self, settings: Settings, db: Database, events: EventBus) -> None:
         self.settings = settings
         self.db = db
+        self.events = events
         self._pool: CalibrationPool | None = None
         self._pool_lock = threading.Lock()
         self._pending = 0  # solves queued or running, under _pool_lock
+        self._ending: dict[str, _Ending] = {}  # solves not yet stored, under _events_lock
+        self._events_lock = threading.Lock()
 
     def start(self, run_id: str, options: CalibrationOptions) -> Calibration:
         """Queue a solve over the run's captured stations in a worker process (429 when
@@ -51,6 +62,8 @@ class Calibrations:
         self._reserve()
         try:
             cal, payload = self._create(run_id, options)
+            with self._events_lock:
+                self._ending[cal.id] = _Ending()
             future = self._submit(payload)
         except BaseException:
             self._release()
@@ -84,14 +97,19 @@ class Calibrations:
                 raise UnprocessableError(
                     f"Run {run_id} has {len(stations.stations)} captured stations; a "
                     f"calibration needs at least {MIN_IMAGES}.", code="too_few_stations")
-            payload = {"run_id": run_id, "stations": stations, "options": options.model_dump()}
             cal = Calibration(run_id=run_id, state="running", options=options.model_dump())
             s.add(cal)
             s.commit()
+            payload = {"cal_id": cal.id, "run_id": run_id, "stations": stations,
+                       "options": options.model_dump()}
         return cal, payload
 
     def shutdown(self) -> None:
-        """Cancel queued solves and let the worker processes go."""
+        """Cancel queued solves and let the worker processes go; no more progress is read,
+        so a solve that still completes is stored without waiting for its last message."""
+        with self._events_lock:
+            for ending in self._ending.values():
+                ending.progress_ended = True
         with self._pool_lock:
             if self._pool is not None:
                 self._pool.shutdown()
@@ -100,21 +118,25 @@ class Calibrations:
     def _submit(self, payload: dict[str, Any]) -> cf.Future[dict[str, Any]]:
         with self._pool_lock:
             if self._pool is None:
-                self._pool = CalibrationPool(self.settings.calibration_workers)
+                self._pool = CalibrationPool(self.settings.calibration_workers,
+                                             self._progress)
             return self._pool.submit(solve_calibration, payload)
 
     def _done(self, cal_id: str, future: cf.Future[dict[str, Any]]) -> None:
-        """Store the outcome of a solve: its result, or why it failed."""
+        """The outcome of a solve: its result, or why it failed (stored by ``_settle``)."""
         self._release()
         values: dict[str, Any]
+        solved = True  # the worker ran the solve to its end and sent its last message
         try:
             values = {"state": "done", "result": future.result()}
-        except cf.CancelledError:
-            values = {"state": "failed", "error": "The service stopped during the "
-                                                  "computation; start it again."}
         except ValueError as exc:
             values = {"state": "failed", "error": str(exc)}
+        except cf.CancelledError:
+            solved = False
+            values = {"state": "failed", "error": "The service stopped during the "
+                                                  "computation; start it again."}
         except cf.process.BrokenProcessPool:
+            solved = False
             with self._pool_lock:
                 if self._pool is not None:
                     self._pool.shutdown()
@@ -122,11 +144,41 @@ class Calibrations:
             values = {"state": "failed", "error": "The calibration worker process died (out "
                                                   "of memory?); start it again."}
         except Exception as exc:
+            solved = False  # maybe raised before the worker had the call
             log.error("calibration %s: %s: %s", cal_id, type(exc).__name__, exc)
             values = {"state": "failed",
                       "error": f"Internal error ({type(exc).__name__}: {exc})."}
-        with self.db.session() as s:
-            store.finish_calibration(s, cal_id=cal_id, **values)
+        self._settle(cal_id, outcome=values, progress_ended=not solved)
+
+    def _progress(self, message: tuple[str, dict[str, Any] | None]) -> None:
+        """A worker's message ``(calibration id, progress event)``, or ``(id, None)`` after
+        the solve's last one: events are published until the outcome is stored."""
+        cal_id, event = message
+        if event is None:
+            self._settle(cal_id, progress_ended=True)
+            return
+        with self._events_lock:
+            if cal_id in self._ending:
+                self.events.publish(Topic("calibration", cal_id), event)
+
+    def _settle(self, cal_id: str, *, outcome: dict[str, Any] | None = None,
+                progress_ended: bool = False) -> None:
+        """Store the outcome and publish the final ``state`` once both the outcome and the
+        solve's last progress message are in (they come by different pipes), so the stored
+        state turns final together with the event that ends the stream, after every
+        progress event."""
+        with self._events_lock:
+            ending = self._ending.get(cal_id)
+            if ending is None:
+                return
+            ending.outcome = outcome or ending.outcome
+            ending.progress_ended = ending.progress_ended or progress_ended
+            if ending.outcome is None or not ending.progress_ended:
+                return
+            del self._ending[cal_id]
+            with self.db.session() as s:
+                store.finish_calibration(s, cal_id=cal_id, **ending.outcome)
+            self.events.publish_state(Topic("calibration", cal_id))
 
 
 def solve_calibration(payload: dict[str, Any]) -> dict[str, Any]:
@@ -145,11 +197,54 @@ def solve_calibration(payload: dict[str, Any]) -> dict[str, Any]:
         default.trans_m if opts["robot_noise_trans_mm"] is None
         else opts["robot_noise_trans_mm"] * 1e-3)
     assert stations.target is not None  # a run always has its board
-    result = calibrate_stations(
-        stations.inputs(), board_from_target(stations.target),
-        PipelineOptions(setup=stations.setup, method=opts["method"],
-                        estimate_nu=opts["estimate_nu"], estimate_kappa=opts["estimate_kappa"],
-                        kappa=opts.get("kappa", "auto"), nu_method=opts["nu_method"],
-                        noise=noise))
-    return calibration_result_json(
-        result, command=f"POST /runs/{payload['run_id']}/calibrations")
+    options = PipelineOptions(setup=stations.setup, method=opts["method"],
+                              estimate_nu=opts["estimate_nu"],
+                              estimate_kappa=opts["estimate_kappa"],
+                              kappa=opts.get("kappa", "auto"), nu_method=opts["nu_method"],
+                              noise=noise)
+    progress = SolveProgress(payload["cal_id"])
+    try:
+        result = calibrate_stations(stations.inputs(), board_from_target(stations.target),
+                                    options, progress=progress.detecting,
+                                    on_stage=progress.stage)
+        return calibration_result_json(
+            result, command=f"POST /runs/{payload['run_id']}/calibrations")
+    finally:
+        progress.end()
+
+
+class SolveProgress:
+    """In a worker: a solve's ``progress`` events, sent to the service process
+    (``service.workers.report_progress``)."""
+
+    def __init__(self, cal_id: str) -> None:
+        self.cal_id = cal_id
+
+    def detecting(self, observations: Iterable[Any]) -> Iterator[Any]:
+        """``observations`` unchanged, one event as the board detection reaches each."""
+        items = list(observations)
+        for k, item in enumerate(items, 1):
+            self._send("detecting", f"detecting the board: station {k} of {len(items)}",
+                       step=k, of=len(items))
+            yield item
+
+    def end(self) -> None:
+        """The solve's last message: no progress event follows."""
+        report_progress((self.cal_id, None))
+
+    def stage(self, name: str) -> None:
+        """A stage of ``calib.calibrate_stations`` begins."""
+        self._send(name, name)
+
+    def _send(self, stage: str, message: str, **count: int) -> None:
+        report_progress((self.cal_id, {"type": "progress", "calibration_id": self.cal_id,
+                                       "stage": stage, **count, "message": message}))
+
+
+@dataclass
+class _Ending:
+    """What a solve's end waits for: its outcome (the future's) and its last progress
+    message (the worker's)."""
+
+    outcome: dict[str, Any] | None = None
+    progress_ended: bool = False

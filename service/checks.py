@@ -9,6 +9,7 @@ checked (422). ``service.validations`` claims the robot and stores the report.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -70,10 +71,12 @@ def check_plan(result: dict[str, Any], target: Target,
     return CheckPlan(cell=cell, expected=expected, poses=poses, station_ids=ids)
 
 
-def run_check(robot: Robot, camera: Camera, plan: CheckPlan,
-              options: CaptureOptions) -> dict[str, Any]:
+def run_check(robot: Robot, camera: Camera, plan: CheckPlan, options: CaptureOptions,
+              report: Callable[[dict[str, Any]], None] = lambda event: None
+              ) -> dict[str, Any]:
     """Visit the plan's poses, compare each view with the prediction; the report document.
 
+    ``report`` gets a ``progress`` event after each station (station k of N and its state).
     A station where the board is not detected is reported with its reason and left out of
     the verdict; if none is left, the check fails (ValueError)."""
     stations: list[dict[str, Any]] = []
@@ -85,14 +88,18 @@ def run_check(robot: Robot, camera: Camera, plan: CheckPlan,
                                  "tcp_pose": [float(v) for v in taken.tcp_pose]}
         if not det.ok or det.corners is None:
             stations.append({**entry, "state": "not_detected", "reason": det.reason})
-            continue
-        check = plan.cell.check(matrix_from_ur_pose(taken.tcp_pose), det.corners,
-                                ids=det.ids, ambiguous=det.ambiguous)
-        seen.append(check)
-        stations.append({**entry, "state": plan.expected.station_state(check),
-                         "rms_px": check.rms_px, "max_px": check.max_px,
-                         "offset": {"rot_deg": float(np.degrees(check.rot_rad)),
-                                    "trans_mm": 1e3 * check.trans_m}})
+        else:
+            check = plan.cell.check(matrix_from_ur_pose(taken.tcp_pose), det.corners,
+                                    ids=det.ids, ambiguous=det.ambiguous)
+            seen.append(check)
+            stations.append({**entry, "state": plan.expected.station_state(check),
+                             "rms_px": check.rms_px, "max_px": check.max_px,
+                             "offset": {"rot_deg": float(np.degrees(check.rot_rad)),
+                                        "trans_mm": 1e3 * check.trans_m}})
+        k, n, state = len(stations), len(plan.poses), stations[-1]["state"]
+        report({"type": "progress", "stage": "station", "step": k, "of": n,
+                "station": station_id, "state": state,
+                "message": f"station {k} of {n} checked: {state.replace('_', ' ')}"})
     if not seen:
         raise ValueError("The board was not detected at any of the checked stations: "
                          "is it still in place and lit?")

@@ -1,11 +1,13 @@
-"""Run events (``GET /runs/{id}/events``): stored, so a listener that reconnects with
-``Last-Event-ID`` misses none and sees none twice, and fanned out to the server-sent-event
-listeners; the ``state`` event built from the stored run.
+"""Events of runs, calibrations and validations (``GET /runs/{id}/events``,
+``GET /calibrations/{id}/events``, ``GET /validations/{id}/events``): stored, so a listener
+that reconnects with ``Last-Event-ID`` misses none and sees none twice, and fanned out to the
+server-sent-event listeners; the ``state`` event built from the stored row.
 
-An event's id is its row id (``models.RunEvent``): it increases along a run and never changes.
-A new listener first gets the run's ``state`` as of the newest stored event (with that
-event's id); a returning one the stored events after its ``Last-Event-ID``. Live events follow,
-skipping any the listener already has, so a reconnect loses and repeats nothing.
+An event's id is its row id (``models.RunEvent``, ``models.JobEvent``): it increases along a
+stream and never changes. A new listener first gets the topic's ``state`` as of the newest
+stored event (with that event's id); a returning one the stored events after its
+``Last-Event-ID``. Live events follow, skipping any the listener already has, so a reconnect
+loses and repeats nothing. Every stream ends with its final ``state``.
 """
 
 from __future__ import annotations
@@ -20,64 +22,87 @@ from sqlalchemy.orm import Session
 
 from service import store
 from service.db import Database
-from service.models import FINAL_RUN_STATES
+from service.models import FINAL_JOB_STATES, FINAL_RUN_STATES, Topic
 
 
 class EventBus:
-    """Run events, stored and fanned out to server-sent-event listeners; publish from any
+    """Events, stored and fanned out to server-sent-event listeners; publish from any
     thread."""
 
     def __init__(self, db: Database) -> None:
         self.db = db
         self._lock = threading.Lock()
-        self._listeners: dict[str, set[tuple[asyncio.AbstractEventLoop,
-                                             asyncio.Queue[dict[str, Any]]]]] = {}
+        self._listeners: dict[Topic, set[tuple[asyncio.AbstractEventLoop,
+                                               asyncio.Queue[dict[str, Any]]]]] = {}
 
     @contextlib.contextmanager
-    def listen(self, run_id: str) -> Iterator[asyncio.Queue[dict[str, Any]]]:
-        """A queue receiving the run's events while the block runs (call on the event loop)."""
+    def listen(self, topic: Topic) -> Iterator[asyncio.Queue[dict[str, Any]]]:
+        """A queue receiving the topic's events while the block runs (call on the event
+        loop)."""
         entry = (asyncio.get_running_loop(), asyncio.Queue[dict[str, Any]]())
         with self._lock:
-            self._listeners.setdefault(run_id, set()).add(entry)
+            self._listeners.setdefault(topic, set()).add(entry)
         try:
             yield entry[1]
         finally:
             with self._lock:
-                self._listeners[run_id].discard(entry)
-                if not self._listeners[run_id]:
-                    del self._listeners[run_id]
+                self._listeners[topic].discard(entry)
+                if not self._listeners[topic]:
+                    del self._listeners[topic]
 
-    def publish(self, run_id: str, event: dict[str, Any]) -> None:
-        """Store the event (its ``id`` is the row's) and hand it to the run's listeners. One
+    def publish(self, topic: Topic, event: dict[str, Any]) -> None:
+        """Store the event (its ``id`` is the row's) and hand it to the topic's listeners. One
         publish at a time, so every listener receives the events in id order."""
         with self._lock:
             with self.db.session() as s:
-                event = {**event, "id": store.add_event(s, run_id=run_id, event=event)}
-            for loop, queue in self._listeners.get(run_id, ()):
+                event = {**event, "id": store.add_event(s, topic=topic, event=event)}
+            for loop, queue in self._listeners.get(topic, ()):
                 with contextlib.suppress(RuntimeError):  # the listener's loop has closed
                     loop.call_soon_threadsafe(queue.put_nowait, event)
 
-    def backlog(self, run_id: str, after: int | None) -> list[dict[str, Any]]:
-        """What a listener gets before the live events: the run's state as of the newest
-        stored event (``after`` None), or the stored events after ``after``, followed by the
-        state if the run has ended without a stored final ``state`` event (404 for an
-        unknown run)."""
+    def publish_state(self, topic: Topic) -> None:
+        """Publish the topic's stored state as a ``state`` event."""
         with self.db.session() as s:
-            state = {**state_event(s, run_id=run_id), "id": store.last_event_id(s, run_id=run_id)}
+            event = state_event(s, topic)
+        self.publish(topic, event)
+
+    def state(self, topic: Topic) -> dict[str, Any]:
+        """The topic's ``state`` event (404 for an unknown id)."""
+        with self.db.session() as s:
+            return state_event(s, topic)
+
+    def backlog(self, topic: Topic, after: int | None) -> list[dict[str, Any]]:
+        """What a listener gets before the live events: the state as of the newest stored
+        event (``after`` None), or the stored events after ``after``, followed by the state if
+        the topic has ended without a stored final ``state`` event (404 for an unknown id)."""
+        with self.db.session() as s:
+            state = {**state_event(s, topic), "id": store.last_event_id(s, topic=topic)}
             if after is None:
                 return [state]
-            events = store.events_after(s, run_id=run_id, after=after)
-        if state["state"] in FINAL_RUN_STATES and not any(ends_stream(e) for e in events):
+            events = store.events_after(s, topic=topic, after=after)
+        if ends_stream(state) and not any(ends_stream(e) for e in events):
             events.append(state)
         return events
 
 
 def ends_stream(event: dict[str, Any]) -> bool:
-    """True for the event after which a run's stream ends (its final ``state``)."""
-    return event["type"] == "state" and event["state"] in FINAL_RUN_STATES
+    """True for the event after which a stream ends (its final ``state``)."""
+    final = FINAL_RUN_STATES if "run_id" in event else FINAL_JOB_STATES
+    return event["type"] == "state" and event["state"] in final
 
 
-def state_event(s: Session, *, run_id: str) -> dict[str, Any]:
+def state_event(s: Session, topic: Topic) -> dict[str, Any]:
+    """The topic's state as a ``state`` event (404 for an unknown id): a run's with its
+    station counts, a calibration's or a validation's with its error if it failed."""
+    if topic.kind == "run":
+        return run_state_event(s, run_id=topic.id)
+    row = (store.get_calibration(s, cal_id=topic.id) if topic.kind == "calibration"
+           else store.get_validation(s, val_id=topic.id))
+    return {"type": "state", f"{topic.kind}_id": topic.id, "state": row.state,
+            "error": row.error}
+
+
+def run_state_event(s: Session, *, run_id: str) -> dict[str, Any]:
     """The run's state and counts as a ``state`` event (404 for an unknown run)."""
     run = store.get_run(s, run_id=run_id)
     return {"type": "state", "run_id": run_id, "state": run.state,

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import datetime as dt
 import uuid
-from typing import Any, ClassVar
+from dataclasses import dataclass
+from typing import Any, ClassVar, Literal
 
 from sqlalchemy import (
     JSON,
@@ -35,6 +36,8 @@ FINAL_RUN_STATES = ("done", "failed", "cancelled", "interrupted")
 RUN_STATES = ("capturing", "paused", "done", "failed", "cancelled", "interrupted")
 STATION_STATES = ("captured", "skipped")
 CALIBRATION_STATES = ("running", "done", "failed")
+#: States after which a calibration or a validation changes no more.
+FINAL_JOB_STATES = ("done", "failed")
 
 _ACTIVE_SQL = text("state IN ('capturing', 'paused')")
 
@@ -151,6 +154,31 @@ class RunEvent(Base):
     type: Mapped[str] = mapped_column(String(16))
     data: Mapped[dict[str, Any]]
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+
+
+class JobEvent(Base):
+    """An event of a calibration or a validation as streamed (``GET /calibrations/{id}/events``,
+    ``GET /validations/{id}/events``); like ``RunEvent``, the row id is the stream's event id."""
+
+    __tablename__ = "job_events"
+    __table_args__ = (Index("ix_job_events_job", "kind", "job_id", "id"),
+                      {"sqlite_autoincrement": True})
+
+    id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
+    #: ``calibration`` or ``validation``.
+    kind: Mapped[str] = mapped_column(String(16))
+    job_id: Mapped[str] = mapped_column(String(32))
+    type: Mapped[str] = mapped_column(String(16))
+    data: Mapped[dict[str, Any]]
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+
+
+@dataclass(frozen=True)
+class Topic:
+    """What an event stream follows: a run, a calibration or a validation, by its id."""
+
+    kind: Literal["run", "calibration", "validation"]
+    id: str
 
 
 class Activation(Base):

@@ -47,8 +47,8 @@ class Runtime:
             log.warning("recovered after restart: %d run(s) interrupted, %d calibration(s) "
                         "and %d validation(s) failed", runs, cals, vals)
         return cls(settings=settings, db=db, devices=devices, events=events, motion=motion,
-                   runs=RunManager(motion, events), calibrations=Calibrations(settings, db),
-                   validations=Validations(motion))
+                   runs=RunManager(motion, events), calibrations=Calibrations(settings, db, events),
+                   validations=Validations(motion, events))
 
     def stop_jobs(self, timeout: float = 10.0) -> None:
         """Stop the robot and the motion threads (runs become ``interrupted``, validations

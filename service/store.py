@@ -20,9 +20,11 @@ from service.models import (
     ACTIVE_RUN_STATES,
     Activation,
     Calibration,
+    JobEvent,
     Run,
     RunEvent,
     Station,
+    Topic,
     Validation,
     utcnow,
 )
@@ -290,27 +292,38 @@ def recover(s: Session) -> tuple[int, int, int]:
     return runs, cals, vals
 
 
-# ---- run events ----------------------------------------------------------------------------
+# ---- events of runs, calibrations and validations -----------------------------------------
 
 
-def add_event(s: Session, *, run_id: str, event: dict[str, Any]) -> int:
-    """Store a run event; its id, which increases along the run."""
-    row = RunEvent(run_id=run_id, type=event["type"], data=event)
+def add_event(s: Session, *, topic: Topic, event: dict[str, Any]) -> int:
+    """Store an event of ``topic``; its id, which increases along the topic's stream."""
+    row: RunEvent | JobEvent = (
+        RunEvent(run_id=topic.id, type=event["type"], data=event) if topic.kind == "run"
+        else JobEvent(kind=topic.kind, job_id=topic.id, type=event["type"], data=event))
     s.add(row)
     s.commit()
     return row.id
 
 
-def events_after(s: Session, *, run_id: str, after: int) -> list[dict[str, Any]]:
-    """The run's stored events with an id above ``after``, in order, each with its ``id``."""
-    rows = s.execute(select(RunEvent.id, RunEvent.data).where(
-        RunEvent.run_id == run_id, RunEvent.id > after).order_by(RunEvent.id)).all()
+def events_after(s: Session, *, topic: Topic, after: int) -> list[dict[str, Any]]:
+    """The topic's stored events with an id above ``after``, in order, each with its ``id``."""
+    table, where = _events_of(topic)
+    rows = s.execute(select(table.id, table.data).where(*where, table.id > after)
+                     .order_by(table.id)).all()
     return [{**data, "id": event_id} for event_id, data in rows]
 
 
-def last_event_id(s: Session, *, run_id: str) -> int:
-    """The id of the run's newest stored event (0 for none)."""
-    return s.scalar(select(func.max(RunEvent.id)).where(RunEvent.run_id == run_id)) or 0
+def last_event_id(s: Session, *, topic: Topic) -> int:
+    """The id of the topic's newest stored event (0 for none)."""
+    table, where = _events_of(topic)
+    return s.scalar(select(func.max(table.id)).where(*where)) or 0
+
+
+def _events_of(topic: Topic) -> tuple[type[RunEvent] | type[JobEvent], list[Any]]:
+    """The table holding the topic's events and the condition selecting them."""
+    if topic.kind == "run":
+        return RunEvent, [RunEvent.run_id == topic.id]
+    return JobEvent, [JobEvent.kind == topic.kind, JobEvent.job_id == topic.id]
 
 
 # ---- figures for GET /metrics --------------------------------------------------------------

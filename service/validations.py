@@ -30,7 +30,8 @@ from drivers.errors import DeviceError, RobotConnectionError
 from service import store
 from service.checks import CheckPlan, check_plan, run_check
 from service.errors import ConflictError, ServiceError, UnprocessableError
-from service.models import Validation
+from service.events import EventBus
+from service.models import Topic, Validation
 from service.motion import Motion
 from service.results import stored_cell
 from service.schemas import CheckCreate, ValidationCreate
@@ -45,13 +46,18 @@ from service.validation_run import (
 )
 
 log = logging.getLogger("cellcal.service")
+#: Where a validation sends its progress events.
+Report = Callable[[dict[str, Any]], None]
+#: A validation's work: its report document, given where to send progress.
+Work = Callable[[Report], dict[str, Any]]
 
 
 class Validations:
     """Starts dot-hit runs on the robot and records their reports."""
 
-    def __init__(self, motion: Motion) -> None:
+    def __init__(self, motion: Motion, events: EventBus) -> None:
         self.motion = motion
+        self.events = events
         self.settings = motion.settings
         self.db = motion.db
 
@@ -59,7 +65,7 @@ class Validations:
         """Check a dot-hit request, claim the robot and start the run in a thread."""
         target, result, _ = self._calibration(cal_id)
         plan = dot_hit_plan(result or {}, target, body)
-        return self._launch(cal_id, "dot_hit", lambda: self._dot_hit(plan))
+        return self._launch(cal_id, "dot_hit", lambda report: self._dot_hit(plan))
 
     def start_check(self, cal_id: str, body: CheckCreate) -> Validation:
         """Check a re-check request, claim the robot and start the check in a thread."""
@@ -69,7 +75,7 @@ class Validations:
             if (outside := self.motion.outside_workspace(pose)) is not None:
                 raise UnprocessableError(f"poses[{k}]: {outside}; the check was not started.",
                                          code="outside_workspace")
-        return self._launch(cal_id, "check", lambda: self._check(plan))
+        return self._launch(cal_id, "check", lambda report: self._check(plan, report))
 
     def _calibration(self, cal_id: str) -> tuple[Target, dict[str, Any] | None,
                                                  list[tuple[int, list[float]]]]:
@@ -90,7 +96,7 @@ class Validations:
                                      code="other_robot")
         return target, result, stations
 
-    def _launch(self, cal_id: str, kind: str, work: Callable[[], dict[str, Any]]) -> Validation:
+    def _launch(self, cal_id: str, kind: str, work: Work) -> Validation:
         """Store a running validation of ``kind`` and run ``work`` (its report) in a thread."""
         with self.motion.claim(), self.db.session() as s:
             val = Validation(calibration_id=cal_id, kind=kind, state="running")
@@ -100,12 +106,18 @@ class Validations:
                           name=f"{kind}-{val.id[:8]}")
         return val
 
-    def _validate(self, val_id: str, work: Callable[[], dict[str, Any]]) -> None:
-        """The validation thread: do the work holding the robot, store the report."""
+    def _validate(self, val_id: str, work: Work) -> None:
+        """The validation thread: do the work holding the robot (its progress events go to the
+        validation's stream), store the report, publish the final state."""
+        topic = Topic("validation", val_id)
+
+        def report(event: dict[str, Any]) -> None:
+            self.events.publish(topic, {**event, "validation_id": val_id})
+
         values: dict[str, Any] = {"state": "failed"}
         try:
             with self.motion.robot_lock:
-                values.update(state="done", result=work())
+                values.update(state="done", result=work(report))
         except (DeviceError, ServiceError, ValueError) as exc:
             if isinstance(exc, RobotConnectionError):
                 self.motion.devices.reset()
@@ -116,14 +128,15 @@ class Validations:
             values["error"] = f"Internal error ({type(exc).__name__}: {exc})."
         with self.db.session() as s:
             store.finish_validation(s, val_id=val_id, **values)
+        self.events.publish_state(topic)
 
-    def _check(self, plan: CheckPlan) -> dict[str, Any]:
+    def _check(self, plan: CheckPlan, report: Report) -> dict[str, Any]:
         """Revisit the plan's stations and compare them with the calibration."""
         robot, camera = self.motion.devices.get()
         options = CaptureOptions(settle_timeout=self.settings.settle_timeout_s,
                                  grab_timeout=self.settings.grab_timeout_s,
                                  speed=self.settings.move_speed)
-        return run_check(robot, camera, plan, options)
+        return run_check(robot, camera, plan, options, report)
 
     def _dot_hit(self, plan: DotHitPlan) -> dict[str, Any]:
         """Observe the board from where the robot stands (eq. 24 needs a current view), then

@@ -12,12 +12,17 @@ holder of its pipe has gone, stayed with them (issue 11). Each worker therefore
   once it changes the parent is gone, and the worker exits.
 
 With the workers gone, the resource tracker sees the end of its pipe and exits too.
+
+A solve reports its progress with :func:`report_progress`: the message travels over the pool's
+pipe to the service process, where a reader thread hands it to the pool's ``on_progress``.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import ctypes
+import logging
 import multiprocessing
 import os
 import signal
@@ -25,12 +30,47 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
 from typing import Any
 
 #: ``prctl`` option from ``<linux/prctl.h>``.
 _PR_SET_PDEATHSIG = 1
 #: How often a worker checks that its parent is still there, seconds.
 PARENT_WATCH_INTERVAL_S = 0.5
+
+
+log = logging.getLogger("cellcal.service")
+
+
+@dataclass(frozen=True)
+class _ProgressPipe:
+    """A worker's end of its pool's progress pipe; the lock keeps the workers' messages
+    whole."""
+
+    send: Connection
+    lock: Any  # multiprocessing.Lock
+
+
+#: In a worker: the pool's progress pipe (``_init_worker``).
+_progress: _ProgressPipe | None = None
+
+
+def report_progress(message: Any) -> None:
+    """Send ``message`` (picklable) from a worker to its pool's ``on_progress``; ignored
+    outside a worker. Written before this returns, so a message sent before the solve returns
+    reaches the service before its result does."""
+    if _progress is None:
+        return
+    with _progress.lock, contextlib.suppress(OSError):  # the service has stopped reading
+        _progress.send.send(message)
+
+
+def _init_worker(parent_pid: int, progress: _ProgressPipe) -> None:
+    """Pool initializer: keep the progress pipe, and end with the service."""
+    global _progress
+    _progress = progress
+    _exit_with_parent(parent_pid)
 
 
 def _exit_with_parent(parent_pid: int) -> None:
@@ -57,11 +97,31 @@ class CalibrationPool:
     signal is tied to a thread that ends only with :meth:`shutdown` or the process.
     """
 
-    def __init__(self, workers: int) -> None:
+    def __init__(self, workers: int, on_progress: Callable[[Any], None]) -> None:
+        context = multiprocessing.get_context("spawn")
+        self._receive, send = context.Pipe(duplex=False)
         self._pool = cf.ProcessPoolExecutor(
-            workers, mp_context=multiprocessing.get_context("spawn"),
-            initializer=_exit_with_parent, initargs=(os.getpid(),))
+            workers, mp_context=context, initializer=_init_worker,
+            initargs=(os.getpid(), _ProgressPipe(send, context.Lock())))
         self._spawner = cf.ThreadPoolExecutor(1, thread_name_prefix="calibration-spawner")
+        self._stop = threading.Event()
+        self._reader = threading.Thread(target=self._read_progress, args=(on_progress,),
+                                        name="calibration-progress", daemon=True)
+        self._reader.start()
+
+    def _read_progress(self, on_progress: Callable[[Any], None]) -> None:
+        """Hand the workers' progress messages to ``on_progress`` until :meth:`shutdown`."""
+        while not self._stop.is_set():
+            try:
+                if not self._receive.poll(PARENT_WATCH_INTERVAL_S):
+                    continue
+                message = self._receive.recv()
+            except (EOFError, OSError):  # the pipe is closed
+                return
+            try:
+                on_progress(message)
+            except Exception:  # a lost progress message must not end the reader
+                log.exception("calibration progress %r", message)
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> cf.Future[Any]:
         return self._spawner.submit(self._pool.submit, fn, *args).result()
@@ -70,3 +130,7 @@ class CalibrationPool:
         """Cancel queued work and let the workers go; does not wait for a running solve."""
         self._pool.shutdown(wait=False, cancel_futures=True)
         self._spawner.shutdown(wait=False)
+        self._stop.set()
+        if threading.current_thread() is not self._reader:
+            self._reader.join()
+            self._receive.close()

@@ -36,13 +36,14 @@ def client(tmp_path: Path) -> Iterator[TestClient]:
 
 
 def read_events(client: TestClient, run_id: str, *, last_event_id: str | None = None,
-                until: Callable[[list[Event]], bool] = lambda events: False) -> list[Event]:
-    """Events ``(id, type, data)`` of the run's stream until it ends or ``until(events)``,
-    then disconnect."""
+                until: Callable[[list[Event]], bool] = lambda events: False,
+                path: str = "/runs/{}/events") -> list[Event]:
+    """Events ``(id, type, data)`` of the stream at ``path`` (a run's by default) until it
+    ends or ``until(events)``, then disconnect."""
     headers = {} if last_event_id is None else {"Last-Event-ID": last_event_id}
     events: list[Event] = []
     fields: dict[str, str] = {}
-    with client.stream("GET", f"/runs/{run_id}/events", headers=headers) as r:
+    with client.stream("GET", path.format(run_id), headers=headers) as r:
         assert r.status_code == 200
         for line in r.iter_lines():
             if line.startswith(":"):
@@ -99,6 +100,59 @@ def test_ids_survive_a_restart_and_bad_ids_start_afresh(tmp_path: Path) -> None:
             fresh = read_events(client, run_id, last_event_id=header)
             assert [(i, kind) for i, kind, _ in fresh] == [(everything[-1][0], "state")]
             assert fresh[0][2]["stations_captured"] == 4
+
+
+# ---- calibration events -----------------------------------------------------------------------
+
+CALIBRATION_EVENTS = "/calibrations/{}/events"
+
+
+@pytest.mark.timeout(300)  # a stuck solve, not a slow machine
+def test_calibration_stream_resumes_without_loss_and_ends_with_the_outcome(
+        client: TestClient) -> None:
+    run_id = start_run(client, 8)
+    wait_run(client, run_id, finished)
+    r = client.post(f"/runs/{run_id}/calibrations", json={})
+    assert r.status_code == 202, r.text
+    cal_id = r.json()["id"]
+    fresh = read_events(client, cal_id, path=CALIBRATION_EVENTS, until=lambda events: True)
+    assert fresh[0][1] == "state" and fresh[0][2]["calibration_id"] == cal_id
+    assert fresh[0][2]["state"] in ("running", "done")
+
+    def three_progress(events: list[Event]) -> bool:
+        return [kind for _, kind, _ in events].count("progress") == 3
+
+    # from the start ("0"), three events, then reconnect after the last one read
+    first = read_events(client, cal_id, last_event_id="0", path=CALIBRATION_EVENTS,
+                        until=three_progress)
+    rest = read_events(client, cal_id, last_event_id=str(first[-1][0]),
+                       path=CALIBRATION_EVENTS)
+    everything = read_events(client, cal_id, last_event_id="0", path=CALIBRATION_EVENTS)
+    assert first + rest == everything, "a reconnect lost or repeated events"
+    ids = [event_id for event_id, _, _ in everything]
+    assert ids == sorted(set(ids))
+    *progress, final = everything
+    assert final[1:] == ("state", {"type": "state", "calibration_id": cal_id, "state": "done",
+                                   "error": None})
+    assert {kind for _, kind, _ in progress} == {"progress"}
+    assert client.get(f"/calibrations/{cal_id}").json()["state"] == "done"
+    detecting = [data for _, _, data in progress if data["stage"] == "detecting"]
+    assert [(d["step"], d["of"]) for d in detecting] == [(k, 8) for k in range(1, 9)]
+    assert detecting[2]["message"] == "detecting the board: station 3 of 8"
+    stages = [data["stage"] for _, _, data in progress if data["stage"] != "detecting"]
+    assert stages == ["intrinsics", "hand-eye", "model selection by cross-validation",
+                      "validation", "cross-validation"]
+    # a stream of a finished calibration: its final state, then the end
+    assert read_events(client, cal_id, path=CALIBRATION_EVENTS) == [final]
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("path", ["/calibrations/nope/events", "/validations/nope/events"])
+def test_events_of_an_unknown_calibration_or_validation_are_404(client: TestClient,
+                                                                 path: str) -> None:
+    r = client.get(path, headers={"Last-Event-ID": "3"})
+    assert r.status_code == 404
+    assert r.json()["code"] == "not_found" and "nope" in r.json()["detail"]
 
 
 # ---- GET /metrics ---------------------------------------------------------------------------

@@ -26,6 +26,7 @@ from service.devices import settings_opener
 from service.models import Calibration, Run, Validation
 from tests.test_exports import full_result
 from tests.test_service_api import AUTH, GatedCamera, finished, poses, settings, wait_run
+from tests.test_service_events import Event, read_events
 
 SCENE = default_scene()
 POINTS = ["corner_0_0", "corner_10_0", "corner_0_7", "corner_10_7", "centre"]
@@ -267,20 +268,29 @@ def add_calibration(client: TestClient, run_id: str, state: str = "done",
 # ---- re-checks (POST /calibrations/{id}/checks) ----------------------------------------------
 
 def recheck(client: TestClient, cal_id: str, body: dict[str, Any] | None = None
-            ) -> dict[str, Any]:
+            ) -> tuple[dict[str, Any], list[Event]]:
+    """The check's report and its events, read from its stream until the stream ends."""
     r = client.post(f"/calibrations/{cal_id}/checks", json=body or {})
     assert r.status_code == 202, r.text
-    check = wait_for(client, f"/validations/{r.json()['id']}")
+    val_id = r.json()["id"]
+    events = read_events(client, val_id, last_event_id="0", path="/validations/{}/events")
+    check = client.get(f"/validations/{val_id}").json()
     assert (check["kind"], check["state"]) == ("check", "done"), check
-    return check["result"]
+    assert events[-1][1:] == ("state", {"type": "state", "validation_id": val_id,
+                                        "state": "done", "error": None})
+    return check["result"], events
 
 
 @pytest.mark.timeout(240)
 def test_recheck_of_an_unchanged_cell_is_ok(app_on: Client,
                                             calibrated: tuple[Path, str, str]) -> None:
-    report = recheck(app_on(), calibrated[2])
+    report, events = recheck(app_on(), calibrated[2])
     assert report["state"] == "ok", report
     assert [s["station"] for s in report["stations"]] == [0, 2, 4, 5, 7]  # spread over 8
+    progress = [data for _, kind, data in events if kind == "progress"]
+    assert [(p["step"], p["of"], p["station"], p["state"]) for p in progress] == [
+        (k, 5, s["station"], s["state"]) for k, s in enumerate(report["stations"], 1)]
+    assert progress[1]["message"] == "station 2 of 5 checked: ok"
     assert all(s["state"] == "ok" for s in report["stations"]), report["stations"]
     assert report["offset"]["rot_deg"] < report["limits"]["rot_deg"]
     assert report["offset"]["trans_mm"] < report["limits"]["trans_mm"]
@@ -293,7 +303,7 @@ def test_recheck_flags_a_camera_mount_moved_by_2_mm_and_0_2_degrees(
     rotation = Rotation.from_rotvec(np.deg2rad(0.2) * np.array([0.6, -0.8, 0.0])).as_matrix()
     shift = make_transform(rotation, 2e-3 * np.array([0.0, 0.6, 0.8]))
     client.app.state.devices.get()[1].shift_mount(shift)
-    report = recheck(client, calibrated[2], {"stations": 4})
+    report, _ = recheck(client, calibrated[2], {"stations": 4})
     assert report["state"] == "degraded", report
     assert len(report["stations"]) == 4
     # the mean offset is the shift itself, within the noise of four stations

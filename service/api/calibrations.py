@@ -6,13 +6,15 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Response, status
-from fastapi.responses import HTMLResponse
+from fastapi.responses import HTMLResponse, StreamingResponse
 
 from service import store
-from service.api.deps import CalibrationsDep, SessionDep
+from service.api.deps import CalibrationsDep, EventsDep, SessionDep
 from service.api.reads import Read, add_reads
+from service.api.streams import LastEventId, event_stream, stream_doc
 from service.errors import ConflictError, UnprocessableError
 from service.exports import ExportNames, export
+from service.models import Topic
 from service.result_schema import parse_result
 from service.schemas import CalibrationCreate, CalibrationPublic, Created, ExportQuery
 
@@ -36,6 +38,16 @@ add_reads(router, CalibrationPublic,
           item=Read("/calibrations/{cal_id}", store.get_calibration, "get_calibration",
                     "State (``running``, ``done``, ``failed``) and the ``cellcal/result@1`` "
                     "document."))
+
+
+@router.get("/calibrations/{cal_id}/events", response_class=StreamingResponse,
+            responses=stream_doc("`state` (first, and the final `done` or `failed`) and "
+                                 "`progress` (the stage: detecting station k of N, "
+                                 "intrinsics, hand-eye, ...)"))
+async def calibration_events(cal_id: str, events: EventsDep,
+                             last_event_id: LastEventId = None) -> StreamingResponse:
+    """Progress of a calibration as server-sent events, resumable with ``Last-Event-ID``."""
+    return await event_stream(events, Topic("calibration", cal_id), last_event_id)
 
 
 @router.get("/calibrations/{cal_id}/export", response_class=Response, responses={

@@ -12,6 +12,7 @@ from sqlalchemy.orm import Session
 
 from service.calibrations import Calibrations
 from service.devices import Devices
+from service.events import EventBus
 from service.guard import check_api_key
 from service.runs import RunManager
 from service.settings import Settings
@@ -41,6 +42,10 @@ def get_validations(request: Request) -> Validations:
     return request.app.state.runtime.validations
 
 
+def get_events(request: Request) -> EventBus:
+    return request.app.state.runtime.events
+
+
 def get_devices(request: Request) -> Devices:
     return request.app.state.devices
 
@@ -51,6 +56,7 @@ RunsDep = Annotated[RunManager, Depends(get_runs)]
 CalibrationsDep = Annotated[Calibrations, Depends(get_calibrations)]
 ValidationsDep = Annotated[Validations, Depends(get_validations)]
 DevicesDep = Annotated[Devices, Depends(get_devices)]
+EventsDep = Annotated[EventBus, Depends(get_events)]
 
 
 def require_api_key(settings: SettingsDep,

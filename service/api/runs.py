@@ -2,33 +2,25 @@
 
 from __future__ import annotations
 
-import asyncio
-import json
 import shutil
 import tempfile
-from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
-from fastapi import APIRouter, Header, Query, status
-from fastapi.concurrency import run_in_threadpool
+from fastapi import APIRouter, Query, status
 from fastapi.responses import FileResponse, StreamingResponse
 from starlette.background import BackgroundTask
 
 from service import store
-from service.api.deps import RunsDep, SessionDep, SettingsDep
+from service.api.deps import EventsDep, RunsDep, SessionDep, SettingsDep
+from service.api.streams import LastEventId, event_stream, stream_doc
 from service.errors import ConflictError, NotFoundError
-from service.events import EventBus, ends_stream
-from service.models import Run
+from service.models import Run, Topic
 from service.schemas import Created, ErrorInfo, RunCreate, RunPublic, StationError
 from service.station_rows import captured_station_set, run_target
 from service.stationset import zip_station_set
 
 router = APIRouter(prefix="/runs", tags=["runs"])
-
-#: Seconds between keep-alive comments on an idle event stream (proxies drop silent ones).
-KEEPALIVE_S = 15.0
-
 
 def run_public(session: SessionDep, run: Run) -> RunPublic:
     """The public view of a run; station counts and errors come from small SQL queries, never
@@ -100,51 +92,13 @@ def finish_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
     return run_public(session, store.get_run(session, run_id=run_id))
 
 
-@router.get("/{run_id}/events", response_class=StreamingResponse, responses={
-    200: {"content": {"text/event-stream": {}},
-          "description": "server-sent events: `state` (first, then on every change) and "
-                         "`station` (captured or skipped); the stream ends when the run does"}})
-async def run_events(
-        run_id: str, runs: RunsDep,
-        last_event_id: Annotated[str | None, Header(
-            description="resume after this event id: the stored events after it come first")]
-        = None) -> StreamingResponse:
+@router.get("/{run_id}/events", response_class=StreamingResponse, responses=stream_doc(
+    "`state` (first, then on every change) and `station` (captured or skipped)"))
+async def run_events(run_id: str, events: EventsDep,
+                     last_event_id: LastEventId = None) -> StreamingResponse:
     """Progress of a run as server-sent events; ids are stable, so a client that reconnects
     with ``Last-Event-ID`` (browsers do) misses none and sees none twice."""
-    await run_in_threadpool(runs.state_event, run_id)  # 404 before the stream starts
-    after = int(last_event_id) if last_event_id and last_event_id.isdigit() else None
-    return StreamingResponse(_event_stream(runs.events, run_id, after),
-                             media_type="text/event-stream",
-                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
-
-
-async def _event_stream(events: EventBus, run_id: str, after: int | None) -> AsyncIterator[str]:
-    """The backlog (``EventBus.backlog``), then live events newer than what was sent."""
-    with events.listen(run_id) as queue:
-        backlog = await run_in_threadpool(events.backlog, run_id, after)
-        last = after or 0
-        for event in backlog:
-            yield _sse(event)
-            if ends_stream(event):
-                return
-            last = max(last, event["id"])
-        while True:
-            try:
-                event = await asyncio.wait_for(queue.get(), KEEPALIVE_S)
-            except TimeoutError:
-                yield ": keep-alive\n\n"
-                continue
-            if event["id"] <= last:  # already sent in the backlog
-                continue
-            last = event["id"]
-            yield _sse(event)
-            if ends_stream(event):
-                return
-
-
-def _sse(event: dict[str, Any]) -> str:
-    data = {k: v for k, v in event.items() if k != "id"}
-    return f"id: {event['id']}\nevent: {event['type']}\ndata: {json.dumps(data)}\n\n"
+    return await event_stream(events, Topic("run", run_id), last_event_id)
 
 
 @router.get("/{run_id}/stationset", response_class=FileResponse, responses={

@@ -7,10 +7,13 @@ from collections.abc import Callable
 from typing import TypeVar
 
 from fastapi import APIRouter, status
+from fastapi.responses import StreamingResponse
 
 from service import store
-from service.api.deps import ValidationsDep
+from service.api.deps import EventsDep, ValidationsDep
 from service.api.reads import Read, add_reads
+from service.api.streams import LastEventId, event_stream, stream_doc
+from service.models import Topic
 from service.schemas import CheckCreate, Created, ValidationCreate, ValidationPublic
 
 router = APIRouter(tags=["validations"])
@@ -63,3 +66,13 @@ add_reads(router, ValidationPublic,
                        "list_validations", "The calibration's validations, oldest first."),
           item=Read("/validations/{val_id}", store.get_validation, "get_validation",
                     "State (``running``, ``done``, ``failed``) and the report."))
+
+
+@router.get("/validations/{val_id}/events", response_class=StreamingResponse,
+            responses=stream_doc("`state` (first, and the final `done` or `failed`) and, for a "
+                                 "re-check, `progress` (station k of N and how it compared)"))
+async def validation_events(val_id: str, events: EventsDep,
+                            last_event_id: LastEventId = None) -> StreamingResponse:
+    """Progress of a validation (re-check or dot-hit run) as server-sent events, resumable
+    with ``Last-Event-ID``."""
+    return await event_stream(events, Topic("validation", val_id), last_event_id)

@@ -52,8 +52,8 @@ from drivers.errors import (
 from drivers.stall import STALL_AFTER
 from service import store
 from service.db import DatabaseUnavailableError, retry_transient
-from service.events import EventBus, state_event
-from service.models import Run
+from service.events import EventBus, run_state_event
+from service.models import Run, Topic
 from service.models import Station as StationRow
 from service.motion import Motion
 from service.station_rows import row_values, run_target
@@ -163,14 +163,14 @@ class Capture:
                 error_code=code),
                 f"ending run {self.run_id} as {state}", budget_s=math.inf)
             if changed:
-                self._publish(self._in_session(lambda s: state_event(s, run_id=self.run_id),
+                self._publish(self._in_session(lambda s: run_state_event(s, run_id=self.run_id),
                                                "reading the run state"))
         except DatabaseUnavailableError as exc:
             log.error("run %s: %s", self.run_id, exc)
 
     def _publish(self, event: dict[str, Any]) -> None:
         """Store and send a run event (a database write), retried like the capture's own."""
-        retry_transient(lambda: self.events.publish(self.run_id, event),
+        retry_transient(lambda: self.events.publish(Topic("run", self.run_id), event),
                         budget_s=self.settings.database_retry_s,
                         what=f"storing a {event['type']} event of run {self.run_id}",
                         stopping=self.motion.stopping)

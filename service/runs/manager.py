@@ -4,14 +4,12 @@ posts the stations, ``service.runs.external``) are finished by their controller.
 
 from __future__ import annotations
 
-from typing import Any
-
 from sqlalchemy.exc import IntegrityError
 
 from service import store
 from service.errors import ConflictError
-from service.events import EventBus, state_event
-from service.models import Run, new_id
+from service.events import EventBus
+from service.models import Run, Topic, new_id
 from service.motion import Motion
 from service.runs.capture import Capture
 from service.runs.external import ExternalStations
@@ -106,11 +104,6 @@ class RunManager:
         self._transition(run_id, ("capturing", "paused", "interrupted"), "done",
                          same_ok="done")
 
-    def state_event(self, run_id: str) -> dict[str, Any]:
-        """The run's state and counts as a ``state`` event (404 for an unknown run)."""
-        with self.db.session() as s:
-            return state_event(s, run_id=run_id)
-
     def _transition(self, run_id: str, sources: tuple[str, ...], target: str, *,
                     same_ok: str) -> str | None:
         """Move a run from one of ``sources`` to ``target``; the old owner token."""
@@ -131,7 +124,7 @@ class RunManager:
         return owner
 
     def _publish_state(self, run_id: str) -> None:
-        self.events.publish(run_id, self.state_event(run_id))
+        self.events.publish_state(Topic("run", run_id))
 
     def _start_capture(self, run_id: str, token: str) -> None:
         capture = Capture(self.motion, self.events, run_id=run_id, token=token)
