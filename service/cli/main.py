@@ -17,7 +17,8 @@ from collections.abc import Callable, Sequence
 from types import ModuleType
 
 from drivers.errors import DeviceError
-from service.cli import calibrate, demo, devices, export, report, serve
+from service.cli import calibrate, calibrations, demo, devices, export, report, runs, serve
+from service.cli.client import ServiceCallError
 from service.cli.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from service.results import software_version
 
@@ -31,10 +32,12 @@ def build_parser() -> argparse.ArgumentParser:
                         version=f"cellcal {software_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_command(sub, "calibrate", calibrate)
+    _add_command(sub, "calibrations", calibrations)
     _add_command(sub, "demo", demo)
     devices.register(sub)
     _add_command(sub, "export", export)
     _add_command(sub, "report", report)
+    _add_command(sub, "runs", runs)
     _add_command(sub, "serve", serve)
     return parser
 
@@ -50,7 +53,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         return func(args)
-    except (ValueError, DeviceError, OSError) as exc:
+    except (ValueError, DeviceError, OSError, ServiceCallError) as exc:
         if os.environ.get("CELLCAL_DEBUG"):
             raise
         print(f"cellcal: error: {exc}", file=sys.stderr)

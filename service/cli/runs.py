@@ -1,0 +1,123 @@
+"""Capture runs of a running service (cellcal serve): list them, show one, start one (planned
+stations, a pose list, or an external run a cell controller feeds), pause, resume or cancel it.
+'start --wait' follows the run's event stream with a progress bar until it ends. The service
+is --url (CELLCAL_URL), its key --api-key (CELLCAL_API_KEY).
+"""
+
+# ``cellcal runs``: the REST calls of ``service.api.runs`` from the command line
+# (``service.cli.client``); errors are one line on stderr and a non-zero exit.
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from service.cli.client import (
+    Event,
+    Service,
+    add_connection_arguments,
+    add_list_and_show,
+    follow,
+    print_json,
+    print_table,
+)
+from service.cli.exit_codes import EXIT_FAILED
+
+#: The command's line in ``cellcal --help``.
+HELP = "list, show, start, pause, resume or cancel capture runs of a running service"
+
+_COLUMNS = ["id", "state", "mode", "stations_captured", "stations_skipped", "stations_planned",
+            "created_at"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``runs`` actions and their arguments."""
+    actions = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
+    add_list_and_show(actions, "runs", "one run as JSON", "run_id")
+    start = actions.add_parser(
+        "start", help="start a run; prints its id",
+        description="Start a capture run and print its id. With --wait, follow it with a "
+                    "progress bar until it ends; exit 0 if it is done, 1 if it failed, was "
+                    "cancelled or interrupted.")
+    plan = start.add_mutually_exclusive_group(required=True)
+    plan.add_argument("--stations", type=int, metavar="N",
+                      help="plan N stations automatically")
+    plan.add_argument("--poses", type=Path, metavar="POSES_JSON",
+                      help="JSON file with a list of TCP poses [x, y, z, rx, ry, rz] (m, rad)")
+    plan.add_argument("--external", action="store_true",
+                      help="a cell controller posts the stations (POST /runs/{id}/stations)")
+    start.add_argument("--wait", action="store_true",
+                       help="follow the run until it ends, with a progress bar")
+    for name, what in (("pause", "stop after the station in progress"),
+                       ("resume", "continue at the next missing station"),
+                       ("cancel", "stop for good; stored stations stay")):
+        action = actions.add_parser(name, help=what)
+        action.add_argument("run_id", metavar="RUN_ID")
+    for sub in actions.choices.values():
+        add_connection_arguments(sub)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Do ``args.action`` against the service; the exit status."""
+    service = Service.from_args(args)
+    if args.action == "start":
+        return _start(service, args)
+    if args.action == "list":
+        print_table(service.get("/runs", limit=args.limit), _COLUMNS)
+    elif args.action == "show":
+        print_json(service.get(f"/runs/{args.run_id}"))
+    else:  # pause, resume, cancel: the run's new state
+        print(f"run {args.run_id}: {service.post(f'/runs/{args.run_id}/{args.action}')['state']}")
+    return 0
+
+
+def _start(service: Service, args: argparse.Namespace) -> int:
+    body: dict[str, Any]
+    if args.external:
+        body = {"mode": "external"}
+    elif args.stations is not None:
+        body = {"stations": args.stations}
+    else:
+        body = {"poses": _read_poses(args.poses)}
+    run_id = service.post("/runs", body)["id"]
+    print(run_id)
+    if not args.wait:
+        return 0
+    planned = service.get(f"/runs/{run_id}")["stations_planned"]
+    final = follow(service, f"/runs/{run_id}/events", total=planned, unit="station",
+                   progress=StationCount())
+    error = final.get("error") or {}
+    print(f"run {run_id}: {final['state']}, {final['stations_captured']} captured, "
+          f"{final['stations_skipped']} skipped"
+          + (f" ({error['detail']})" if error.get("detail") else ""), file=sys.stderr)
+    return 0 if final["state"] == "done" else EXIT_FAILED
+
+
+class StationCount:
+    """Stations captured or skipped so far: a ``state`` event's counts, plus one per
+    ``station`` event after it."""
+
+    def __init__(self) -> None:
+        self.done = 0
+
+    def __call__(self, event: Event) -> tuple[int, int | None] | None:
+        if event.type == "state":
+            self.done = int(event.data["stations_captured"]) + \
+                int(event.data["stations_skipped"])
+        elif event.type == "station":
+            self.done += 1
+        else:
+            return None
+        return self.done, None
+
+
+def _read_poses(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not JSON ({exc})") from None

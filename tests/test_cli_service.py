@@ -1,0 +1,130 @@
+"""``cellcal runs`` and ``cellcal calibrations`` through the real command line (subprocesses)
+against a real ``cellcal serve --mock``: start a run and follow it, calibrate it and follow
+that, list, show, activate, export (the file the REST export gives), cancel; errors are one
+line on stderr with a non-zero exit (service down, wrong key, unknown id)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from service.cli.client import Event, parse_events
+from service.cli.exit_codes import EXIT_FAILED
+from service.local import LocalService, listening_socket, local_service
+from tests.test_cli_devices import assert_one_line_error
+
+KEY = "cli-key-0123456789abcdef"
+
+pytestmark = pytest.mark.timeout(600)
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalService]:
+    with local_service(tmp_path_factory.mktemp("cli") / "data", KEY) as service:
+        yield service
+
+
+def cellcal(*args: str, url: str | None = None,
+            key: str | None = KEY) -> subprocess.CompletedProcess[str]:
+    """``cellcal ARGS`` in a subprocess; the service from CELLCAL_URL / CELLCAL_API_KEY."""
+    env = {k: v for k, v in os.environ.items() if k not in ("CELLCAL_URL", "CELLCAL_API_KEY")}
+    env |= {"CELLCAL_URL": url} if url else {}
+    env |= {"CELLCAL_API_KEY": key} if key else {}
+    return subprocess.run([sys.executable, "-m", "service.cli", *args], env=env,
+                          capture_output=True, text=True, timeout=540, check=False)
+
+
+def rest(service: LocalService, path: str, **params: str) -> httpx.Response:
+    r = httpx.get(service.url + path, params=params, timeout=60,
+                  headers={"Authorization": f"Bearer {KEY}"})
+    r.raise_for_status()
+    return r
+
+
+def test_run_calibrate_activate_export(served: LocalService, tmp_path: Path) -> None:
+    url = served.url
+    started = cellcal("runs", "start", "--stations", "6", "--wait", url=url)
+    assert started.returncode == 0, started.stderr
+    run_id = started.stdout.strip()
+    run = rest(served, f"/runs/{run_id}").json()
+    assert run["state"] == "done" and run["stations_planned"] == 6
+    assert f"run {run_id}: done, {run['stations_captured']} captured" in started.stderr
+    assert "6/6" in started.stderr  # the progress bar reached the planned stations
+
+    shown = cellcal("runs", "show", run_id, url=url)
+    assert shown.returncode == 0 and json.loads(shown.stdout) == run
+    listed = cellcal("runs", "list", url=url)
+    assert listed.stdout.splitlines()[0].split()[:3] == ["id", "state", "mode"]
+    assert any(line.split()[:2] == [run_id, "done"] for line in listed.stdout.splitlines())
+
+    calibrated = cellcal("calibrations", "start", run_id, "--wait", url=url)
+    assert calibrated.returncode == 0, calibrated.stderr
+    cal_id = calibrated.stdout.strip()
+    cal = rest(served, f"/calibrations/{cal_id}").json()
+    assert cal["state"] == "done"
+    verdict = cal["result"]["quality"]["verdict"]
+    assert f"calibration {cal_id}: done, verdict {verdict}" in calibrated.stderr
+
+    assert json.loads(cellcal("calibrations", "show", cal_id, url=url).stdout) == cal
+    listed = cellcal("calibrations", "list", "--run", run_id, url=url).stdout.splitlines()
+    assert [line.split()[:3] for line in listed[1:]] == [[cal_id, run_id, "done"]]
+
+    activated = cellcal("calibrations", "activate", cal_id, url=url)
+    assert activated.stdout == f"calibration {cal_id} is the active calibration of mock://\n"
+    active = json.loads(cellcal("calibrations", "active", url=url).stdout)
+    assert active["calibration"]["id"] == cal_id and active["robot"] == "mock://"
+
+    out = tmp_path / "camera.urdf"
+    exported = cellcal("calibrations", "export", cal_id, "--format", "urdf", "--camera-name",
+                       "cam", "--out", str(out), url=url)
+    assert exported.returncode == 0, exported.stderr
+    assert out.read_text() == rest(served, f"/calibrations/{cal_id}/export", format="urdf",
+                                   camera_name="cam").text
+
+
+def test_cancel_an_external_run(served: LocalService) -> None:
+    started = cellcal("runs", "start", "--external", url=served.url)
+    run_id = started.stdout.strip()
+    assert rest(served, f"/runs/{run_id}").json()["mode"] == "external"
+    cancelled = cellcal("runs", "cancel", run_id, url=served.url)
+    assert cancelled.stdout == f"run {run_id}: cancelled\n"
+    assert rest(served, f"/runs/{run_id}").json()["state"] == "cancelled"
+
+
+def test_service_down_is_one_line() -> None:
+    with listening_socket() as sock:
+        url = f"http://127.0.0.1:{sock.getsockname()[1]}"
+    done = cellcal("runs", "list", "--url", url)  # the flag, not CELLCAL_URL
+    assert done.returncode == EXIT_FAILED
+    assert_one_line_error(done.stderr, f"cannot reach the service at {url}")
+
+
+def test_wrong_key_is_one_line(served: LocalService) -> None:
+    done = cellcal("calibrations", "list", "--url", served.url, "--api-key", "wrong", key=None)
+    assert done.returncode == EXIT_FAILED
+    assert_one_line_error(done.stderr, "Invalid API key. (HTTP 401 invalid_api_key); give the "
+                                       "service's key with "
+                                       "--api-key or CELLCAL_API_KEY")
+
+
+@pytest.mark.parametrize("args", [("runs", "show", "nope"), ("runs", "cancel", "nope"),
+                                  ("calibrations", "export", "nope", "--format", "json")])
+def test_unknown_id_is_one_line(served: LocalService, args: tuple[str, ...]) -> None:
+    done = cellcal(*args, url=served.url)
+    assert done.returncode == EXIT_FAILED and done.stdout == ""
+    assert_one_line_error(done.stderr, "nope")
+    assert "(HTTP 404 not_found)" in done.stderr
+
+
+def test_event_stream_lines_are_parsed() -> None:
+    lines = ["id: 3", "event: state", 'data: {"state": "capturing"}', "", ": keep-alive", "",
+             "id: 4", "event: station", 'data: {"index": 0}', ""]
+    assert list(parse_events(iter(lines))) == [Event(3, "state", {"state": "capturing"}),
+                                              Event(4, "station", {"index": 0})]
