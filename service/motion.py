@@ -21,6 +21,7 @@ from service import store
 from service.db import Database
 from service.devices import Devices
 from service.errors import ConflictError
+from service.events import EventBus
 from service.settings import Settings
 
 
@@ -122,3 +123,14 @@ class Motion:
         """Raise ``WorkspaceError`` for a commanded UR pose (6,) outside the workspace box."""
         if (outside := self.outside_workspace(pose)) is not None:
             raise WorkspaceError(f"Target {outside}; the robot was not moved.")
+
+
+class MotionJobs:
+    """Base of the two kinds of motion job (capture runs, validations): what each needs to
+    move the robot, report progress and store results."""
+
+    def __init__(self, motion: Motion, events: EventBus) -> None:
+        self.motion = motion
+        self.events = events
+        self.settings = motion.settings
+        self.db = motion.db

@@ -112,25 +112,29 @@ class Motions(_Block):
     skipped: int
 
 
-class HeldOutStation(_Block):
+class _PredictionFigures(_Block):
+    """How far the prediction from robot poses alone was from what the camera saw: corners
+    (px, and mm at the board) and the camera pose (rotation, translation)."""
+
+    rms_px: float | None = Field(None, description="RMS corner error in the image, px")
+    rms_mm: float | None = Field(None, description="RMS corner error on the board plane, mm")
+    rot_deg: float | None = Field(None, description="predicted vs observed camera pose: "
+                                  "rotation, deg")
+    trans_mm: float | None = Field(None, description="predicted vs observed camera pose: "
+                                   "translation, mm")
+
+
+class HeldOutStation(_PredictionFigures):
     id: str
-    fold: int | None = None
-    rms_px: float | None = None
-    max_px: float | None = None
-    rms_mm: float | None = None
-    rot_deg: float | None = None
-    trans_mm: float | None = None
+    fold: int | None = Field(None, description="the fold that held this station out")
+    max_px: float | None = Field(None, description="largest corner error in the image, px")
 
 
-class CrossValidationBlock(_Block):
+class CrossValidationBlock(_PredictionFigures):
     """Held-out stations predicted from their robot poses alone."""
 
     kind: str = Field(description="k-fold or leave-one-out")
     folds: int
-    rms_px: float | None = None
-    rms_mm: float | None = None
-    rot_deg: float | None = None
-    trans_mm: float | None = None
     stations: list[HeldOutStation] = Field(default_factory=list)
     note: str | None = None
 
@@ -140,19 +144,22 @@ class Candidate(_Block):
 
     name: str
     chosen: bool
-    cv_rms_px: float | None = None
-    cv_rms_mm: float | None = None
-    cv_trans_mm: float | None = None
-    cv_range_mm: float | None = None
-    cv_rot_deg: float | None = None
-    kappa: str | None = None
-    nu: str | None = None
-    robot_noise: str | None = None
+    cv_rms_px: float | None = Field(None, description="cross-validated corner error, px")
+    cv_rms_mm: float | None = Field(None, description="the same on the board plane, mm")
+    cv_trans_mm: float | None = Field(None, description="cross-validated camera-pose "
+                                      "translation error, mm")
+    cv_range_mm: float | None = Field(None, description="cross-validated camera-to-board "
+                                      "distance error, mm (what a wrong κ moves)")
+    cv_rot_deg: float | None = Field(None, description="cross-validated camera-pose "
+                                     "rotation error, deg")
+    kappa: str | None = Field(None, description="κ 'estimated' or 'held at 1'")
+    nu: str | None = Field(None, description="ν 'estimated' or 'held at 1'")
+    robot_noise: str | None = Field(None, description="robot noise 'estimated' or 'assumed'")
     kappa_value: float | None = None
     nu_value: float | None = None
-    robot_noise_rot_rad: float | None = None
-    robot_noise_trans_m: float | None = None
-    sigma_px: float | None = None
+    robot_noise_rot_rad: float | None = Field(None, description="robot pose noise, 1-sigma")
+    robot_noise_trans_m: float | None = Field(None, description="robot pose noise, 1-sigma")
+    sigma_px: float | None = Field(None, description="corner noise of the fit, 1-sigma")
 
 
 class ModelSelection(_Block):

@@ -30,9 +30,8 @@ from drivers.errors import DeviceError, RobotConnectionError
 from service import store
 from service.checks import CheckPlan, check_plan, run_check
 from service.errors import ConflictError, ServiceError, UnprocessableError
-from service.events import EventBus
 from service.models import Topic, Validation
-from service.motion import Motion
+from service.motion import MotionJobs
 from service.results import stored_cell
 from service.schemas import CheckCreate, ValidationCreate
 from service.station_rows import run_target
@@ -52,14 +51,8 @@ Report = Callable[[dict[str, Any]], None]
 Work = Callable[[Report], dict[str, Any]]
 
 
-class Validations:
+class Validations(MotionJobs):
     """Starts dot-hit runs on the robot and records their reports."""
-
-    def __init__(self, motion: Motion, events: EventBus) -> None:
-        self.motion = motion
-        self.events = events
-        self.settings = motion.settings
-        self.db = motion.db
 
     def start(self, cal_id: str, body: ValidationCreate) -> Validation:
         """Check a dot-hit request, claim the robot and start the run in a thread."""

@@ -15,15 +15,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from service.cli.client import (
-    Event,
-    Service,
-    add_connection_arguments,
-    add_list_and_show,
-    follow,
-    print_json,
-    print_table,
-)
+from service.cli import client
 from service.cli.exit_codes import EXIT_FAILED
 from service.exports import FORMATS
 
@@ -36,7 +28,7 @@ _COLUMNS = ["id", "run_id", "state", "verdict", "rms_px", "active", "method", "c
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``calibrations`` actions and their arguments."""
     actions = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
-    listing = add_list_and_show(actions, "calibrations",
+    listing = client.add_list_and_show(actions, "calibrations",
                                 "one calibration with its result, as JSON", "cal_id")
     listing.add_argument("--run", dest="run_id", metavar="RUN_ID", help="only this run's")
     listing.add_argument("--state", choices=["running", "done", "failed"])
@@ -65,34 +57,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     export.add_argument("--parent-frame", help="frame the camera is fixed to")
     export.add_argument("--child-frame", help="the camera's frame")
     for sub in actions.choices.values():
-        add_connection_arguments(sub)
+        client.add_connection_arguments(sub)
 
 
 def run(args: argparse.Namespace) -> int:
     """Do ``args.action`` against the service; the exit status."""
-    service = Service.from_args(args)
+    service = client.Service.from_args(args)
     return _ACTIONS[args.action](service, args) or 0
 
 
-def _list(service: Service, args: argparse.Namespace) -> None:
+def _list(service: client.Service, args: argparse.Namespace) -> None:
     page = service.get("/calibrations", run_id=args.run_id, state=args.state,
                        setup=args.setup, limit=args.limit)
-    print_table(page["items"], _COLUMNS)
+    client.print_table(page["items"], _COLUMNS)
 
 
-def _activate(service: Service, args: argparse.Namespace) -> None:
+def _activate(service: client.Service, args: argparse.Namespace) -> None:
     active = service.post(f"/calibrations/{args.cal_id}/activate")
     print(f"calibration {args.cal_id} is the active calibration of {active['robot']}")
 
 
-def _start(service: Service, args: argparse.Namespace) -> int:
+def _start(service: client.Service, args: argparse.Namespace) -> int:
     options = {k: v for k, v in (("method", args.method), ("kappa", args.kappa))
                if v is not None}
     cal_id = service.post(f"/runs/{args.run_id}/calibrations", {"options": options})["id"]
     print(cal_id)
     if not args.wait:
         return 0
-    final = follow(service, f"/calibrations/{cal_id}/events", total=None, unit="station",
+    final = client.follow(service, f"/calibrations/{cal_id}/events", total=None, unit="station",
                    progress=_detected)
     if final["state"] != "done":
         print(f"calibration {cal_id}: {final['state']} ({final.get('error')})", file=sys.stderr)
@@ -105,14 +97,14 @@ def _start(service: Service, args: argparse.Namespace) -> int:
     return 0
 
 
-def _detected(event: Event) -> tuple[int, int | None] | None:
+def _detected(event: client.Event) -> tuple[int, int | None] | None:
     """Stations detected of all, from a ``progress`` event that counts them."""
     if event.type != "progress" or "of" not in event.data:
         return None
     return int(event.data["step"]), int(event.data["of"])
 
 
-def _export(service: Service, args: argparse.Namespace) -> None:
+def _export(service: client.Service, args: argparse.Namespace) -> None:
     """The export as a file, or on stdout."""
     params = {"format": args.fmt, "camera_name": args.camera_name,
               "parent_frame": args.parent_frame, "child_frame": args.child_frame}
@@ -126,12 +118,12 @@ def _export(service: Service, args: argparse.Namespace) -> None:
 
 
 #: Each action's handler: (service, args) -> exit status (None: 0).
-_ACTIONS: dict[str, Callable[[Service, argparse.Namespace], int | None]] = {
+_ACTIONS: dict[str, Callable[[client.Service, argparse.Namespace], int | None]] = {
     "list": _list,
-    "show": lambda service, args: print_json(service.get(f"/calibrations/{args.cal_id}")),
+    "show": lambda service, args: client.print_json(service.get(f"/calibrations/{args.cal_id}")),
     "start": _start,
     "activate": _activate,
-    "active": lambda service, args: print_json(service.get("/calibrations/active",
+    "active": lambda service, args: client.print_json(service.get("/calibrations/active",
                                                            robot=args.robot)),
     "export": _export,
 }

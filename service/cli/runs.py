@@ -15,15 +15,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from service.cli.client import (
-    Event,
-    Service,
-    add_connection_arguments,
-    add_list_and_show,
-    follow,
-    print_json,
-    print_table,
-)
+from service.cli import client
 from service.cli.exit_codes import EXIT_FAILED
 
 #: The command's line in ``cellcal --help``.
@@ -36,7 +28,7 @@ _COLUMNS = ["id", "state", "mode", "stations_captured", "stations_skipped", "sta
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``runs`` actions and their arguments."""
     actions = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
-    add_list_and_show(actions, "runs", "one run as JSON", "run_id")
+    client.add_list_and_show(actions, "runs", "one run as JSON", "run_id")
     start = actions.add_parser(
         "start", help="start a run; prints its id",
         description="Start a capture run and print its id. With --wait, follow it with a "
@@ -57,24 +49,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action = actions.add_parser(name, help=what)
         action.add_argument("run_id", metavar="RUN_ID")
     for sub in actions.choices.values():
-        add_connection_arguments(sub)
+        client.add_connection_arguments(sub)
 
 
 def run(args: argparse.Namespace) -> int:
     """Do ``args.action`` against the service; the exit status."""
-    service = Service.from_args(args)
+    service = client.Service.from_args(args)
     if args.action == "start":
         return _start(service, args)
     if args.action == "list":
-        print_table(service.get("/runs", limit=args.limit), _COLUMNS)
+        client.print_table(service.get("/runs", limit=args.limit), _COLUMNS)
     elif args.action == "show":
-        print_json(service.get(f"/runs/{args.run_id}"))
+        client.print_json(service.get(f"/runs/{args.run_id}"))
     else:  # pause, resume, cancel: the run's new state
         print(f"run {args.run_id}: {service.post(f'/runs/{args.run_id}/{args.action}')['state']}")
     return 0
 
 
-def _start(service: Service, args: argparse.Namespace) -> int:
+def _start(service: client.Service, args: argparse.Namespace) -> int:
     body: dict[str, Any]
     if args.external:
         body = {"mode": "external"}
@@ -87,7 +79,7 @@ def _start(service: Service, args: argparse.Namespace) -> int:
     if not args.wait:
         return 0
     planned = service.get(f"/runs/{run_id}")["stations_planned"]
-    final = follow(service, f"/runs/{run_id}/events", total=planned, unit="station",
+    final = client.follow(service, f"/runs/{run_id}/events", total=planned, unit="station",
                    progress=StationCount())
     error = final.get("error") or {}
     print(f"run {run_id}: {final['state']}, {final['stations_captured']} captured, "
@@ -103,7 +95,7 @@ class StationCount:
     def __init__(self) -> None:
         self.done = 0
 
-    def __call__(self, event: Event) -> tuple[int, int | None] | None:
+    def __call__(self, event: client.Event) -> tuple[int, int | None] | None:
         if event.type == "state":
             self.done = int(event.data["stations_captured"]) + \
                 int(event.data["stations_skipped"])

@@ -10,7 +10,7 @@ from service import store
 from service.errors import ConflictError
 from service.events import EventBus
 from service.models import Run, Topic, new_id
-from service.motion import Motion
+from service.motion import Motion, MotionJobs
 from service.runs.capture import Capture
 from service.runs.external import ExternalStations
 from service.runs.planning import check_poses, plan_poses
@@ -18,14 +18,11 @@ from service.schemas import RunCreate
 from service.station_rows import target_json
 
 
-class RunManager:
+class RunManager(MotionJobs):
     """Starts and steers capture runs; the stored run row is the source of truth."""
 
     def __init__(self, motion: Motion, events: EventBus) -> None:
-        self.motion = motion
-        self.events = events
-        self.settings = motion.settings
-        self.db = motion.db
+        super().__init__(motion, events)
         #: Stations posted to external runs.
         self.external = ExternalStations(motion, events)
 
