@@ -21,12 +21,8 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 from calib import (
     MIN_IMAGES,
-    PipelineOptions,
-    RobotNoise,
     board_from_target,
     calibrate_stations,
 )
@@ -189,19 +185,8 @@ def solve_calibration(payload: dict[str, Any]) -> dict[str, Any]:
     """
     from service.results import calibration_result_json
 
-    opts, stations = payload["options"], payload["stations"]
-    default = RobotNoise()
-    noise = RobotNoise(
-        default.rot_rad if opts["robot_noise_rot_deg"] is None
-        else float(np.deg2rad(opts["robot_noise_rot_deg"])),
-        default.trans_m if opts["robot_noise_trans_mm"] is None
-        else opts["robot_noise_trans_mm"] * 1e-3)
-    assert stations.target is not None  # a run always has its board
-    options = PipelineOptions(setup=stations.setup, method=opts["method"],
-                              estimate_nu=opts["estimate_nu"],
-                              estimate_kappa=opts["estimate_kappa"],
-                              kappa=opts.get("kappa", "auto"), nu_method=opts["nu_method"],
-                              noise=noise)
+    stations = payload["stations"]
+    options = CalibrationOptions.model_validate(payload["options"]).pipeline(stations.setup)
     progress = SolveProgress(payload["cal_id"])
     try:
         result = calibrate_stations(stations.inputs(), board_from_target(stations.target),

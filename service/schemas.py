@@ -9,10 +9,11 @@ from __future__ import annotations
 import datetime as dt
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from fastapi import Path as PathParam
 from pydantic import BaseModel, ConfigDict, Field, field_serializer, model_validator
 
-from calib import METHODS, Detection, Target
+from calib import METHODS, SETUPS, Detection, PipelineOptions, RobotNoise, Target
 from service.exports import FORMATS
 from service.result_schema import Result
 
@@ -175,6 +176,25 @@ class CalibrationOptions(_Input):
         None, description="robot rotation reading noise; default: the pipeline's")
     robot_noise_trans_mm: Annotated[float, Field(gt=0.0, le=50.0)] | None = Field(
         None, description="robot position reading noise; default: the pipeline's")
+
+    @model_validator(mode="after")
+    def _the_solver_takes_them(self) -> CalibrationOptions:
+        """Options the solver would refuse (e.g. Method #2 with a method other than joint)
+        are refused when the request arrives (422 with the solver's reason)."""
+        self.pipeline(SETUPS[0])
+        return self
+
+    def pipeline(self, setup: str) -> PipelineOptions:
+        """The solver's options for a run of ``setup`` (metres and radians)."""
+        default = RobotNoise()
+        noise = RobotNoise(
+            default.rot_rad if self.robot_noise_rot_deg is None
+            else float(np.deg2rad(self.robot_noise_rot_deg)),
+            default.trans_m if self.robot_noise_trans_mm is None
+            else self.robot_noise_trans_mm * 1e-3)
+        return PipelineOptions(setup=setup, method=self.method, estimate_nu=self.estimate_nu,
+                               estimate_kappa=self.estimate_kappa, kappa=self.kappa,
+                               nu_method=self.nu_method, noise=noise)
 
 
 class CalibrationCreate(_Input):

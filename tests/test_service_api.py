@@ -433,6 +433,9 @@ def test_calibration_of_a_run(client: TestClient) -> None:
 @pytest.mark.parametrize("body, code", [
     ({"options": {"method": "magic"}}, "invalid_request"),
     ({"options": {"robot_noise_rot_deg": -1}}, "invalid_request"),
+    # Method #2 needs the joint solver: refused on arrival, not by the worker later
+    ({"options": {"nu_method": "extrinsics", "method": "sm"}}, "invalid_request"),
+    ({"options": {"nu_method": "extrinsics", "estimate_nu": False}}, "invalid_request"),
     ({}, "too_few_stations"),
 ])
 def test_bad_calibration_request_is_422(client: TestClient, body: dict[str, Any],
@@ -442,3 +445,6 @@ def test_bad_calibration_request_is_422(client: TestClient, body: dict[str, Any]
     r = client.post(f"/runs/{run_id}/calibrations", json=body)
     assert r.status_code == 422
     assert r.json()["code"] == code
+    if "nu_method" in body.get("options", {}):
+        assert "Method #2" in r.json()["detail"]
+        assert client.get(f"/runs/{run_id}/calibrations").json() == []  # nothing was queued
