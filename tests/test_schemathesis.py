@@ -9,6 +9,7 @@ on every run), no deadline (a loaded machine is slow, not wrong).
 
 from __future__ import annotations
 
+import atexit
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -31,6 +32,9 @@ MAX_EXAMPLES = 5
 #: The service under test: the mock devices, SQLite in a directory of its own. Building the app
 #: runs nothing; its lifespan starts with the first request and ends in ``cleanup``.
 DATA_DIR = Path(tempfile.mkdtemp(prefix="cellcal-schemathesis-"))
+# Removed when the process ends: also where this file is only collected (``-m slow``, the other
+# xdist worker) and ``cleanup`` never runs.
+atexit.register(shutil.rmtree, DATA_DIR, ignore_errors=True)
 APP = create_app(service_settings(DATA_DIR))
 #: Schema-valid requests these operations answer 422 on purpose, as documented: what makes them
 #: valid is not a JSON schema (poses inside the configured workspace, rotation vectors of at
@@ -54,7 +58,6 @@ schema.app = APP
 def cleanup() -> Iterator[None]:
     yield
     shutdown_lifespans()  # the app's lifespan: devices, capture threads, worker processes
-    shutil.rmtree(DATA_DIR, ignore_errors=True)
 
 
 @schema.parametrize()
