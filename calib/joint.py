@@ -41,7 +41,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.sparse import csr_matrix
-from scipy.stats import chi2
 
 from calib import so3
 from calib.boards import Board
@@ -65,8 +64,10 @@ OUTLIER_SIGMA = 5.0
 
 _N_CAM = len(CAMERA_PARAMS)
 _NU, _KAPPA = CAMERA_PARAMS.index("nu"), CAMERA_PARAMS.index("kappa")
-#: Median of the chi distribution with 2 degrees of freedom (the correction's distance).
-_DISTANCE_MEDIAN = float(np.sqrt(chi2.ppf(0.5, 2)))
+#: Median of the chi distribution with 2 degrees of freedom (the correction's distance): a
+#: chi-square with 2 degrees of freedom is exponential with mean 2, so its median is 2 ln 2.
+#: (Written out: importing scipy.stats costs every ``cellcal`` command half a second.)
+_DISTANCE_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
 
 
 @dataclass(frozen=True)
