@@ -112,22 +112,25 @@ class Motions(_Block):
     skipped: int
 
 
+def _optional(description: str) -> Any:
+    """An optional field of the document (None when not measured or not applicable), described."""
+    return Field(None, description=description)
+
+
 class _PredictionFigures(_Block):
     """How far the prediction from robot poses alone was from what the camera saw: corners
     (px, and mm at the board) and the camera pose (rotation, translation)."""
 
-    rms_px: float | None = Field(None, description="RMS corner error in the image, px")
-    rms_mm: float | None = Field(None, description="RMS corner error on the board plane, mm")
-    rot_deg: float | None = Field(None, description="predicted vs observed camera pose: "
-                                  "rotation, deg")
-    trans_mm: float | None = Field(None, description="predicted vs observed camera pose: "
-                                   "translation, mm")
+    rms_px: float | None = _optional("RMS corner error in the image, px")
+    rms_mm: float | None = _optional("RMS corner error on the board plane, mm")
+    rot_deg: float | None = _optional("predicted vs observed camera pose: rotation, deg")
+    trans_mm: float | None = _optional("predicted vs observed camera pose: translation, mm")
 
 
 class HeldOutStation(_PredictionFigures):
     id: str
-    fold: int | None = Field(None, description="the fold that held this station out")
-    max_px: float | None = Field(None, description="largest corner error in the image, px")
+    fold: int | None = _optional("the fold that held this station out")
+    max_px: float | None = _optional("largest corner error in the image, px")
 
 
 class CrossValidationBlock(_PredictionFigures):
@@ -144,22 +147,19 @@ class Candidate(_Block):
 
     name: str
     chosen: bool
-    cv_rms_px: float | None = Field(None, description="cross-validated corner error, px")
-    cv_rms_mm: float | None = Field(None, description="the same on the board plane, mm")
-    cv_trans_mm: float | None = Field(None, description="cross-validated camera-pose "
-                                      "translation error, mm")
-    cv_range_mm: float | None = Field(None, description="cross-validated camera-to-board "
-                                      "distance error, mm (what a wrong κ moves)")
-    cv_rot_deg: float | None = Field(None, description="cross-validated camera-pose "
-                                     "rotation error, deg")
-    kappa: str | None = Field(None, description="κ 'estimated' or 'held at 1'")
-    nu: str | None = Field(None, description="ν 'estimated' or 'held at 1'")
-    robot_noise: str | None = Field(None, description="robot noise 'estimated' or 'assumed'")
+    cv_rms_px: float | None = _optional("cross-validated corner error, px")
+    cv_rms_mm: float | None = _optional("the same on the board plane, mm")
+    cv_trans_mm: float | None = _optional("cross-validated camera-pose translation error, mm")
+    cv_range_mm: float | None = _optional("cross-validated camera-to-board distance error, mm")
+    cv_rot_deg: float | None = _optional("cross-validated camera-pose rotation error, deg")
+    kappa: str | None = _optional("κ 'estimated' or 'held at 1'")
+    nu: str | None = _optional("ν 'estimated' or 'held at 1'")
+    robot_noise: str | None = _optional("robot noise 'estimated' or 'assumed'")
     kappa_value: float | None = None
     nu_value: float | None = None
-    robot_noise_rot_rad: float | None = Field(None, description="robot pose noise, 1-sigma")
-    robot_noise_trans_m: float | None = Field(None, description="robot pose noise, 1-sigma")
-    sigma_px: float | None = Field(None, description="corner noise of the fit, 1-sigma")
+    robot_noise_rot_rad: float | None = _optional("robot pose noise, 1-sigma")
+    robot_noise_trans_m: float | None = _optional("robot pose noise, 1-sigma")
+    sigma_px: float | None = _optional("corner noise of the fit, 1-sigma")
 
 
 class ModelSelection(_Block):
