@@ -187,7 +187,7 @@ def solve_calibration(payload: dict[str, Any]) -> dict[str, Any]:
 
     stations = payload["stations"]
     options = CalibrationOptions.model_validate(payload["options"]).pipeline(stations.setup)
-    progress = SolveProgress(payload["cal_id"])
+    progress = SolveProgress(payload["cal_id"], len(stations.stations))
     try:
         result = calibrate_stations(stations.inputs(), board_from_target(stations.target),
                                     options, progress=progress.detecting,
@@ -202,15 +202,16 @@ class SolveProgress:
     """In a worker: a solve's ``progress`` events, sent to the service process
     (``service.workers.report_progress``)."""
 
-    def __init__(self, cal_id: str) -> None:
+    def __init__(self, cal_id: str, n_stations: int) -> None:
         self.cal_id = cal_id
+        self.n_stations = n_stations
 
     def detecting(self, observations: Iterable[Any]) -> Iterator[Any]:
-        """``observations`` unchanged, one event as the board detection reaches each."""
-        items = list(observations)
-        for k, item in enumerate(items, 1):
-            self._send("detecting", f"detecting the board: station {k} of {len(items)}",
-                       step=k, of=len(items))
+        """``observations`` unchanged and still one at a time, one event as the board
+        detection reaches each."""
+        n = self.n_stations
+        for k, item in enumerate(observations, 1):
+            self._send("detecting", f"detecting the board: station {k} of {n}", step=k, of=n)
             yield item
 
     def end(self) -> None:
