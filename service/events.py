@@ -7,7 +7,8 @@ An event's id is its row id (``models.RunEvent``, ``models.JobEvent``): it incre
 stream and never changes. A new listener first gets the topic's ``state`` as of the newest
 stored event (with that event's id); a returning one the stored events after its
 ``Last-Event-ID``. Live events follow, skipping any the listener already has, so a reconnect
-loses and repeats nothing. Every stream ends with its final ``state``.
+loses and repeats nothing. Every stream ends with its final ``state``, or with a ``shutdown``
+event (no id) when the service stops first.
 """
 
 from __future__ import annotations
@@ -34,6 +35,17 @@ class EventBus:
         self._lock = threading.Lock()
         self._listeners: dict[Topic, set[tuple[asyncio.AbstractEventLoop,
                                                asyncio.Queue[dict[str, Any]]]]] = {}
+        self._closed = False
+
+    def close(self) -> None:
+        """End every stream, open or opened later, with the ``shutdown`` event (after the
+        events already queued): the service is stopping."""
+        with self._lock:
+            self._closed = True
+            for entries in self._listeners.values():
+                for loop, queue in entries:
+                    with contextlib.suppress(RuntimeError):  # the listener's loop has closed
+                        loop.call_soon_threadsafe(queue.put_nowait, SHUTDOWN_EVENT)
 
     @contextlib.contextmanager
     def listen(self, topic: Topic) -> Iterator[asyncio.Queue[dict[str, Any]]]:
@@ -42,6 +54,8 @@ class EventBus:
         entry = (asyncio.get_running_loop(), asyncio.Queue[dict[str, Any]]())
         with self._lock:
             self._listeners.setdefault(topic, set()).add(entry)
+            if self._closed:
+                entry[1].put_nowait(SHUTDOWN_EVENT)
         try:
             yield entry[1]
         finally:
@@ -73,11 +87,12 @@ class EventBus:
 
     def backlog(self, topic: Topic, after: int | None) -> list[dict[str, Any]]:
         """What a listener gets before the live events: the state as of the newest stored
-        event (``after`` None), or the stored events after ``after``, followed by the state if
-        the topic has ended without a stored final ``state`` event (404 for an unknown id)."""
+        event (``after`` None, or beyond the newest stored event: not an id this stream
+        gave), or the stored events after ``after``, followed by the state if the topic has
+        ended without a stored final ``state`` event (404 for an unknown id)."""
         with self.db.session() as s:
             state = {**state_event(s, topic), "id": store.last_event_id(s, topic=topic)}
-            if after is None:
+            if after is None or after > state["id"]:
                 return [state]
             events = store.events_after(s, topic=topic, after=after)
         if ends_stream(state) and not any(ends_stream(e) for e in events):
@@ -85,8 +100,17 @@ class EventBus:
         return events
 
 
+#: The last event of every stream still open when the service stops; not stored, so it has no
+#: id and a client's ``Last-Event-ID`` stays that of the last stored event it got.
+SHUTDOWN_EVENT: dict[str, Any] = {
+    "type": "shutdown",
+    "detail": "The service is shutting down; reconnect with Last-Event-ID once it is back."}
+
+
 def ends_stream(event: dict[str, Any]) -> bool:
-    """True for the event after which a stream ends (its final ``state``)."""
+    """True for the event after which a stream ends (its final ``state``, or ``shutdown``)."""
+    if event["type"] == "shutdown":
+        return True
     final = FINAL_RUN_STATES if "run_id" in event else FINAL_JOB_STATES
     return event["type"] == "state" and event["state"] in final
 

@@ -14,11 +14,13 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
+
+from service.parent_death import die_with_parent
 
 STARTUP_TIMEOUT_S = 30.0
 
@@ -59,6 +61,11 @@ class ServeOptions:
     log: Path | None = None
     startup_timeout: float = STARTUP_TIMEOUT_S
     mock: bool = True
+    #: More ``cellcal serve`` options, e.g. ``("--graceful-timeout", "5")``.
+    args: tuple[str, ...] = ()
+    #: Called in the child before it runs the service (after the parent-death signal is set),
+    #: e.g. to lower its resource limits.
+    preexec: Callable[[], None] | None = None
 
 
 @contextlib.contextmanager
@@ -74,19 +81,34 @@ def local_service(data_dir: Path, key: str,
         scene = options.scene
         cmd = [sys.executable, "-m", "service.cli", "serve", "--fd", str(sock.fileno()),
                *(["--mock"] if options.mock else []),
-               *(["--scene", str(scene)] if scene is not None else [])]
+               *(["--scene", str(scene)] if scene is not None else []), *options.args]
         child_env = {**(os.environ if options.env is None else options.env),
                      "CELLCAL_DATA_DIR": str(data_dir), "CELLCAL_API_KEY": key}
         with log.open("wb") as sink:
             proc = subprocess.Popen(cmd, env=child_env, stdout=sink, stderr=subprocess.STDOUT,
                                     stdin=subprocess.DEVNULL, start_new_session=True,
-                                    pass_fds=(sock.fileno(),))
+                                    pass_fds=(sock.fileno(),),
+                                    preexec_fn=_child_setup(options.preexec))
     try:
         service = LocalService(url=f"http://127.0.0.1:{port}", key=key, proc=proc, log=log)
         _wait_healthy(service, options.startup_timeout)
         yield service
     finally:
         stop(proc)
+
+
+def _child_setup(then: Callable[[], None] | None) -> Callable[[], None]:
+    """What the child runs before ``exec``: ask for SIGTERM when this process dies, so a
+    parent killed without cleanup (a test run ended by its CI timeout) leaves no service
+    holding its port; then ``then``. SIGTERM, not SIGKILL: the service stops its robot first
+    and exits within its grace period."""
+    parent = os.getpid()
+
+    def setup() -> None:
+        die_with_parent(signal.SIGTERM, parent)
+        if then is not None:
+            then()
+    return setup
 
 
 def stop(proc: subprocess.Popen[bytes]) -> None:

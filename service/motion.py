@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import threading
+import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -39,6 +40,7 @@ class Motion:
         self._claim_lock = threading.Lock()
         self._threads: dict[str, threading.Thread] = {}  # run owner / validation id -> thread
         self._threads_lock = threading.Lock()
+        self._stop_deadline: float | None = None  # when shutdown stops waiting for threads
 
     # ---- claiming the robot ----------------------------------------------------------------
 
@@ -95,16 +97,27 @@ class Motion:
         if moving and devices is not None:
             devices[0].stop()
 
-    def shutdown(self, timeout: float = 10.0) -> None:
-        """Stop the robot and wait for the motion threads to end."""
+    def halt(self) -> None:
+        """Stop the robot now and let no motion thread take another step (shutdown's first
+        act; returns at once, the threads end their in-flight station by themselves)."""
         self.stopping.set()
         with self._threads_lock:
-            threads = list(self._threads.values())
+            moving = bool(self._threads)
         devices = self.devices.current()
-        if threads and devices is not None:
+        if moving and devices is not None:
             devices[0].stop()
+
+    def shutdown(self, timeout: float = 10.0) -> None:
+        """Stop the robot and wait for the motion threads to end, at most until ``timeout``
+        s after the first call (a second call does not wait longer for a stuck thread)."""
+        with self._threads_lock:
+            if self._stop_deadline is None:
+                self._stop_deadline = time.monotonic() + timeout
+            deadline = self._stop_deadline
+            threads = list(self._threads.values())
+        self.halt()
         for thread in threads:
-            thread.join(timeout)
+            thread.join(max(0.0, deadline - time.monotonic()))
 
     # ---- the workspace box -----------------------------------------------------------------
 

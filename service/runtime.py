@@ -50,6 +50,10 @@ class Runtime:
                    runs=RunManager(motion, events), calibrations=Calibrations(settings, db, events),
                    validations=Validations(motion, events))
 
+    def halt(self) -> None:
+        """Stop the robot now; no motion job takes another step (returns at once)."""
+        self.motion.halt()
+
     def stop_jobs(self, timeout: float = 10.0) -> None:
         """Stop the robot and the motion threads (runs become ``interrupted``, validations
         ``failed``), and cancel queued calibrations."""

@@ -21,12 +21,10 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
-import ctypes
 import logging
 import multiprocessing
 import os
 import signal
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -34,8 +32,8 @@ from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any
 
-#: ``prctl`` option from ``<linux/prctl.h>``.
-_PR_SET_PDEATHSIG = 1
+from service.parent_death import die_with_parent
+
 #: How often a worker checks that its parent is still there, seconds.
 PARENT_WATCH_INTERVAL_S = 0.5
 
@@ -75,10 +73,7 @@ def _init_worker(parent_pid: int, progress: _ProgressPipe) -> None:
 
 def _exit_with_parent(parent_pid: int) -> None:
     """Pool initializer: make this worker end when ``parent_pid`` does."""
-    if sys.platform.startswith("linux"):  # on failure the parent watch below still holds
-        ctypes.CDLL(None).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-    if os.getppid() != parent_pid:  # the parent died before the signal was armed
-        os._exit(1)
+    die_with_parent(signal.SIGKILL, parent_pid)  # on failure the parent watch below holds
     threading.Thread(target=_watch_parent, args=(parent_pid,), name="parent-watch",
                      daemon=True).start()
 

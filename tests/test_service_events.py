@@ -35,7 +35,8 @@ def client(tmp_path: Path) -> Iterator[TestClient]:
         yield c
 
 
-def read_events(client: TestClient, run_id: str, *, last_event_id: str | None = None,
+def read_events(client: TestClient, run_id: str, *,
+                last_event_id: str | bytes | None = None,
                 until: Callable[[list[Event]], bool] = lambda events: False,
                 path: str = "/runs/{}/events") -> list[Event]:
     """Events ``(id, type, data)`` of the stream at ``path`` (a run's by default) until it
@@ -96,10 +97,34 @@ def test_ids_survive_a_restart_and_bad_ids_start_afresh(tmp_path: Path) -> None:
     with service(tmp_path) as client:  # a new service, same database
         after_two = read_events(client, run_id, last_event_id=str(everything[1][0]))
         assert after_two == everything[2:]
-        for header in ("not-a-number", "-3", ""):
+        for header in (*BAD_EVENT_IDS, str(everything[-1][0] + 1)):
             fresh = read_events(client, run_id, last_event_id=header)
             assert [(i, kind) for i, kind, _ in fresh] == [(everything[-1][0], "state")]
             assert fresh[0][2]["stations_captured"] == 4
+
+
+#: ``Last-Event-ID`` headers that name no event: each is ignored (issue 22, row 10).
+BAD_EVENT_IDS: tuple[str | bytes, ...] = (
+    "not-a-number", "-3", "", "²".encode("latin-1"), "²".encode(), "３".encode(),
+    "٣".encode(), "¹²".encode("latin-1"), " 1 2", "1e3", "0x10", "9" * 5000,
+    "99999999999999999999999", str(2**63), "9223372036854775807")
+
+
+@pytest.mark.timeout(60)
+def test_a_bad_last_event_id_on_a_live_stream_is_ignored(tmp_path: Path) -> None:
+    """A header beyond every stored id starts the stream afresh: the state, then every live
+    event; it never hides what comes next."""
+    gate = threading.Event()
+    with service(tmp_path, gated_opener(tmp_path, 0, gate)) as client:
+        run_id = start_run(client, 3)  # held at its first grab until the gate opens
+
+        def ended(events: list[Event]) -> bool:
+            gate.set()  # the stream is open: let the run go
+            return len(events) > 1 and events[-1][1] == "state"
+
+        events = read_events(client, run_id, last_event_id=str(2**63 - 1), until=ended)
+    assert [kind for _, kind, _ in events] == ["state"] + ["station"] * 3 + ["state"]
+    assert stations_of(events) == [0, 1, 2] and events[-1][2]["state"] == "done"
 
 
 # ---- calibration events -----------------------------------------------------------------------
@@ -142,16 +167,21 @@ def test_calibration_stream_resumes_without_loss_and_ends_with_the_outcome(
     stages = [data["stage"] for _, _, data in progress if data["stage"] != "detecting"]
     assert stages == ["intrinsics", "hand-eye", "model selection by cross-validation",
                       "validation", "cross-validation"]
-    # a stream of a finished calibration: its final state, then the end
+    # a stream of a finished calibration: its final state, then the end; so too after a
+    # Last-Event-ID that names no event
     assert read_events(client, cal_id, path=CALIBRATION_EVENTS) == [final]
+    for header in (*BAD_EVENT_IDS, str(final[0] + 1)):
+        assert read_events(client, cal_id, path=CALIBRATION_EVENTS,
+                           last_event_id=header) == [final]
 
 
 @pytest.mark.timeout(60)
 @pytest.mark.parametrize("path", ["/calibrations/nope/events", "/validations/nope/events"])
 def test_events_of_an_unknown_calibration_or_validation_are_404(client: TestClient,
                                                                  path: str) -> None:
-    r = client.get(path, headers={"Last-Event-ID": "3"})
-    assert r.status_code == 404
+    for header in ("3", *BAD_EVENT_IDS):
+        r = client.get(path, headers={"Last-Event-ID": header})
+        assert r.status_code == 404
     assert r.json()["code"] == "not_found" and "nope" in r.json()["detail"]
 
 

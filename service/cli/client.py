@@ -31,9 +31,10 @@ class ServiceCallError(Exception):
 
 @dataclass(frozen=True)
 class Event:
-    """One server-sent event: its stream id, type and data."""
+    """One server-sent event: its stream id (None for the unstored ``shutdown``), type and
+    data."""
 
-    id: int
+    id: int | None
     type: str
     data: dict[str, Any]
 
@@ -95,7 +96,8 @@ class Service:
 
     def events(self, path: str) -> Iterator[Event]:
         """The events of a stream until the service ends it; a dropped connection is
-        resumed with ``Last-Event-ID``, so no event is lost or repeated."""
+        resumed with ``Last-Event-ID``, so no event is lost or repeated. A service that
+        shuts down first ends the stream with ``shutdown``: ServiceCallError."""
         last: int | None = None
         failures = 0
         while True:
@@ -108,6 +110,9 @@ class Service:
                         r.read()
                         raise ServiceCallError(describe_error(r))
                     for event in parse_events(r.iter_lines()):
+                        if event.type == "shutdown":
+                            raise ServiceCallError(str(event.data.get("detail", "the service "
+                                                                      "is shutting down")))
                         last, failures = event.id, 0
                         yield event
                 return
@@ -149,7 +154,8 @@ def parse_events(lines: Iterator[str]) -> Iterator[Event]:
             fields[key] = value.removeprefix(" ")
             continue
         if "data" in fields:
-            yield Event(id=int(fields.get("id", "0")), type=fields.get("event", "message"),
+            yield Event(id=int(fields["id"]) if "id" in fields else None,
+                        type=fields.get("event", "message"),
                         data=json.loads(fields["data"]))
         fields = {}
 

@@ -36,6 +36,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="serve on the listening TCP socket inherited as file descriptor FD "
                              "instead of binding --host/--port (socket activation: the parent "
                              "holds the port, so no other process can take it meanwhile)")
+    parser.add_argument("--graceful-timeout", type=_seconds, default=None, metavar="S",
+                        help="on SIGTERM or SIGINT the robot stops at once; then the running "
+                             "jobs, event streams and connections get S seconds in all to end "
+                             "(default 10); a second signal exits at once")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from service.app import create_app
+    from service.server import GRACEFUL_TIMEOUT_S, CellServer
     from service.settings import Settings, is_loopback
 
     overrides: dict[str, Any] = {k: v for k, v in (("host", args.host), ("port", args.port),
@@ -61,10 +66,23 @@ def run(args: argparse.Namespace) -> int:
                   file=sys.stderr)
     except ValidationError as exc:
         raise ValueError(f"configuration: {_describe(exc)}") from None
-    config = uvicorn.Config(create_app(settings), host=settings.host, port=settings.port,
-                            log_level="info")
-    uvicorn.Server(config).run(sockets=None if sock is None else [sock])
+    app = create_app(settings)
+    config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level="info")
+    grace = GRACEFUL_TIMEOUT_S if args.graceful_timeout is None else args.graceful_timeout
+    CellServer(config, app, graceful_timeout=grace).run(
+        sockets=None if sock is None else [sock])
     return 0
+
+
+def _seconds(text: str) -> float:
+    """A finite, non-negative number of seconds (argparse type)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not 0.0 <= value <= 3600.0:
+        raise argparse.ArgumentTypeError(f"{text!r}: give 0 to 3600 seconds")
+    return value
 
 
 def _inherited_socket(args: argparse.Namespace) -> socket.socket:

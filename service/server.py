@@ -1,0 +1,95 @@
+"""The HTTP server of ``cellcal serve``: uvicorn's, with a shutdown that stops the cell first.
+
+On SIGTERM or SIGINT uvicorn stops accepting, then waits for the open connections to end
+before the app's lifespan stops anything; an event stream never ends by itself, so the robot
+went on capturing while a listener stayed (issue 22). Here the first signal stops the robot at
+once (``Runtime.halt``, from a thread: a device call must not run in a signal handler); the
+shutdown then lets the motion jobs end their in-flight station and record their state (runs
+``interrupted``, so ``resume`` continues them; validations ``failed``), ends every event stream
+with its final event (``EventBus.close``) and only then waits for the connections, all within
+one grace period counted from the signal. A second signal ends the process at once.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+import socket
+import threading
+import time
+from types import FrameType
+
+import uvicorn
+from fastapi import FastAPI
+
+from service.runtime import Runtime
+
+#: uvicorn's own logger: these lines belong with its start and shutdown lines.
+log = logging.getLogger("uvicorn.error")
+
+#: Default of ``cellcal serve --graceful-timeout``, seconds.
+GRACEFUL_TIMEOUT_S = 10.0
+#: Connections still open this long before the grace period ends are dropped, seconds.
+_DROP_MARGIN_S = 1.0
+
+
+class CellServer(uvicorn.Server):
+    """uvicorn's server for ``app``, whose shutdown stops the robot before anything else."""
+
+    def __init__(self, config: uvicorn.Config, app: FastAPI, *,
+                 graceful_timeout: float = GRACEFUL_TIMEOUT_S) -> None:
+        super().__init__(config)
+        self.app = app
+        self.graceful_timeout = graceful_timeout
+        self._deadline: float | None = None  # end of the grace period, from the first signal
+
+    def _runtime(self) -> Runtime | None:
+        """The app's runtime once its lifespan has started."""
+        return getattr(self.app.state, "runtime", None)
+
+    def handle_exit(self, sig: int, frame: FrameType | None) -> None:
+        """First signal: stop the robot now and begin the shutdown; second: exit at once."""
+        if self._deadline is not None:
+            log.warning("second signal %s: exiting at once", signal.Signals(sig).name)
+            signal.signal(sig, signal.SIG_DFL)
+            signal.raise_signal(sig)
+            return
+        self._deadline = time.monotonic() + self.graceful_timeout
+        log.info("signal %s: stopping the robot, then shutting down (within %g s)",
+                 signal.Signals(sig).name, self.graceful_timeout)
+        runtime = self._runtime()
+        if runtime is not None:
+            threading.Thread(target=runtime.halt, name="halt", daemon=True).start()
+        super().handle_exit(sig, frame)
+
+    async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
+        """Stop the jobs, end the event streams, then let uvicorn close the connections in
+        what is left of the grace period; near its end the connections still open are
+        dropped (not their tasks cancelled, which would answer a request in progress 500)."""
+        if self._deadline is None:  # stopped without a signal
+            self._deadline = time.monotonic() + self.graceful_timeout
+        runtime = self._runtime()
+        if runtime is not None:
+            await asyncio.to_thread(runtime.stop_jobs, self._left())
+            runtime.events.close()
+        margin = min(_DROP_MARGIN_S, self.graceful_timeout / 4)
+        dropper = asyncio.get_running_loop().call_later(max(self._left() - margin, 0.0),
+                                                        self._drop_connections)
+        self.config.timeout_graceful_shutdown = max(self._left(), margin)
+        try:
+            await super().shutdown(sockets)
+        finally:
+            dropper.cancel()
+
+    def _drop_connections(self) -> None:
+        """Abort the connections still open (a client that sends or reads nothing)."""
+        connections = list(self.server_state.connections)
+        if connections:
+            log.warning("grace period over: dropping %d connection(s)", len(connections))
+        for connection in connections:
+            connection.transport.abort()
+
+    def _left(self) -> float:
+        assert self._deadline is not None
+        return max(0.0, self._deadline - time.monotonic())
