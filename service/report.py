@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from service.report_plots import Plot, cv_by_station, report_plots
+from service.result_schema import parse_result
 
 Result = Mapping[str, Any]
 
@@ -57,7 +58,12 @@ figcaption { color: #444; font-size: 12px; }
 
 
 def render_report(result: Result) -> str:
-    """The HTML report of a result document, as one self-contained string."""
+    """The HTML report of a result document, as one self-contained string; ValueError (one
+    line) for a document that is not a valid ``cellcal/result@1``.
+
+    Every value read from the document is escaped (``_esc``, ``_num``): a hand-edited result
+    may hold markup in any field."""
+    parse_result(result)
     parts = [
         _header(result),
         _verdict(result.get("quality"), result.get("cross_validation")),
@@ -77,7 +83,26 @@ def render_report(result: Result) -> str:
 # ---- text sections -------------------------------------------------------------------------
 
 def _esc(value: Any) -> str:
+    """Any value as HTML text: every value from the result passes here or ``_num`` (a
+    hand-edited result may hold markup anywhere, numbers' places included)."""
     return html.escape(str(value))
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float | np.integer | np.floating) \
+        and not isinstance(value, bool)
+
+
+def _num(value: Any, fmt: str, scale: float = 1.0) -> str:
+    """A number formatted with ``fmt`` (times ``scale``), "–" for None, and anything else
+    (a hand-edited result) escaped as text."""
+    if value is None:
+        return "–"
+    return format(float(value) * scale, fmt) if _is_number(value) else _esc(value)
+
+
+def _pair(value: Any) -> bool:
+    return isinstance(value, list | tuple) and len(value) == 2
 
 
 def _header(result: Result) -> str:
@@ -89,7 +114,8 @@ def _header(result: Result) -> str:
         f"setup <b>{_esc(result.get('setup', '?'))}</b>",
         f"method <b>{_esc(result.get('method', '?'))}</b>",
         f"{n_used} stations used, {n_rej} rejected",
-        f"image {size[0]}×{size[1]} px" if size else "pose-only (no camera model)",
+        f"image {_esc(size[0])}×{_esc(size[1])} px" if _pair(size)
+        else "pose-only (no camera model)",
         f"created {_esc(result.get('created', '?'))}",
         f"cellcal {_esc(software.get('version', '?'))}",
     ]
@@ -116,9 +142,11 @@ def _verdict(quality: Mapping[str, Any] | None, cv: Mapping[str, Any] | None) ->
         items = "<p class=\"finding\">No findings: every check passed.</p>"
     headline = ""
     if cv and cv.get("rms_px") is not None:
-        mm = "" if cv.get("rms_mm") is None else f" ({cv['rms_mm']:.2f} mm at the board)"
+        mm = ("" if cv.get("rms_mm") is None
+              else f" ({_num(cv['rms_mm'], '.2f')} mm at the board)")
         headline = (f"<span class=\"headline\">stations left out of the calibration are "
-                    f"predicted to {cv['rms_px']:.2f} px{mm}, {_esc(cv.get('kind', ''))} over "
+                    f"predicted to {_num(cv['rms_px'], '.2f')} px{mm}, "
+                    f"{_esc(cv.get('kind', ''))} over "
                     f"{len(cv.get('stations') or [])} stations</span>")
     return (f"<div class=\"verdict\" style=\"border-color:{colour}\">"
             f"<span class=\"word\" style=\"color:{colour}\">{_esc(verdict)}</span>{headline}"
@@ -138,10 +166,12 @@ def _summary(result: Result) -> str:
             + (f"<p class=\"note\">Uncertainty: {_esc(note)}</p>" if note else ""))
 
 
-def _pm(value: float, sigma: float | None, fmt: str = ".3f") -> str:
-    if sigma is None or not np.isfinite(sigma) or sigma == 0:
-        return format(value, fmt)
-    return f"{value:{fmt}} ± {sigma:{fmt}}"
+def _pm(value: Any, sigma: Any, fmt: str = ".3f", scale: float = 1.0) -> str:
+    """``value ± sigma`` (both times ``scale``); the value alone if sigma is None, zero or not
+    finite."""
+    if not _is_number(sigma) or not np.isfinite(sigma) or sigma == 0:
+        return _num(value, fmt, scale)
+    return f"{_num(value, fmt, scale)} ± {_num(sigma, fmt, scale)}"
 
 
 def _camera_rows(result: Result) -> list[tuple[str, str]]:
@@ -155,7 +185,7 @@ def _camera_rows(result: Result) -> list[tuple[str, str]]:
         rows.append(("principal point cx, cy (px)", f"{_pm(K[0, 2], cs.get('cx'), '.2f')}, "
                                                     f"{_pm(K[1, 2], cs.get('cy'), '.2f')}"))
         rows.append(("distortion k1 k2 p1 p2 k3",
-                     " ".join(f"{v:.5f}" for v in np.ravel(camera["dist"]))))
+                     " ".join(_num(v, ".5f") for v in camera["dist"])))
     target = result.get("target") or {}
     if "kappa" in target:
         rows.append(("board scale κ (true / nominal square)",
@@ -178,14 +208,14 @@ def _pose_rows(result: Result) -> list[tuple[str, str]]:
         pose = np.asarray(block["pose"], dtype=float)
         t_sd = unc.get(f"{key}_trans_m")
         r_sd = unc.get(f"{key}_rot_rad")
-        t_txt = ", ".join(_pm(v * 1e3, None if t_sd is None else s * 1e3, ".2f")
+        t_txt = ", ".join(_pm(v, s, ".2f", 1e3)
                           for v, s in zip(pose[:3], t_sd or [None] * 3, strict=True))
         rows.append((f"{frame}: translation x, y, z (mm)", t_txt))
         if r_sd is not None:
             rows.append((f"{frame}: rotation 1σ about x, y, z (°)",
-                         ", ".join(f"{np.rad2deg(s):.3f}" for s in r_sd)))
+                         ", ".join(_num(s, ".3f", 180 / np.pi) for s in r_sd)))
         rows.append((f"{frame}: UR pose (m, rad)",
-                     "p[" + ", ".join(f"{v:.5f}" for v in pose) + "]"))
+                     "p[" + ", ".join(_num(v, ".5f") for v in pose) + "]"))
     return rows
 
 
@@ -193,17 +223,17 @@ def _error_rows(result: Result) -> list[tuple[str, str]]:
     rows = []
     camera = result.get("camera") or {}
     if "rms_px" in camera:
-        rows.append(("reprojection RMS of the fit (px)", f"{camera['rms_px']:.3f}"))
+        rows.append(("reprojection RMS of the fit (px)", _num(camera['rms_px'], ".3f")))
     cv = result.get("cross_validation") or {}
     if cv.get("rms_px") is not None:
         mm = cv.get("rms_mm")
         rows.append((f"cross-validated prediction error ({cv.get('folds', '?')} folds)",
-                     f"{cv['rms_px']:.3f} px" + (f" ≈ {mm:.2f} mm at the board"
+                     f"{_num(cv['rms_px'], '.3f')} px" + (f" ≈ {_num(mm, '.2f')} mm at the board"
                                                  if mm is not None else "")))
     validation = result.get("validation") or {}
     if validation.get("chain_rms_px") is not None:
         rows.append(("prediction from the robot poses, all stations (px)",
-                     f"{validation['chain_rms_px']:.3f}"))
+                     _num(validation['chain_rms_px'], ".3f")))
     return rows
 
 
@@ -255,10 +285,6 @@ def _selection_table(selection: Mapping[str, Any]) -> str:
         f"{_esc(selection.get('rule', ''))}.</p>")
 
 
-def _num(value: Any, fmt: str, scale: float = 1.0) -> str:
-    return "–" if value is None else format(float(value) * scale, fmt)
-
-
 def _station_row(s: Mapping[str, Any], cv: Mapping[str, float], pose_only: bool) -> str:
     if pose_only:
         cells = [_num(s.get("residual_rot_rad"), ".3f", 180 / np.pi),
@@ -266,9 +292,9 @@ def _station_row(s: Mapping[str, Any], cv: Mapping[str, float], pose_only: bool)
     else:
         correction = "–"
         if s.get("correction_rot_rad") is not None:
-            correction = (f"{np.rad2deg(s['correction_rot_rad']):.3f}, "
-                          f"{s['correction_trans_m'] * 1e3:.2f}")
-        cells = [str(s.get("n_corners", "")), _num(s.get("rms_px"), ".3f"),
+            correction = (f"{_num(s['correction_rot_rad'], '.3f', 180 / np.pi)}, "
+                          f"{_num(s.get('correction_trans_m'), '.2f', 1e3)}")
+        cells = [_esc(s.get("n_corners", "")), _num(s.get("rms_px"), ".3f"),
                  _num(s.get("chain_rms_px"), ".2f"), _num(cv.get(str(s.get("id"))), ".2f"),
                  correction, _num(s.get("mahalanobis"), ".1f")]
     return (f"<tr><td class=\"l\">{_esc(s.get('id'))}</td>"

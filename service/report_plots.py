@@ -8,6 +8,7 @@ only when the result holds what it needs.
 from __future__ import annotations
 
 import io
+import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -16,6 +17,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 Result = Mapping[str, Any]
+log = logging.getLogger("cellcal.service")
 
 #: Figure width (inches) and resolution: sharp on paper, a few tens of kB per PNG.
 _FIG_WIDTH_IN = 7.2
@@ -35,11 +37,21 @@ class Plot:
 
 
 def report_plots(result: Result) -> list[Plot]:
-    """Every plot the result's contents allow, in report order."""
+    """Every plot the result's contents allow, in report order; a plot whose data a
+    hand-edited result has spoiled (text for numbers, ragged arrays) is left out."""
     makers: list[Callable[[Result], Plot | None]] = [
         _plot_station_errors, _plot_residuals, _plot_coverage, _plot_uncertainty,
         _plot_model_selection]
-    return [p for p in (make(result) for make in makers) if p is not None]
+    return [p for p in (_drawn(make, result) for make in makers) if p is not None]
+
+
+def _drawn(make: Callable[[Result], Plot | None], result: Result) -> Plot | None:
+    """``make(result)``, or None (logged) if the document's data cannot be drawn."""
+    try:
+        return make(result)
+    except (TypeError, ValueError, KeyError, IndexError) as exc:
+        log.warning("report: %s left out (%s: %s)", make.__name__, type(exc).__name__, exc)
+        return None
 
 
 def cv_by_station(result: Result) -> dict[str, float]:

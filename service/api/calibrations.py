@@ -87,4 +87,7 @@ def calibration_report(cal_id: str, session: SessionDep) -> HTMLResponse:
     if cal.state != "done" or cal.result is None:
         raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished calibration "
                             "has a report.", code="invalid_state")
-    return HTMLResponse(render_report(cal.result))
+    try:
+        return HTMLResponse(render_report(cal.result))
+    except ValueError as exc:  # a stored result edited by hand
+        raise UnprocessableError(str(exc), code="invalid_result") from None
