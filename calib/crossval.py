@@ -48,7 +48,8 @@ class HeldOut:
     the observed camera pose (PnP with the fold's camera for images); ``range_m`` the error of
     the predicted camera-to-board distance alone, the one figure a wrong board scale (κ) moves
     directly: PnP reads the distance from the board's apparent size, the robot from its
-    translations.
+    translations. ``dropped``: the fit dropped this station as an outlier, so it was in no
+    fold's training set (:func:`predict_dropped`).
     """
 
     id: str
@@ -59,6 +60,7 @@ class HeldOut:
     max_px: float | None = None
     rms_m: float | None = None
     range_m: float | None = None
+    dropped: bool = False
 
 
 @dataclass(frozen=True)
@@ -94,7 +96,9 @@ class CrossValidation:
 
     ``rms_px`` is the RMS over held-out stations of each station's RMS pixel error, ``rms_m``
     the same on the board plane (metres), ``rot_rad``/``trans_m`` of the camera poses,
-    ``range_m`` of their distances to the board.
+    ``range_m`` of their distances to the board. The stations include those the fit dropped as
+    outliers when :func:`predict_dropped` added them: the arm makes such errors in use, so the
+    honest figure covers them; :meth:`kept` gives the figures without them.
     """
 
     kind: str  # "k-fold" or "leave-one-out"
@@ -110,6 +114,15 @@ class CrossValidation:
     @property
     def folds(self) -> int:
         return len(self.estimates)
+
+    @property
+    def dropped(self) -> tuple[str, ...]:
+        """Ids of the stations the fit dropped as outliers (predicted, never trained on)."""
+        return tuple(s.id for s in self.stations if s.dropped)
+
+    def kept(self) -> CrossValidation:
+        """The cross-validation of the stations the fit kept (the dropped ones left out)."""
+        return replace(self, stations=tuple(s for s in self.stations if not s.dropped))
 
     def station_errors(self) -> np.ndarray:
         """The figure models are compared by, per station (n,): pixels, or metres pose-only."""
@@ -180,6 +193,30 @@ def cross_validate_fixed_camera(data: JointData, station_ids: Sequence[str],
     held.sort(key=lambda h: list(station_ids).index(h.id))
     return CrossValidation(kind=_kind(parts, n), stations=tuple(held),
                            estimates=tuple(estimates))
+
+
+def predict_dropped(cv: CrossValidation, dropped: JointData, dropped_ids: Sequence[str],
+                    positions: Sequence[int], order: Sequence[str]) -> CrossValidation:
+    """``cv`` with the stations the fit dropped as outliers predicted too.
+
+    ``dropped`` holds those stations, ``dropped_ids`` their ids, ``positions`` their indices
+    among all the stations the fit started from, ``order`` the ids of all those stations in
+    order. A dropped station is in no fold's training set, so every fold estimate predicts it
+    out of sample; it is predicted by fold ``position mod folds``, the fold that holds it out
+    when the folds are drawn over all stations (``fold_indices``).
+    """
+    if not cv.estimates or len(dropped) == 0:
+        return cv
+    extra = []
+    for k, (sid, pos) in enumerate(zip(dropped_ids, positions, strict=True)):
+        f = int(pos) % len(cv.estimates)
+        cell = cv.estimates[f].cell
+        if cell is None:
+            raise ValueError("predict_dropped needs image-set fold estimates (with a cell)")
+        extra.append(replace(predict_image_station(cell, dropped, k, sid, f), dropped=True))
+    rank = {sid: i for i, sid in enumerate(order)}
+    stations = sorted([*cv.stations, *extra], key=lambda h: rank[h.id])
+    return replace(cv, stations=tuple(stations))
 
 
 @dataclass(frozen=True)

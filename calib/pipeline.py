@@ -35,6 +35,7 @@ from calib.chain import (
     check_setup,
     robot_chain,
 )
+from calib.crossval import predict_dropped
 from calib.evidence import JointChoice, Trust, choose_joint, method_cross_validation
 from calib.geometry import PoseError, check_ur_poses
 from calib.handeye import POSE_METHODS, calibrate_hand_eye
@@ -388,7 +389,10 @@ def _trust(stage: _Stage, stations: CornerStations, ids: list[str],
         kappa_sigma = stage.sigmas.get("kappa") if options.method == "refine" else None
     else:
         selection, uncertainty = stage.choice.selection, stage.choice.uncertainty
-        cv = selection.chosen.cv
+        dropped = [i for i, _ in stage.choice.result.rejected]
+        cv = predict_dropped(selection.chosen.cv,
+                             JointData(stations.subset(dropped), options.setup, stage.sigma_px),
+                             [ids[i] for i in dropped], dropped, ids)
         delta = stage.choice.result.corrections
         corrections = np.column_stack([np.linalg.norm(delta[:, :3], axis=1),
                                        np.linalg.norm(delta[:, 3:], axis=1)])

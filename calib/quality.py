@@ -197,6 +197,7 @@ def _outliers(ev: QualityInputs) -> Finding | None:
         floor = 1.0 if ev.cv.rms_px is not None else 1e-3
         ids += [s.id for s, e in zip(ev.cv.stations, err, strict=True)
                 if e > max(OUTLIER_FACTOR * med, floor)]
+    ids = list(dict.fromkeys(ids))  # a dropped station is also in the cross-validation
     if not ids:
         return None
     return Finding("outlier_stations", "warn", (

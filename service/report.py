@@ -22,6 +22,7 @@ import numpy as np
 
 from service.report_plots import Plot, cv_by_station, report_plots
 from service.result_schema import parse_result
+from service.results import cv_dropped_clause
 
 Result = Mapping[str, Any]
 
@@ -147,7 +148,8 @@ def _verdict(quality: Mapping[str, Any] | None, cv: Mapping[str, Any] | None) ->
         headline = (f"<span class=\"headline\">stations left out of the calibration are "
                     f"predicted to {_num(cv['rms_px'], '.2f')} px{mm}, "
                     f"{_esc(cv.get('kind', ''))} over "
-                    f"{len(cv.get('stations') or [])} stations</span>")
+                    f"{len(cv.get('stations') or [])} stations{_esc(cv_dropped_clause(cv))}"
+                    f"</span>")
     return (f"<div class=\"verdict\" style=\"border-color:{colour}\">"
             f"<span class=\"word\" style=\"color:{colour}\">{_esc(verdict)}</span>{headline}"
             f"{items}</div>")
@@ -229,7 +231,8 @@ def _error_rows(result: Result) -> list[tuple[str, str]]:
         mm = cv.get("rms_mm")
         rows.append((f"cross-validated prediction error ({cv.get('folds', '?')} folds)",
                      f"{_num(cv['rms_px'], '.3f')} px" + (f" ≈ {_num(mm, '.2f')} mm at the board"
-                                                 if mm is not None else "")))
+                                                 if mm is not None else "")
+                     + _esc(cv_dropped_clause(cv))))
     validation = result.get("validation") or {}
     if validation.get("chain_rms_px") is not None:
         rows.append(("prediction from the robot poses, all stations (px)",

@@ -131,13 +131,20 @@ class HeldOutStation(_PredictionFigures):
     id: str
     fold: int | None = _optional("the fold that held this station out")
     max_px: float | None = _optional("largest corner error in the image, px")
+    dropped: bool | None = _optional(
+        "the fit dropped this station as an outlier: predicted, never trained on")
 
 
 class CrossValidationBlock(_PredictionFigures):
-    """Held-out stations predicted from their robot poses alone."""
+    """Held-out stations predicted from their robot poses alone: every station whose board
+    was detected, the ones the fit dropped as outliers included (the headline figures)."""
 
     kind: str = Field(description="k-fold or leave-one-out")
     folds: int
+    kept_rms_px: float | None = _optional(
+        "RMS corner error over the stations the fit kept (dropped ones left out), px")
+    kept_rms_mm: float | None = _optional("the same on the board plane, mm")
+    dropped: list[str] | None = _optional("ids of the stations the fit dropped as outliers")
     stations: list[HeldOutStation] = Field(default_factory=list)
     note: str | None = None
 

@@ -198,17 +198,36 @@ def cross_validation_json(cv: CrossValidation) -> dict[str, Any]:
     def deg(v: float | None) -> float | None:
         return None if v is None else float(np.degrees(v))
 
+    kept = cv.kept()
     return {
         "kind": cv.kind, "folds": cv.folds,
         "rms_px": cv.rms_px, "rms_mm": mm(cv.rms_m),
         "rot_deg": deg(cv.rot_rad), "trans_mm": mm(cv.trans_m),
+        "kept_rms_px": kept.rms_px, "kept_rms_mm": mm(kept.rms_m),
+        "dropped": list(cv.dropped),
         "stations": [{"id": s.id, "fold": s.fold, "rms_px": s.rms_px, "max_px": s.max_px,
                       "rms_mm": mm(s.rms_m), "rot_deg": deg(s.rot_rad),
-                      "trans_mm": mm(s.trans_m)} for s in cv.stations],
+                      "trans_mm": mm(s.trans_m), "dropped": s.dropped}
+                     for s in cv.stations],
         "note": "each station predicted from its robot pose alone by the estimator fitted on "
-                "the other folds; rms_mm: corner error on the board plane; rot_deg/trans_mm: "
-                "predicted vs observed cam_T_target",
+                "the other folds; the figures cover every station whose board was detected, "
+                "the stations the fit dropped as outliers included (each predicted by the "
+                "fold that held it out); kept_rms_px: the kept stations only; rms_mm: corner "
+                "error on the board plane; rot_deg/trans_mm: predicted vs observed "
+                "cam_T_target",
     }
+
+
+def cv_dropped_clause(cv: dict[str, Any]) -> str:
+    """What a cross-validation block's headline hides without it: the figure over the kept
+    stations and the ids the fit dropped, e.g. ``"; 0.48 px over the 19 kept stations,
+    dropped as outliers: 04, 11"``; empty when none was dropped."""
+    dropped = cv.get("dropped") or []
+    if not dropped or cv.get("kept_rms_px") is None:
+        return ""
+    kept = len(cv.get("stations") or []) - len(dropped)
+    return (f"; {cv['kept_rms_px']:.2f} px over the {kept} kept stations, dropped as "
+            f"outliers: {', '.join(dropped)}")
 
 
 def _candidate_json(c: Candidate, chosen: Candidate) -> dict[str, Any]:

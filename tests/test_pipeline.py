@@ -119,6 +119,14 @@ def test_corrupted_robot_pose_is_rejected_with_its_reason():
     assert "robot pose inconsistent with the image" in res.rejected[0][1]
     assert "003" not in [s.id for s in res.stations]
     assert pose_error(res.hand_eye, SCENE.hand_eye_matrix)[1] < 0.3e-3
+    # the cross-validated figure covers the dropped station too, predicted by fold 3 mod 5
+    cv = res.trust.cross_validation
+    assert [s.id for s in cv.stations] == [f"{k:03d}" for k in range(15)]
+    assert cv.dropped == ("003",)
+    held = cv.stations[3]
+    assert held.dropped and held.fold == 3 and held.rms_px > 5 * cv.kept().rms_px
+    assert cv.kept().rms_px < cv.rms_px
+    assert len(cv.kept().stations) == 14 and not any(s.dropped for s in cv.kept().stations)
 
 
 def test_intrinsics_only_without_robot_poses():

@@ -39,6 +39,7 @@ from calib import (
 )
 from service.cli.exit_codes import EXIT_VERDICT_FAIL
 from service.image_files import DEFAULT_MAX_PIXELS, read_station_image
+from service.results import cv_dropped_clause
 from service.stationset import DEFAULT_MAX_STATIONS, load_station_set
 
 #: The command's line in ``cellcal --help``.
@@ -114,7 +115,8 @@ def verdict_line(doc: dict[str, Any]) -> str:
         figure = "no cross-validation (no robot poses)"
     elif cv.get("rms_px") is not None:
         figure = (f"cross-validated error {cv['rms_px']:.2f} px ({cv['rms_mm']:.2f} mm at the "
-                  f"board), {cv['kind']} over {len(cv['stations'])} stations")
+                  f"board), {cv['kind']} over {len(cv['stations'])} stations"
+                  + cv_dropped_clause(cv))
     else:
         figure = (f"cross-validated error {cv['trans_mm']:.2f} mm / {cv['rot_deg']:.3f} deg, "
                   f"{cv['kind']} over {len(cv['stations'])} stations")
