@@ -90,6 +90,14 @@ class Settings(BaseSettings):
     calibration_workers: Annotated[int, Field(ge=1, le=16)] = 1
     max_queued_calibrations: Annotated[int, Field(ge=1, le=1000)] = Field(
         8, description="calibrations queued or running at a time; more get 429 queue_full")
+    max_connections: Annotated[int, Field(ge=1)] = Field(
+        1000, description="open HTTP connections at a time (fewer if the open-files limit "
+                          "needs it); beyond, the oldest idle one is closed, or, if all are "
+                          "busy, the new one is answered 503")
+    header_timeout_s: Annotated[float, Field(gt=0.0, le=3600.0)] = Field(
+        10.0, description="a new connection must send its request's headers within this")
+    keep_alive_s: Annotated[float, Field(gt=0.0, le=3600.0)] = Field(
+        5.0, description="an idle connection between requests is closed after this")
 
     @field_validator("robot")
     @classmethod

@@ -47,6 +47,14 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from service.app import create_app
+    from service.connections import (
+        ACCEPT_BURST,
+        ConnectionLimits,
+        connection_cap,
+        guarded_protocol,
+        limit_connection_logs,
+        raise_fd_limit,
+    )
     from service.server import GRACEFUL_TIMEOUT_S, CellServer
     from service.settings import Settings, is_loopback
 
@@ -67,7 +75,13 @@ def run(args: argparse.Namespace) -> int:
     except ValidationError as exc:
         raise ValueError(f"configuration: {_describe(exc)}") from None
     app = create_app(settings)
-    config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level="info")
+    limits = ConnectionLimits(cap=settings.max_connections,
+                              header_timeout_s=settings.header_timeout_s)
+    config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level="info",
+                            http=guarded_protocol(limits), backlog=ACCEPT_BURST,
+                            timeout_keep_alive=settings.keep_alive_s)  # type: ignore[arg-type]
+    limit_connection_logs()  # uvicorn's logging is configured now
+    limits.cap = connection_cap(raise_fd_limit(), settings.max_connections)
     grace = GRACEFUL_TIMEOUT_S if args.graceful_timeout is None else args.graceful_timeout
     CellServer(config, app, graceful_timeout=grace).run(
         sockets=None if sock is None else [sock])

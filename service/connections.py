@@ -1,0 +1,199 @@
+"""Bounded connections: idle and slow clients cannot take the file descriptors that capture
+and the database need (issue 22, row 2).
+
+uvicorn accepts every connection and keeps one that never sends a request for good: 1,100
+idle TCP connections under the usual limit of 1,024 open files starved ``/health`` and failed
+a running capture with ``Errno 24``, and each refused ``accept`` logged a traceback. Here:
+
+* at start the soft open-files limit is raised to the hard one (``raise_fd_limit``);
+* a connection must send its first request's headers within ``header_timeout_s`` (later
+  requests are bounded by uvicorn's keep-alive timeout, which only a complete request ends);
+* at most ``cap`` connections are open, ``fd_reserve`` descriptors below the limit. A
+  connection beyond the cap takes the place of the oldest one with no request in progress (an
+  idle client is worth least), or, when every connection is busy, is answered 503 and closed
+  at once;
+* what is refused, dropped or timed out is logged at most once per ``LOG_INTERVAL_S`` with
+  counts (``RateLimitFilter``; also on asyncio's accept errors and uvicorn's invalid requests).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import resource
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from uvicorn.protocols.http.h11_impl import H11Protocol
+
+#: Under uvicorn's logger, so the lines come with its own (and its handler).
+log = logging.getLogger("uvicorn.error.connections")
+
+#: Connections accepted in one go (asyncio accepts up to the listen backlog before any of
+#: them is seen, so this also bounds how far the open connections can pass the cap), and the
+#: kernel's queue of connections not yet accepted.
+ACCEPT_BURST = 100
+#: Open files kept for everything but connections: one accept burst, and the database,
+#: images, devices and worker pipes (about 100).
+FD_RESERVE = 300
+#: The cap never goes below this (a tiny open-files limit still serves a few clients).
+MIN_CAP = 16
+#: At most one log line per message and this many seconds; the rest are counted.
+LOG_INTERVAL_S = 10.0
+#: A refused connection is closed when its client closes, or after this many seconds.
+REFUSAL_LINGER_S = 1.0
+#: What a refused connection is told (the JSON error body of every error).
+_REFUSAL = json.dumps({"detail": "Too many connections are busy; retry in a few seconds.",
+                       "code": "too_many_connections"}).encode()
+REFUSAL_RESPONSE = (b"HTTP/1.1 503 Service Unavailable\r\ncontent-type: application/json\r\n"
+                    b"retry-after: 5\r\nconnection: close\r\ncontent-length: "
+                    + str(len(_REFUSAL)).encode() + b"\r\n\r\n" + _REFUSAL)
+
+
+def raise_fd_limit() -> int:
+    """Raise this process's soft open-files limit to the hard limit; the limit now."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    target = hard if hard != resource.RLIM_INFINITY else max(soft, 1 << 20)
+    if soft != resource.RLIM_INFINITY and soft < target:
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+        except (ValueError, OSError) as exc:
+            log.warning("open files: could not raise the limit from %d to %d (%s)", soft,
+                        target, exc)
+            return soft
+        log.info("open files: soft limit raised from %d to the hard limit %d", soft, target)
+        return target
+    log.info("open files: limit %d (soft = hard)", soft)
+    return soft
+
+
+def connection_cap(fd_limit: int, wanted: int) -> int:
+    """At most ``wanted`` connections, and ``FD_RESERVE`` descriptors left for the rest."""
+    cap = max(min(wanted, MIN_CAP), min(wanted, fd_limit - FD_RESERVE))
+    log.info("connections: at most %d open at once", cap)
+    return cap
+
+
+@dataclass
+class ConnectionLimits:
+    """What a connection may take: ``cap`` connections open at once, ``header_timeout_s``
+    until the first request's headers are in."""
+
+    cap: int
+    header_timeout_s: float
+    #: When each open connection was accepted (loop time), in order: oldest first.
+    opened: dict[GuardedH11, float] = field(default_factory=dict)
+
+    def admit(self, new: GuardedH11) -> bool:
+        """Make room for ``new`` (True), or refuse it (False: every connection is busy)."""
+        if len(self.opened) < self.cap:
+            self.opened[new] = time.monotonic()
+            return True
+        victim = next((c for c in self.opened if c.idle()), None)
+        if victim is None:
+            log.warning("%d connections, all busy: a new connection was answered 503",
+                        self.cap)
+            return False
+        log.warning("%d connections: the oldest idle one was closed for a new one",
+                    self.cap)
+        victim.drop()
+        self.opened[new] = time.monotonic()
+        return True
+
+
+class GuardedH11(H11Protocol):
+    """uvicorn's HTTP/1.1 protocol under ``limits`` (set by ``guarded_protocol``)."""
+
+    limits: ConnectionLimits
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._refused = False
+        self._timer: asyncio.TimerHandle | None = None
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        if not self.limits.admit(self):
+            # answer, then half-close and read what the client sent until it closes (closing
+            # with its request unread would reset the connection before it reads the 503)
+            self._refused = True
+            transport.write(REFUSAL_RESPONSE)
+            if transport.can_write_eof():
+                transport.write_eof()
+            self._timer = self.loop.call_later(REFUSAL_LINGER_S, transport.abort)
+            return
+        self._timer = self.loop.call_later(self.limits.header_timeout_s,
+                                                  self._header_timeout)
+
+    def data_received(self, data: bytes) -> None:
+        if not self._refused:
+            super().data_received(data)
+
+    def eof_received(self) -> bool | None:
+        if self._refused:
+            self.transport.close()
+        return super().eof_received()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.limits.opened.pop(self, None)
+        if self._timer is not None:
+            self._timer.cancel()
+        super().connection_lost(exc)
+
+    def idle(self) -> bool:
+        """True while no request is in progress (none yet, or between requests)."""
+        return self.cycle is None or self.cycle.response_complete
+
+    def drop(self) -> None:
+        """Close the connection now, without waiting to write anything."""
+        self.limits.opened.pop(self, None)
+        self.transport.abort()
+
+    def _header_timeout(self) -> None:
+        self._timer = None
+        if self.cycle is None and not self.transport.is_closing():
+            log.warning("a connection sent no complete request in %g s: closed",
+                        self.limits.header_timeout_s)
+            self.drop()
+
+
+def guarded_protocol(limits: ConnectionLimits) -> type[GuardedH11]:
+    """The protocol class for ``uvicorn.Config(http=...)`` under ``limits``."""
+    return type("GuardedH11", (GuardedH11,), {"limits": limits})
+
+
+class RateLimitFilter(logging.Filter):
+    """Passes each message (by its format string) at most once per ``interval`` s; the next
+    one passed says how many were held back meanwhile."""
+
+    def __init__(self, interval: float = LOG_INTERVAL_S, *,
+                 only: tuple[str, ...] | None = None) -> None:
+        super().__init__()
+        self.interval = interval
+        self.only = only  # message prefixes limited; None: all
+        self._last: dict[str, float] = {}
+        self._held: dict[str, int] = {}
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        key = str(record.msg).split("\n", 1)[0]  # asyncio's messages go on with details
+        if self.only is not None and not key.startswith(self.only):
+            return True
+        now = time.monotonic()
+        if now - self._last.get(key, -self.interval) < self.interval:
+            self._held[key] = self._held.get(key, 0) + 1
+            return False
+        self._last[key] = now
+        if held := self._held.pop(key, 0):
+            record.msg = f"{record.msg} (and {held} more like this in {self.interval:g} s)"
+        return True
+
+
+def limit_connection_logs() -> None:
+    """Rate-limit the log lines a flood of connections makes: ours, asyncio's accept errors
+    (``socket.accept() out of system resource``), uvicorn's invalid requests."""
+    log.addFilter(RateLimitFilter())
+    logging.getLogger("asyncio").addFilter(RateLimitFilter())
+    logging.getLogger("uvicorn.error").addFilter(
+        RateLimitFilter(only=("Invalid HTTP request",)))

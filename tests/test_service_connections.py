@@ -1,0 +1,162 @@
+"""Bounded connections (issue 22, row 2) against real ``cellcal serve --mock`` subprocesses:
+1,100 idle TCP connections under an open-files limit of 1,024 leave ``/health`` answering and
+a capture completing; a connection that sends no request is closed after the header timeout;
+beyond the connection cap the oldest idle connection makes room, and when every connection
+is busy the new one is answered 503 with the JSON error body. Waits are for conditions,
+bounded only against a hang."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import resource
+import socket
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from service.local import LocalService, ServeOptions, local_service
+
+KEY = "connections-key-0123456789abcdef"
+AUTH = {"Authorization": f"Bearer {KEY}"}
+HANG_S = 120.0
+#: The systemd default soft limit, imposed on the service under test.
+FD_LIMIT = 1024
+IDLE_CONNECTIONS = 1100
+
+pytestmark = pytest.mark.timeout(600)
+
+
+def _limit_open_files() -> None:
+    """In the service's process: at most ``FD_LIMIT`` open files, soft and hard."""
+    resource.setrlimit(resource.RLIMIT_NOFILE, (FD_LIMIT, FD_LIMIT))
+
+
+@contextlib.contextmanager
+def _own_fd_limit(needed: int) -> Iterator[None]:
+    """Enough open files in this test process for ``needed`` sockets (restored after)."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard != resource.RLIM_INFINITY and hard < needed:
+        pytest.skip(f"the hard open-files limit {hard} is below {needed}")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, needed), hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+
+
+@contextlib.contextmanager
+def _sockets() -> Iterator[list[socket.socket]]:
+    """A list of sockets, every one closed at the end whatever happens."""
+    held: list[socket.socket] = []
+    try:
+        yield held
+    finally:
+        for sock in held:
+            sock.close()
+
+
+def _address(service: LocalService) -> tuple[str, int]:
+    url = httpx.URL(service.url)
+    assert url.host and url.port
+    return url.host, url.port
+
+
+def _closed_by_peer(sock: socket.socket) -> bool:
+    """Wait until the service closes ``sock`` (True), or ``HANG_S`` pass (False)."""
+    sock.settimeout(HANG_S)
+    try:
+        while sock.recv(4096):
+            pass
+    except TimeoutError:
+        return False
+    except ConnectionResetError:
+        return True
+    return True
+
+
+def _wait_run(service: LocalService, run_id: str) -> dict[str, object]:
+    deadline = time.monotonic() + 5 * HANG_S
+    while time.monotonic() < deadline:
+        run = httpx.get(f"{service.url}/runs/{run_id}", headers=AUTH, timeout=60).json()
+        if run["state"] != "capturing":
+            return run
+        time.sleep(0.2)
+    raise AssertionError(f"run {run_id} still capturing")
+
+
+def test_idle_flood_leaves_health_and_capture_working(tmp_path: Path) -> None:
+    options = ServeOptions(preexec=_limit_open_files)
+    with (_own_fd_limit(IDLE_CONNECTIONS + 256),
+          local_service(tmp_path / "data", KEY, options) as service, _sockets() as idle):
+        fds = Path(f"/proc/{service.proc.pid}/fd")
+        for _ in range(IDLE_CONNECTIONS):
+            idle.append(socket.create_connection(_address(service), timeout=HANG_S))
+        health = httpx.get(f"{service.url}/health", timeout=HANG_S)
+        run = httpx.post(f"{service.url}/runs", json={"stations": 4}, headers=AUTH,
+                         timeout=HANG_S)
+        assert run.status_code == 201, run.text
+        final = _wait_run(service, run.json()["id"])
+        open_fds = len(list(fds.iterdir()))
+        log = service.log.read_text()
+    assert health.status_code == 200 and health.json()["status"] == "ok"
+    assert final["state"] == "done" and final["stations_captured"] == 4, final
+    assert open_fds < FD_LIMIT
+    assert "Too many open files" not in log and "out of system resource" not in log
+    assert "open files: limit 1024 (soft = hard)" in log
+    assert "at most 724 open at once" in log
+    # every refusal or eviction is logged, but at most once per 10 s
+    lines = [ln for ln in log.splitlines() if "the oldest idle one was closed" in ln]
+    assert 1 <= len(lines) <= 10, lines
+
+
+def test_a_connection_without_a_request_is_closed(tmp_path: Path) -> None:
+    options = ServeOptions(env={**os.environ, "CELLCAL_HEADER_TIMEOUT_S": "1"})
+    with local_service(tmp_path / "data", KEY, options) as service, _sockets() as held:
+        silent = socket.create_connection(_address(service), timeout=HANG_S)
+        slow = socket.create_connection(_address(service), timeout=HANG_S)
+        held += [silent, slow]
+        slow.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\n")  # the headers never end
+        assert _closed_by_peer(silent) and _closed_by_peer(slow)
+        assert httpx.get(f"{service.url}/health", timeout=HANG_S).status_code == 200
+
+
+def _open_stream(service: LocalService, run_id: str) -> socket.socket:
+    """A connection following the run's event stream (busy until the run ends)."""
+    sock = socket.create_connection(_address(service), timeout=HANG_S)
+    sock.sendall(f"GET /runs/{run_id}/events HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer "
+                 f"{KEY}\r\n\r\n".encode())
+    head = b""
+    while b"event: state" not in head:
+        chunk = sock.recv(4096)
+        assert chunk, head
+        head += chunk
+    assert head.startswith(b"HTTP/1.1 200"), head
+    return sock
+
+
+def test_beyond_the_cap_idle_connections_make_room_busy_ones_do_not(tmp_path: Path) -> None:
+    options = ServeOptions(env={**os.environ, "CELLCAL_MAX_CONNECTIONS": "3"})
+    with local_service(tmp_path / "data", KEY, options) as service, _sockets() as held:
+        run_id = httpx.post(f"{service.url}/runs", json={"stations": 200}, headers=AUTH,
+                            timeout=HANG_S).json()["id"]
+        httpx.post(f"{service.url}/runs/{run_id}/pause", headers=AUTH, timeout=HANG_S)
+        held += [_open_stream(service, run_id), _open_stream(service, run_id)]
+        idle = socket.create_connection(_address(service), timeout=HANG_S)
+        held.append(idle)
+        # the cap is reached; the idle connection makes room for the new request
+        assert httpx.get(f"{service.url}/health", timeout=HANG_S).status_code == 200
+        assert _closed_by_peer(idle)
+        held.append(_open_stream(service, run_id))  # now three busy connections
+        refused = httpx.get(f"{service.url}/health", timeout=HANG_S)
+        assert refused.status_code == 503
+        assert refused.json()["code"] == "too_many_connections"
+        assert refused.headers["retry-after"] == "5"
+        held.pop().close()  # a stream ends: its place is free again
+        deadline = time.monotonic() + HANG_S
+        while (r := httpx.get(f"{service.url}/health", timeout=HANG_S)).status_code == 503:
+            assert time.monotonic() < deadline
+        assert r.status_code == 200
