@@ -9,12 +9,11 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, TypeVar
 
-from sqlalchemy import Engine, create_engine, event, inspect, text
+from sqlalchemy import Engine, create_engine, event
 from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
-from sqlalchemy.schema import CreateColumn
 
-from service.models import Base
+from service import migrations
 
 log = logging.getLogger("cellcal.service")
 T = TypeVar("T")
@@ -59,8 +58,9 @@ def retry_transient(transaction: Callable[[], T], *, budget_s: float, what: str,
 
 
 class Database:
-    """Engine plus session factory; creates the tables on open, and the columns a database
-    made by an older cellcal lacks.
+    """Engine plus session factory. Opens a database at the newest schema revision, creating
+    an empty one there; refuses an older one (``migrations.SchemaOutdatedError``: run
+    ``cellcal db upgrade``).
 
     SQLite gets a busy timeout and write-ahead logging so the capture threads can commit a
     station while requests read, and foreign keys are enforced as on other databases.
@@ -75,8 +75,11 @@ class Database:
         if is_sqlite:
             event.listen(self.engine, "connect", _sqlite_pragmas)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
-        Base.metadata.create_all(self.engine)
-        add_missing_columns(self.engine)
+        try:
+            migrations.prepare(self.engine)
+        except BaseException:
+            self.engine.dispose()
+            raise
 
     @contextmanager
     def session(self) -> Iterator[Session]:
@@ -86,23 +89,6 @@ class Database:
 
     def close(self) -> None:
         self.engine.dispose()
-
-
-def add_missing_columns(engine: Engine) -> list[str]:
-    """Add the model's columns that existing tables lack (``create_all`` creates only missing
-    tables), with their defaults, so a database from an older cellcal opens; the columns
-    added, as ``table.column``. New columns are nullable or have a server default."""
-    present = inspect(engine)
-    added = []
-    with engine.begin() as conn:
-        for table in Base.metadata.sorted_tables:
-            have = {c["name"] for c in present.get_columns(table.name)}
-            for column in table.columns:
-                if column.name not in have:
-                    ddl = CreateColumn(column).compile(dialect=engine.dialect)
-                    conn.execute(text(f"ALTER TABLE {table.name} ADD COLUMN {ddl}"))
-                    added.append(f"{table.name}.{column.name}")
-    return added
 
 
 def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:

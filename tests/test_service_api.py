@@ -29,6 +29,8 @@ from service.result_schema import parse_result
 from service.settings import Settings
 from tests.helpers import undeclared_fields
 
+pytestmark = pytest.mark.usefixtures("database")
+
 KEY = "test-key-0123456789abcdef"
 AUTH = {"Authorization": f"Bearer {KEY}"}
 
@@ -214,6 +216,7 @@ def test_unknown_ids_are_404(client: TestClient, method: str, path: str) -> None
 
 # ---- capture runs ------------------------------------------------------------------------
 
+@pytest.mark.pg_fast
 @pytest.mark.timeout(30)
 def test_run_captures_every_station(client: TestClient, tmp_path: Path) -> None:
     run_id = start_run(client, 4)
@@ -251,6 +254,7 @@ def test_planning_without_the_board_in_view_is_422(client: TestClient) -> None:
     assert "not in view" in r.json()["detail"]
 
 
+@pytest.mark.pg_fast
 @pytest.mark.timeout(30)
 def test_second_run_on_the_robot_is_409(client: TestClient) -> None:
     first = start_run(client, 6)
@@ -367,6 +371,7 @@ def test_connection_lost_mid_run_fails_it_and_resume_finishes(client: TestClient
     assert (run["state"], run["stations_captured"], run["error"]) == ("done", 3, None)
 
 
+@pytest.mark.pg_fast
 @pytest.mark.timeout(40)
 def test_restart_mid_run_then_resume_loses_and_duplicates_nothing(tmp_path: Path) -> None:
     gate = threading.Event()
@@ -404,6 +409,7 @@ def test_events_of_a_finished_run_end_with_its_state(client: TestClient) -> None
     assert '"state": "done"' in text and '"stations_captured": 3' in text
 
 
+@pytest.mark.pg_fast
 @pytest.mark.timeout(240)
 def test_calibration_of_a_run(client: TestClient) -> None:
     run_id = start_run(client, 8)

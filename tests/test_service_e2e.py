@@ -20,6 +20,8 @@ from calib.geometry import ur_pose_from_matrix
 from mocks.scene import default_scene, sample_station_poses
 from service.local import local_service
 
+pytestmark = pytest.mark.usefixtures("database")
+
 REPO = Path(__file__).resolve().parents[1]
 KEY = "e2e-key-0123456789abcdef"
 AUTH = {"Authorization": f"Bearer {KEY}"}

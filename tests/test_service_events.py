@@ -26,6 +26,8 @@ from tests.test_service_api import (
     wait_run,
 )
 
+pytestmark = pytest.mark.usefixtures("database")
+
 Event = tuple[int, str, dict[str, Any]]
 
 
@@ -64,6 +66,7 @@ def stations_of(events: list[Event]) -> list[int]:
     return [data["index"] for _, kind, data in events if kind == "station"]
 
 
+@pytest.mark.pg_fast
 @pytest.mark.timeout(60)
 def test_reconnect_with_last_event_id_misses_and_repeats_nothing(tmp_path: Path) -> None:
     gate = threading.Event()
@@ -87,6 +90,7 @@ def test_reconnect_with_last_event_id_misses_and_repeats_nothing(tmp_path: Path)
     assert [kind for _, kind, _ in second].count("state") == 1
 
 
+@pytest.mark.pg_fast
 @pytest.mark.timeout(60)
 def test_ids_survive_a_restart_and_bad_ids_start_afresh(tmp_path: Path) -> None:
     with service(tmp_path) as client:

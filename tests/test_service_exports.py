@@ -20,7 +20,7 @@ from service.models import Calibration, Run
 from tests.test_exports import full_result, pose_only_result
 from tests.test_service_api import AUTH, settings
 
-pytestmark = pytest.mark.timeout(20)
+pytestmark = [pytest.mark.timeout(20), pytest.mark.usefixtures("database")]
 
 MEDIA = {"json": "application/json", "opencv-yaml": "application/yaml",
          "ros-camera-info": "application/yaml", "urdf": "application/xml",
@@ -61,6 +61,7 @@ def test_each_format_is_the_exported_file(client: TestClient, fmt: str) -> None:
     assert r.text == content
 
 
+@pytest.mark.pg_fast
 def test_json_is_the_default_and_round_trips(client: TestClient) -> None:
     result = full_result()
     cal_id = add_calibration(client, result=result)

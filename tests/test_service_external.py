@@ -21,14 +21,13 @@ import cv2
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import create_engine, text
 
 from service.app import create_app
 from service.cli.main import main
-from service.db import Database, add_missing_columns
-from service.models import Run
 from tests.helpers import SHARED
 from tests.test_service_api import AUTH, settings
+
+pytestmark = pytest.mark.usefixtures("database")
 
 KINECT = SHARED / "data" / "ur-kinect-highR_highT"
 
@@ -121,6 +120,7 @@ def test_posted_real_stations_calibrate_like_cellcal_calibrate(tmp_path: Path) -
 
 # ---- the three ways to post a station --------------------------------------------------------
 
+@pytest.mark.pg_fast
 @pytest.mark.timeout(30)
 def test_pose_only_station_is_grabbed_by_the_service(client: TestClient) -> None:
     run_id = external_run(client)
@@ -227,6 +227,7 @@ def test_image_without_its_pose_is_422(client: TestClient) -> None:
 
 # ---- the run around the stations -------------------------------------------------------------
 
+@pytest.mark.pg_fast
 @pytest.mark.timeout(30)
 def test_external_run_holds_the_robot_until_finished(client: TestClient) -> None:
     run_id = external_run(client)
@@ -274,23 +275,3 @@ def test_external_run_takes_no_plan(client: TestClient, body: dict[str, Any]) ->
 def test_unknown_run_is_404(client: TestClient) -> None:
     assert post(client, "nope").status_code == 404
     assert client.post("/runs/nope/finish").status_code == 404
-
-
-def test_a_database_from_before_external_runs_opens(tmp_path: Path) -> None:
-    """Runs and stations stored before the mode and joint columns existed still read."""
-    url = f"sqlite:///{tmp_path / 'old.db'}"
-    Database(url).close()
-    engine = create_engine(url)
-    with engine.begin() as conn:
-        conn.execute(text("ALTER TABLE runs DROP COLUMN mode"))
-        conn.execute(text("ALTER TABLE stations DROP COLUMN joint_positions"))
-        conn.execute(text(
-            "INSERT INTO runs (id, robot, state, setup, target, poses, created_at, updated_at) "
-            "VALUES ('old', 'mock://', 'done', 'eye_in_hand', '{}', '[]', "
-            "'2026-01-01 00:00:00', '2026-01-01 00:00:00')"))
-    engine.dispose()
-    assert add_missing_columns(create_engine(url)) == ["runs.mode", "stations.joint_positions"]
-    db = Database(url)
-    with db.session() as s:
-        assert s.get(Run, "old").mode == "robot"
-    db.close()

@@ -20,7 +20,7 @@ from service.models import Calibration, Run
 from tests.test_exports import full_result, pose_only_result
 from tests.test_service_api import AUTH, settings
 
-pytestmark = pytest.mark.timeout(20)
+pytestmark = [pytest.mark.timeout(20), pytest.mark.usefixtures("database")]
 
 T0 = dt.datetime(2026, 1, 5, 8, 0, tzinfo=dt.UTC)
 
@@ -59,6 +59,7 @@ def ids(page: dict[str, Any]) -> list[str]:
     return [item["id"] for item in page["items"]]
 
 
+@pytest.mark.pg_fast
 def test_listing_is_newest_first_with_summaries(client: TestClient) -> None:
     run_id = add_run(client)
     old = add_calibration(client, run_id, minute=1, result=pose_only_result(),
@@ -90,6 +91,7 @@ def test_filters_by_run_state_and_setup(client: TestClient) -> None:
     assert client.get("/calibrations", params={"run_id": "nope"}).json()["total"] == 0
 
 
+@pytest.mark.pg_fast
 def test_pages_cover_every_calibration_once(client: TestClient) -> None:
     run_id = add_run(client)
     made = [add_calibration(client, run_id, minute=m) for m in range(7)]
@@ -116,6 +118,7 @@ def test_no_active_calibration_is_404(client: TestClient) -> None:
     assert r.json()["code"] == "no_active_calibration"
 
 
+@pytest.mark.pg_fast
 def test_activation_history_says_what_was_active_when(client: TestClient) -> None:
     run_id = add_run(client)
     first = add_calibration(client, run_id, minute=1)

@@ -25,6 +25,8 @@ from tests.test_service_api import (  # noqa: F401 (client: the fixture)
 )
 from tests.test_service_external import wait_calibration
 
+pytestmark = pytest.mark.usefixtures("database")
+
 
 def assert_same_calibration(a: dict[str, Any], b: dict[str, Any], atol: float = 1e-9) -> None:
     """Two result documents agree on the camera, κ, ν, the hand-eye and the target pose."""

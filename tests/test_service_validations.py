@@ -28,6 +28,8 @@ from tests.test_exports import full_result
 from tests.test_service_api import AUTH, GatedCamera, finished, poses, settings, wait_run
 from tests.test_service_events import Event, read_events
 
+pytestmark = pytest.mark.usefixtures("module_database")
+
 SCENE = default_scene()
 POINTS = ["corner_0_0", "corner_10_0", "corner_0_7", "corner_10_7", "centre"]
 

@@ -17,7 +17,7 @@ from collections.abc import Callable, Sequence
 from types import ModuleType
 
 from drivers.errors import DeviceError
-from service.cli import calibrate, calibrations, demo, devices, export, report, runs, serve
+from service.cli import calibrate, calibrations, db, demo, devices, export, report, runs, serve
 from service.cli.client import ServiceCallError
 from service.cli.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from service.results import software_version
@@ -33,6 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_command(sub, "calibrate", calibrate)
     _add_command(sub, "calibrations", calibrations)
+    _add_command(sub, "db", db)
     _add_command(sub, "demo", demo)
     devices.register(sub)
     _add_command(sub, "export", export)

@@ -74,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
                   file=sys.stderr)
     except ValidationError as exc:
         raise ValueError(f"configuration: {_describe(exc)}") from None
+    _check_database(settings)
     app = create_app(settings)
     limits = ConnectionLimits(cap=settings.max_connections,
                               header_timeout_s=settings.header_timeout_s)
@@ -97,6 +98,21 @@ def _seconds(text: str) -> float:
     if not 0.0 <= value <= 3600.0:
         raise argparse.ArgumentTypeError(f"{text!r}: give 0 to 3600 seconds")
     return value
+
+
+def _check_database(settings: Any) -> None:
+    """Open the database once before serving: one line and a non-zero exit for one that does
+    not answer or needs ``cellcal db upgrade``, instead of a failed start-up in uvicorn."""
+    from sqlalchemy.exc import SQLAlchemyError
+
+    from service.db import Database
+
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        Database(settings.database, busy_timeout_s=settings.database_busy_timeout_s).close()
+    except SQLAlchemyError as exc:
+        why = str(getattr(exc, "orig", None) or exc).splitlines()[0]
+        raise ValueError(f"database: {why}") from None
 
 
 def _inherited_socket(args: argparse.Namespace) -> socket.socket:

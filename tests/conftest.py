@@ -1,0 +1,84 @@
+"""Fixtures every test module may use: the database a service test runs against.
+
+A service test module that touches the database declares
+``pytestmark = pytest.mark.usefixtures("database")`` (or ``"module_database"`` when a
+module-scoped fixture opens apps); each of its tests then runs twice, on SQLite (a file in the
+test's data directory, the default) and on PostgreSQL (a fresh database on a throwaway server,
+``tests/support/postgres.py``, named by ``CELLCAL_DATABASE_URL`` for the test, its apps and the
+``cellcal`` processes it starts).
+
+The PostgreSQL variants are in the slow suite unless the test is marked ``pg_fast``, so
+``make test`` stays quick and ``make test-slow`` runs them all. Without PostgreSQL installed
+they are skipped with one line; in CI (``CI=true``) a missing PostgreSQL fails them instead.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+
+import pytest
+
+from tests.support.postgres import PostgresServer, PostgresUnavailableError
+
+BACKENDS = ["sqlite", "postgresql"]
+
+
+def in_ci() -> bool:
+    return os.environ.get("CI", "").lower() in ("1", "true", "yes")
+
+
+@pytest.fixture(scope="session")
+def postgres_server() -> Iterator[PostgresServer]:
+    """One PostgreSQL server per test process (each xdist worker has its own)."""
+    try:
+        server = PostgresServer().start()
+    except PostgresUnavailableError as exc:
+        if in_ci():
+            pytest.fail(f"{exc}; CI must run the PostgreSQL tests (.ci/run installs it)")
+        pytest.skip(f"{exc}: the PostgreSQL variants of the service tests are skipped")
+    try:
+        yield server
+    finally:
+        server.stop()
+
+
+def _use_backend(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch
+                 ) -> Iterator[str | None]:
+    """Point ``CELLCAL_DATABASE_URL`` at a fresh PostgreSQL database, or unset it (SQLite)."""
+    if request.param == "sqlite":
+        monkeypatch.delenv("CELLCAL_DATABASE_URL", raising=False)
+        yield None
+        return
+    server: PostgresServer = request.getfixturevalue("postgres_server")
+    name = server.create_database()
+    monkeypatch.setenv("CELLCAL_DATABASE_URL", server.url(name))
+    try:
+        yield server.url(name)
+    finally:
+        monkeypatch.undo()
+        server.drop_database(name)
+
+
+@pytest.fixture(params=BACKENDS)
+def database(request: pytest.FixtureRequest,
+             monkeypatch: pytest.MonkeyPatch) -> Iterator[str | None]:
+    """The test's database: None for SQLite in the data directory, else a PostgreSQL URL."""
+    yield from _use_backend(request, monkeypatch)
+
+
+@pytest.fixture(scope="module", params=BACKENDS)
+def module_database(request: pytest.FixtureRequest) -> Iterator[str | None]:
+    """``database`` shared by a module's tests (for module-scoped service fixtures)."""
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        yield from _use_backend(request, monkeypatch)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """PostgreSQL variants not marked ``pg_fast`` join the slow suite."""
+    for item in items:
+        params = getattr(getattr(item, "callspec", None), "params", {})
+        on_postgres = "postgresql" in (params.get("database"), params.get("module_database"))
+        if on_postgres and item.get_closest_marker("pg_fast") is None:
+            item.add_marker(pytest.mark.slow)
