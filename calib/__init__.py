@@ -89,6 +89,7 @@ from calib.planning import (
     Plan,
     PlanOptions,
     cuts_board_at_corner,
+    look_at_view,
     plan_stations,
     rough_target_from_image,
 )
@@ -172,6 +173,7 @@ __all__ = [
     "image_corner_error",
     "invert",
     "leave_one_out",
+    "look_at_view",
     "make_transform",
     "matrix_from_ur_pose",
     "motion_residuals",

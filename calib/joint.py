@@ -376,6 +376,15 @@ class JointProblem(CachedProblem):
         The station blocks are eliminated by a Schur complement: with JᵀJ = [[U, W], [Wᵀ, V]]
         and V block diagonal (6 x 6 per station), cov = s² (U - Σ_i W_i V_i⁻¹ W_iᵀ)⁻¹.
         """
+        cov = np.zeros((len(GLOBAL_PARAMS), len(GLOBAL_PARAMS)))
+        cov[np.ix_(self.free, self.free)] = variance_factor * np.linalg.inv(
+            self.reduced_information(x))
+        return cov
+
+    def reduced_information(self, x: np.ndarray) -> np.ndarray:
+        """Fisher information (g, g) of the free globals with the station blocks eliminated:
+        ``U - Σ_i W_i V_i⁻¹ W_iᵀ`` (see :meth:`covariance`). It adds up over stations, which
+        is what lets a planner score one more station cheaply (``calib.viewselect``)."""
         J = self.jacobian(x)
         g = self.n_free_global
         JtJ = (J.T @ J).toarray()
@@ -384,10 +393,7 @@ class JointProblem(CachedProblem):
         W = JtJ[:g, g:].reshape(g, n, 6).transpose(1, 0, 2)  # (n, g, 6)
         V = JtJ[g:, g:].reshape(n, 6, n, 6)[np.arange(n), :, np.arange(n), :]  # (n, 6, 6)
         WV = W @ np.linalg.inv(V)
-        S = U - np.einsum("nij,nkj->ik", WV, W)
-        cov = np.zeros((len(GLOBAL_PARAMS), len(GLOBAL_PARAMS)))
-        cov[np.ix_(self.free, self.free)] = variance_factor * np.linalg.inv(S)
-        return cov
+        return U - np.einsum("nij,nkj->ik", WV, W)
 
     def result(self, sol: BlockSolution, stations: np.ndarray,
                rejected: tuple[tuple[int, str], ...]) -> JointResult:

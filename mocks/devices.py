@@ -38,6 +38,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from calib import (
     check_joint_positions,
     check_ur_pose,
+    matrix_from_ur_pose,
     perturb,
     ur_pose_from_matrix,
 )
@@ -156,6 +157,8 @@ class MockRobot(RobotSession):
         self._moving = False
         self._settled_at = 0.0
         self._faults: dict[str, float | None] = {}
+        #: Moves refused by the scene's safety box (``MockScene.workspace``), since creation.
+        self.refused_moves = 0
         for spec in faults:
             self.inject_fault(*parse_fault(spec, ROBOT_FAULTS))
 
@@ -163,14 +166,19 @@ class MockRobot(RobotSession):
 
     @classmethod
     def from_url(cls, url: str, *, config: Any = None) -> MockRobot:
-        """The robot of ``mock://`` over the scene ``config`` (a scene, a file, None: default)."""
+        """The robot of ``mock://`` over the scene ``config`` (a scene, a file, None: default);
+        a :class:`BlindMockRobot` for a blind scene."""
         check_mock_url(url, "robot")
-        return cls(read_scene(config))
+        scene = read_scene(config)
+        return BlindMockRobot(scene) if scene.blind else cls(scene)
 
     @classmethod
     def describe_cell(cls, config: Any) -> CellHints:
-        """``drivers.base.DescribesCell``: the scene's setup, board, hand-eye and camera."""
+        """``drivers.base.DescribesCell``: the scene's setup, board, hand-eye and camera; of a
+        blind scene only the setup and board, what a user configures on a real cell."""
         scene = read_scene(config)
+        if scene.blind:
+            return CellHints(setup=scene.setup, target=scene.nominal_target())
         return CellHints(setup=scene.setup, target=scene.nominal_target(),
                          hand_eye=scene.hand_eye_matrix,
                          K=scene.camera.k_matrix, dist=scene.camera.dist_coeffs)
@@ -348,6 +356,24 @@ class MockRobot(RobotSession):
                              "kinematic errors the scene defines; the robot was not moved.",
                              code="motion_failed") from None
 
+    def _check_safety_box(self, target: np.ndarray) -> None:
+        """Refuse a move ending outside the scene's safety box (the tcp, and eye-in-hand the
+        camera) with a protective stop, counted in ``refused_moves`` (call holding the lock)."""
+        box = self.scene.workspace
+        if box is None:
+            return
+        T = matrix_from_ur_pose(np.asarray(target, dtype=float))
+        points = {"tcp": T[:3, 3]}
+        if self.scene.setup == "eye_in_hand":
+            points["camera"] = (T @ self.scene.hand_eye_matrix)[:3, 3]
+        outside = [name for name, p in points.items() if not box.contains(p)]
+        if outside:
+            self.refused_moves += 1
+            self._protective_stop = True
+            raise ProtectiveStopError(
+                f"Protective stop: the move would take the {' and '.join(outside)} outside the "
+                "cell's safety box; the robot was not moved.")
+
     def _draw_noise(self) -> np.ndarray:
         """One reading-error transform (4, 4) from the scene's robot noise."""
         n = self.scene.noise
@@ -366,6 +392,7 @@ class MockRobot(RobotSession):
             if self._protective_stop:
                 raise ProtectiveStopError(
                     "The robot is in a protective stop. Unlock it, then retry.")
+            self._check_safety_box(target)
             self.workspace.check(target)
             kin_error = self._kinematic_error(target)
             fault, extra_settle = self._take_move_faults()
@@ -411,3 +438,11 @@ class MockRobot(RobotSession):
         raise RobotConnectionError(
             "Lost the connection to the mock robot during a move; the robot may have stopped "
             "anywhere along the path. Reconnect.")
+
+
+class BlindMockRobot(MockRobot):
+    """The robot of a blind scene (``MockScene.blind``): a mock robot that, like a real one,
+    offers no ground truth (not a ``drivers.base.GroundTruthSource``)."""
+
+    true_tcp_pose = None  # type: ignore[assignment]
+    true_board = None  # type: ignore[assignment]

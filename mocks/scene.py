@@ -184,8 +184,33 @@ class Kinematics(_Strict):
                          a=np.array(self.dh_a_mm) * 1e-3, alpha=np.deg2rad(self.dh_alpha_deg))
 
 
+class WorkspaceBox(_Strict):
+    """The cell's safety box: an axis-aligned box in the base frame, metres."""
+
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+
+    @model_validator(mode="after")
+    def _ordered(self) -> WorkspaceBox:
+        if not all(a < b for a, b in zip(self.lo, self.hi, strict=True)):
+            raise ValueError(f"workspace lo {list(self.lo)} must be below hi {list(self.hi)} "
+                             "on every axis")
+        return self
+
+    def contains(self, p: np.ndarray) -> bool:
+        """Whether the point ``p`` (3,) lies inside (borders included)."""
+        return bool(np.all(p >= self.lo) and np.all(p <= self.hi))
+
+
 class MockScene(_Strict):
-    """A complete simulated cell (see ``product.md``, "Mock scene")."""
+    """A complete simulated cell (see ``product.md``, "Mock scene").
+
+    ``blind`` hides the scene from the service as a real cell would: the backend describes
+    only what a user configures (the setup and the board), neither the hand-eye nor the camera,
+    and offers no ground truth. ``workspace`` is the cell's safety box: a move whose tcp, or
+    eye-in-hand whose camera, would end outside it is refused with a protective stop and
+    counted (``MockRobot.refused_moves``), so tests can assert that nothing ever tried.
+    """
 
     format: Literal["cellcal/scene@1"] = "cellcal/scene@1"
     camera: Camera
@@ -202,6 +227,11 @@ class MockScene(_Strict):
     start_tcp_pose: list[float] | None = Field(
         None, min_length=6, max_length=6,
         description="[x, y, z, rx, ry, rz]; default: camera square to the target centre")
+    blind: bool = Field(False, description="reveal only what a real cell reveals: no hand-eye, "
+                                           "camera or truth to the service")
+    workspace: WorkspaceBox | None = Field(
+        None, description="safety box, base frame (m): moves ending outside it (tcp, and the "
+                          "camera eye-in-hand) are refused with a protective stop")
 
     @field_validator("hand_eye", "target_pose")
     @classmethod

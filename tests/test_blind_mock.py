@@ -1,0 +1,105 @@
+"""The blind mock: a simulated cell that reveals only what a real one does, and refuses any
+move outside its safety box with a protective stop, counted (issue 17, item 7)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calib import board_from_target, make_transform, matrix_from_ur_pose, ur_pose_from_matrix
+from drivers import registry
+from drivers.base import GroundTruthSource
+from drivers.errors import ProtectiveStopError
+from mocks.blindcells import BOX_HALF_M, CornerCell, random_blind_scene
+from mocks.camera import MockCamera
+from mocks.devices import BlindMockRobot, MockRobot
+from mocks.scene import default_scene
+
+
+def _opened(scene):
+    robot = MockRobot.from_url("mock://", config=scene)
+    robot.connect()
+    return robot
+
+
+def test_blind_scene_describes_only_what_a_user_configures():
+    scene = random_blind_scene(0, "eye_in_hand")
+    hints = registry.describe_cell("mock://", scene)
+    assert hints.setup == "eye_in_hand"
+    assert hints.target == scene.nominal_target()
+    assert hints.hand_eye is None and hints.K is None and hints.dist is None
+    robot = _opened(scene)
+    assert isinstance(robot, BlindMockRobot)
+    assert not isinstance(robot, GroundTruthSource)
+    # the informed mock still knows its scene and its truth
+    informed = registry.describe_cell("mock://", default_scene())
+    assert informed.hand_eye is not None and informed.K is not None
+    assert isinstance(_opened(default_scene()), GroundTruthSource)
+
+
+@pytest.mark.parametrize("setup", ["eye_in_hand", "eye_to_hand"])
+def test_move_outside_the_box_is_a_counted_protective_stop(setup):
+    scene = random_blind_scene(1, setup)
+    robot = _opened(scene)
+    start = robot.tcp_pose()
+    inside = start.copy()
+    inside[2] += 0.05
+    robot.move_linear(inside)
+    assert robot.refused_moves == 0
+    outside = start.copy()
+    outside[0] += BOX_HALF_M + 0.05
+    with pytest.raises(ProtectiveStopError, match="safety box"):
+        robot.move_linear(outside)
+    assert robot.refused_moves == 1
+    assert robot.status().protective_stop
+    assert np.allclose(robot.tcp_pose()[:3], inside[:3], atol=1e-3)  # not moved
+
+
+def test_eye_in_hand_camera_outside_the_box_is_refused():
+    scene = random_blind_scene(2, "eye_in_hand")
+    robot = _opened(scene)
+    P0 = matrix_from_ur_pose(robot.tcp_pose())
+    cam = (P0 @ scene.hand_eye_matrix)[:3, 3]
+    lo = np.array(scene.workspace.lo)
+    # put the tcp just inside the box wall nearest the camera's side so the camera leaves it
+    axis = int(np.argmax(np.abs(cam - P0[:3, 3])))
+    sign = np.sign(cam[axis] - P0[:3, 3][axis])
+    P = P0.copy()
+    wall = scene.workspace.hi[axis] if sign > 0 else lo[axis]
+    P[axis, 3] = wall - sign * 0.005
+    assert scene.workspace.contains(P[:3, 3])
+    with pytest.raises(ProtectiveStopError, match="camera"):
+        robot.move_linear(ur_pose_from_matrix(P))
+    assert robot.refused_moves == 1
+
+
+@pytest.mark.parametrize("setup", ["eye_in_hand", "eye_to_hand"])
+def test_random_blind_cells_show_the_board_at_the_start(setup):
+    for seed in (3, 4):
+        scene = random_blind_scene(seed, setup)
+        f = scene.camera.k_matrix[0, 0]
+        hfov = np.degrees(2 * np.arctan(scene.camera.image_size[0] / 2 / f))
+        assert 50 <= hfov <= 90
+        assert abs(scene.camera.dist_coeffs[0]) <= 0.3
+        offset = np.linalg.norm((scene.hand_eye_matrix if setup == "eye_in_hand"
+                                 else scene.target_pose_matrix)[:3, 3])
+        assert 0.05 <= offset <= 0.20
+        robot = _opened(scene)
+        camera = MockCamera.from_url("mock://", robot=robot)
+        camera.open()
+        assert board_from_target(scene.nominal_target()).detect(camera.grab()).ok
+
+
+def test_corner_cell_counts_refusals_and_reports_lost_boards():
+    scene = random_blind_scene(5, "eye_in_hand")
+    cell = CornerCell(scene)
+    shot = cell.shoot(cell.start())
+    assert shot.corners is not None and len(shot.corners) == len(shot.ids)
+    away = cell.start() @ make_transform(np.eye(3), [0.0, 0.0, -0.0])
+    away[:3, :3] = away[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # camera turned away
+    assert cell.shoot(away).reason is not None
+    far = cell.start().copy()
+    far[0, 3] += 1.0
+    with pytest.raises(ValueError, match="safety box"):
+        cell.shoot(far)
+    assert cell.refused == 1

@@ -1,0 +1,91 @@
+"""Cold start: the cell estimated from a few small motions with no guess, wrong guesses found
+out, and the adaptive plan driven to a calibration on blind corner-level cells (issue 17)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from calib import (
+    PipelineOptions,
+    StationInputs,
+    board_from_target,
+    calibrate_stations,
+    make_transform,
+    pose_error,
+    ur_pose_from_matrix,
+)
+from calib.coldstart import Guess, View, bootstrap
+from calib.explorer import ColdStart
+from calib.viewselect import Scene
+from mocks.blindcells import CornerCell, random_blind_scene
+
+
+def _explored(scene, cell):
+    """Views at the start and after 5° tool rotations about x, y, -x, -y."""
+    views = []
+    for axis, sign in ((0, 0.0), (0, 1.0), (1, 1.0), (0, -1.0), (1, -1.0)):
+        rotvec = np.zeros(3)
+        rotvec[axis] = sign * np.deg2rad(5.0)
+        shot = cell.shoot(cell.start() @ make_transform(Rotation.from_rotvec(rotvec).as_matrix(),
+                                                        np.zeros(3)))
+        if shot.corners is not None:
+            views.append(View(shot.T_base_tcp, shot.corners, shot.ids))
+    return views
+
+
+@pytest.mark.parametrize(("setup", "seed"), [("eye_in_hand", 0), ("eye_to_hand", 3)])
+def test_bootstrap_finds_focal_length_and_hand_eye_without_a_guess(setup, seed):
+    scene = random_blind_scene(seed, setup)
+    cell = CornerCell(scene)
+    board = board_from_target(scene.nominal_target())
+    est = bootstrap(_explored(scene, cell), board, scene.camera.image_size, setup)
+    # a start for planning, refined as stations arrive: within 10 % and 2°
+    assert est.cell.K[0, 0] == pytest.approx(scene.camera.k_matrix[0, 0], rel=0.1)
+    rot, _ = pose_error(est.cell.hand_eye, scene.hand_eye_matrix)
+    assert np.degrees(rot) < 2.0
+    assert est.rejected_guess is None
+
+
+def test_a_wrong_guess_is_detected_and_ignored():
+    scene = random_blind_scene(0, "eye_in_hand")
+    cell = CornerCell(scene)
+    board = board_from_target(scene.nominal_target())
+    views = _explored(scene, cell)
+    flipped = scene.hand_eye_matrix @ make_transform(
+        Rotation.from_euler("x", 180, degrees=True).as_matrix(), np.zeros(3))
+    wrong = Guess(hand_eye=flipped, focal_px=2.0 * scene.camera.k_matrix[0, 0])
+    est = bootstrap(views, board, scene.camera.image_size, "eye_in_hand", wrong)
+    assert est.rejected_guess is not None and "ignored" in est.rejected_guess
+    assert est.cell.K[0, 0] == pytest.approx(scene.camera.k_matrix[0, 0], rel=0.1)
+    right = Guess(hand_eye=scene.hand_eye_matrix, focal_px=scene.camera.k_matrix[0, 0])
+    assert bootstrap(views, board, scene.camera.image_size, "eye_in_hand",
+                     right).rejected_guess is None
+
+
+@pytest.mark.parametrize(("setup", "seed"), [("eye_in_hand", 2), ("eye_to_hand", 1)])
+def test_cold_start_plan_calibrates_a_blind_cell_inside_its_box(setup, seed):
+    scene = random_blind_scene(seed, setup)
+    cell = CornerCell(scene)
+    board = board_from_target(scene.nominal_target())
+    box = (np.array(scene.workspace.lo), np.array(scene.workspace.hi))
+    plan = ColdStart(Scene(board, setup, scene.camera.image_size, box,
+                           (np.deg2rad(0.05), 0.5e-3)), cell.start(), seed=seed)
+    shots, kinds = [], []
+    while len(shots) < 18:
+        proposal = plan.propose()
+        assert proposal is not None
+        kinds.append(proposal.kind)
+        shot = cell.shoot(proposal.T_base_tcp)
+        view = None if shot.corners is None else View(shot.T_base_tcp, shot.corners, shot.ids)
+        plan.record(proposal.T_base_tcp, view, shot.reason)
+        if view is not None:
+            shots.append(shot)
+    assert cell.refused == 0
+    assert plan.log.explore_moves <= 8 and "station" in kinds
+    result = calibrate_stations(StationInputs(
+        [s.corners for s in shots], [ur_pose_from_matrix(s.T_base_tcp) for s in shots],
+        image_size=scene.camera.image_size), board, PipelineOptions(setup=setup))
+    rot, trans = pose_error(result.hand_eye, scene.hand_eye_matrix)
+    assert np.degrees(rot) < 0.1 and trans < 1e-3
