@@ -34,7 +34,7 @@ from service.models import Calibration, Topic
 from service.schemas import CalibrationOptions
 from service.settings import Settings
 from service.station_rows import captured_station_set
-from service.workers import CalibrationPool, report_progress
+from service.workers import WorkerPool, report_progress
 
 log = logging.getLogger("cellcal.service")
 
@@ -46,7 +46,7 @@ class Calibrations:
         self.settings = settings
         self.db = db
         self.events = events
-        self._pool: CalibrationPool | None = None
+        self._pool: WorkerPool | None = None
         self._pool_lock = threading.Lock()
         self._pending = 0  # solves queued or running, under _pool_lock
         self._ending: dict[str, _Ending] = {}  # solves not yet stored, under _events_lock
@@ -114,7 +114,7 @@ class Calibrations:
     def _submit(self, payload: dict[str, Any]) -> cf.Future[dict[str, Any]]:
         with self._pool_lock:
             if self._pool is None:
-                self._pool = CalibrationPool(self.settings.calibration_workers,
+                self._pool = WorkerPool(self.settings.calibration_workers,
                                              self._progress)
             return self._pool.submit(solve_calibration, payload)
 

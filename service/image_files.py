@@ -29,8 +29,8 @@ import numpy as np
 
 from calib import Detection
 
-#: Default largest image, width x height (a 50 MP sensor).
-DEFAULT_MAX_PIXELS = 50_000_000
+#: Default largest image, width x height (25 MP; the service's CELLCAL_MAX_IMAGE_PIXELS).
+DEFAULT_MAX_PIXELS = 25_000_000
 #: Largest file per allowed pixel: 8-bit RGB stored uncompressed.
 MAX_FILE_BYTES_PER_PIXEL = 3
 

@@ -59,6 +59,7 @@ class Runtime:
         ``failed``), and cancel queued calibrations."""
         self.motion.shutdown(timeout)
         self.calibrations.shutdown()
+        self.runs.external.images.shutdown()
 
     def close(self) -> None:
         """Stop the jobs, close the devices and the database."""

@@ -84,6 +84,16 @@ class Settings(BaseSettings):
     database_retry_s: Annotated[float, Field(ge=0.0)] = Field(
         60.0, description="how long a capture run retries a failing database write before it "
                           "is interrupted (resume it once the database is back)")
+    max_image_pixels: Annotated[int, Field(ge=10_000)] = Field(
+        25_000_000, description="largest posted image or camera frame, width x height: a "
+                                "posted image beyond is answered 413 from its header, before "
+                                "it is decoded")
+    image_worker_memory_mb: Annotated[int, Field(ge=256)] = Field(
+        3072, description="address space of the process that decodes a posted image and "
+                          "searches it for the board; an image needing more is answered 413")
+    image_cpu_s: Annotated[float, Field(gt=0.0)] = Field(
+        60.0, description="CPU seconds the board search of one posted image may take (422 "
+                          "image_too_complex beyond)")
     settle_timeout_s: Annotated[float, Field(gt=0.0)] = 5.0
     grab_timeout_s: Annotated[float, Field(gt=0.0)] = 2.0
     move_speed: Annotated[float, Field(gt=0.0, le=1.0)] = 0.25

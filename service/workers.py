@@ -1,4 +1,5 @@
-"""Calibration worker processes that never outlive the service, however it dies.
+"""Worker processes that never outlive the service, however it dies: calibration solves
+(``service.calibrations``) and posted images (``service.image_worker``).
 
 Solves are CPU-bound, so they run in a ``ProcessPoolExecutor`` of spawned workers. After a
 ``kill -9`` of the service nothing told those workers to stop: each (~190 MB) waited on its
@@ -7,11 +8,14 @@ holder of its pipe has gone, stayed with them (issue 11). Each worker therefore
 
 * asks the kernel for ``SIGKILL`` when its parent goes (Linux ``PR_SET_PDEATHSIG``). The
   kernel means the parent *thread*, so every worker is spawned from one thread that lives as
-  long as the pool (:class:`CalibrationPool`), never from a request thread that may end;
+  long as the pool (:class:`WorkerPool`), never from a request thread that may end;
 * watches its parent id as well (other systems, and the moment between spawn and ``prctl``):
   once it changes the parent is gone, and the worker exits.
 
 With the workers gone, the resource tracker sees the end of its pipe and exits too.
+
+A pool may cap each worker's address space (``RLIMIT_AS``): an allocation beyond it fails in
+the worker (``MemoryError``, OpenCV's "Insufficient memory") instead of taking the host.
 
 A solve reports its progress with :func:`report_progress`: the message travels over the pool's
 pipe to the service process, where a reader thread hands it to the pool's ``on_progress``.
@@ -24,6 +28,7 @@ import contextlib
 import logging
 import multiprocessing
 import os
+import resource
 import signal
 import threading
 import time
@@ -64,10 +69,13 @@ def report_progress(message: Any) -> None:
         _progress.send.send(message)
 
 
-def _init_worker(parent_pid: int, progress: _ProgressPipe) -> None:
-    """Pool initializer: keep the progress pipe, and end with the service."""
+def _init_worker(parent_pid: int, progress: _ProgressPipe, memory_bytes: int | None) -> None:
+    """Pool initializer: keep the progress pipe, cap the address space, end with the
+    service."""
     global _progress
     _progress = progress
+    if memory_bytes is not None:
+        resource.setrlimit(resource.RLIMIT_AS, (memory_bytes, memory_bytes))
     _exit_with_parent(parent_pid)
 
 
@@ -84,20 +92,22 @@ def _watch_parent(parent_pid: int) -> None:
     os._exit(1)
 
 
-class CalibrationPool:
-    """A process pool whose workers exit when the service process does.
+class WorkerPool:
+    """A process pool whose workers exit when the service process does, each with at most
+    ``memory_bytes`` of address space if given.
 
     ``submit`` hands the call to one long-lived thread, which is where the pool spawns its
     workers (``ProcessPoolExecutor`` starts them in the submitting thread), so the parent-death
     signal is tied to a thread that ends only with :meth:`shutdown` or the process.
     """
 
-    def __init__(self, workers: int, on_progress: Callable[[Any], None]) -> None:
+    def __init__(self, workers: int, on_progress: Callable[[Any], None], *,
+                 memory_bytes: int | None = None) -> None:
         context = multiprocessing.get_context("spawn")
         self._receive, send = context.Pipe(duplex=False)
         self._pool = cf.ProcessPoolExecutor(
             workers, mp_context=context, initializer=_init_worker,
-            initargs=(os.getpid(), _ProgressPipe(send, context.Lock())))
+            initargs=(os.getpid(), _ProgressPipe(send, context.Lock()), memory_bytes))
         self._spawner = cf.ThreadPoolExecutor(1, thread_name_prefix="calibration-spawner")
         self._stop = threading.Event()
         self._reader = threading.Thread(target=self._read_progress, args=(on_progress,),

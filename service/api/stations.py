@@ -54,8 +54,11 @@ def list_stations(run_id: str, session: SessionDep) -> list[StationPublic]:
 
 @router.post("", status_code=status.HTTP_201_CREATED, responses={
     409: {"description": "not an external run, or it does not accept stations now"},
-    413: {"description": "the upload is larger than CELLCAL_MAX_BODY_BYTES"},
-    422: {"description": "malformed pose or joints, or an image without its pose"},
+    413: {"description": "the upload is larger than CELLCAL_MAX_BODY_BYTES, or the image "
+                         "has more pixels than CELLCAL_MAX_IMAGE_PIXELS (from its header) or "
+                         "needs more memory than CELLCAL_IMAGE_WORKER_MEMORY_MB"},
+    422: {"description": "malformed pose or joints, an image without its pose, or an image "
+                         "whose board search passed CELLCAL_IMAGE_CPU_S"},
     503: {"description": "the camera or robot the service had to read failed"}})
 def post_station(
         run_id: str, runs: RunsDep,

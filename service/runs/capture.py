@@ -309,18 +309,17 @@ class Capture:
 
     # ---- stations a cell controller posts (service.runs.external) -------------------------
 
-    def develop_posted(self, index: int, pose: list[float], image: np.ndarray | None, *,
+    def develop_posted(self, index: int, pose: list[float], taken: Station | None, *,
                        joints: list[float] | None = None,
                        problem: tuple[str, str] | None = None) -> bool:
         """Detect and store a posted station as station ``index`` exactly as the worker does
         a captured one (``_develop``), without the retry: the controller took the image.
-        ``problem`` (detail, code) says why there is no usable image. True if stored."""
+        ``taken`` holds the image (and the board found in it already, by
+        ``service.image_worker``); ``problem`` (detail, code) says why there is none. True if
+        stored."""
         with self.db.session() as s:
             self.board = board_from_target(run_target(store.get_run(s, run_id=self.run_id)))
         detail, code = problem or (None, None)
-        taken = None if image is None else Station(
-            f"{index:03d}", T_base_tcp=np.asarray(pose, dtype=float), image=image,
-            image_size=(image.shape[1], image.shape[0]))
         return self._develop(_Shot(index, pose, ATTEMPTS, taken, detail, code,
                                    joints)) == _STORED
 
@@ -330,17 +329,33 @@ class Capture:
         """The worker's part of a station: detect, write the PNG and commit (``_STORED``),
         or ``_RETRY`` for a first detection failure, or ``_LOST`` if the run is not ours."""
         code, taken = shot.error_code, shot.taken
+        if taken is not None and (too_many := self._too_many_pixels(taken)) is not None:
+            shot, taken = replace(shot, error=too_many, error_code="image_too_large"), None
+            code = shot.error_code
         if taken is None or not isinstance(taken.image, np.ndarray):
             station = Station(f"{shot.index:03d}", rejected=shot.error or "No image.")
         else:
             assert self.board is not None  # read with the run
-            det = self.board.detect(taken.image)
+            det = (self.board.detect(taken.image) if taken.detection is None
+                   else taken.detection)
             if not det.ok and shot.attempt < ATTEMPTS:
                 return _RETRY
             station = replace(taken, detection=det, rejected=None if det.ok
                               else f"{self.board.kind.capitalize()} not found: {det.reason}.")
             code = None if det.ok else "not_detected"
         return _STORED if self._store(shot, station, code) else _LOST
+
+    def _too_many_pixels(self, taken: Station) -> str | None:
+        """Why a camera frame is too large to search, or None: a camera set to a larger
+        resolution than ``max_image_pixels`` would cost the search gigabytes."""
+        if not isinstance(taken.image, np.ndarray):
+            return None
+        height, width = taken.image.shape[:2]
+        limit = self.settings.max_image_pixels
+        if width * height <= limit:
+            return None
+        return (f"The camera frame is {width}x{height} = {width * height / 1e6:.0f} MP, more "
+                f"than the {limit / 1e6:g} MP allowed (CELLCAL_MAX_IMAGE_PIXELS).")
 
     def _wanted(self) -> bool:
         """True while the service runs and this thread owns the run (worth another try)."""

@@ -8,9 +8,12 @@ and grabs. The board is detected and the station stored by the capture loop's ow
 (``Capture.develop_posted``), so posted stations are stored, streamed and calibrated exactly
 like captured ones; the answer says at once whether the board was found and why not.
 
-An image that cannot be used (not PNG or JPEG, corrupt, truncated, too many pixels) becomes a
-skipped station with the reason, like a failed grab in the capture loop. Stations take the
-next free index; posts to one run are stored one at a time.
+An image is bounded before it is decoded, and decoded and searched in a memory-limited
+worker process (``service.image_worker``): more pixels than allowed is 413
+``image_too_large`` at once, and nothing is stored. An image that cannot be used otherwise
+(not PNG or JPEG, corrupt, truncated) becomes a skipped station with the reason, like a failed
+grab in the capture loop. Stations take the next free index; posts to one run are developed
+and stored one at a time, posts to different runs side by side.
 """
 
 from __future__ import annotations
@@ -20,15 +23,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib import check_joint_positions, check_ur_pose
+from calib import Station as CalibStation
+from calib import Target, check_joint_positions, check_ur_pose
 from drivers.capture import grab_at_rest
 from service import store
 from service.errors import ConflictError, UnprocessableError
 from service.events import EventBus
-from service.image_files import DEFAULT_MAX_PIXELS, ImageFileError, decode_image_bytes
+from service.image_worker import ImageWorkers, check_pixels
 from service.models import Run, Station
 from service.motion import Motion
 from service.runs.capture import Capture
+from service.station_rows import run_target
 
 
 @dataclass(frozen=True)
@@ -51,22 +56,39 @@ class ExternalStations:
     def __init__(self, motion: Motion, events: EventBus) -> None:
         self.motion = motion
         self.events = events
-        self._lock = threading.Lock()
+        #: Decodes and searches posted images.
+        self.images = ImageWorkers(motion.settings)
+        self._locks: dict[str, threading.Lock] = {}  # run id -> its posts' lock
+        self._locks_lock = threading.Lock()
 
     def add(self, run_id: str, posted: PostedStation) -> Station:
         """Store one posted station of an external run that accepts stations; the row."""
         pose, joints = _checked(posted)
+        if posted.image is not None:  # before anything else: a refusal costs nothing
+            check_pixels(posted.image, self.motion.settings.max_image_pixels)
         with self.motion.db.session() as s:
             run = store.get_run(s, run_id=run_id)
             _check_accepts(run)
-            token = run.owner
-        image, problem = None, None
+            token, target = run.owner, run_target(run)
+        with self._run_lock(run_id):
+            return self._add(run_id, token, target,
+                             PostedStation(pose=pose, joints=joints, image=posted.image))
+
+    def _run_lock(self, run_id: str) -> threading.Lock:
+        with self._locks_lock:
+            return self._locks.setdefault(run_id, threading.Lock())
+
+    def _add(self, run_id: str, token: str | None, target: Target,
+             posted: PostedStation) -> Station:
+        """Develop and store one station of ``run_id`` (``posted``: pose and joints checked;
+        the caller holds the run's lock)."""
+        pose, joints = posted.pose, posted.joints
+        image, detection, problem = None, None, None
         if posted.image is not None:
-            try:
-                image = decode_image_bytes(posted.image, "image",
-                                           max_pixels=DEFAULT_MAX_PIXELS)
-            except ImageFileError as exc:
-                problem = (f"{exc}.", "image_unreadable")
+            developed = self.images.develop(posted.image, target)
+            image, detection = developed.image, developed.detection
+            if developed.problem is not None:
+                problem = (developed.problem, "image_unreadable")
         elif pose is not None:
             _, camera = self.motion.devices.get()
             image = camera.grab(timeout=self.motion.settings.grab_timeout_s)
@@ -80,10 +102,12 @@ class ExternalStations:
                 joints = [float(v) for v in robot.joint_positions()]
         assert pose is not None and token is not None
         capture = Capture(self.motion, self.events, run_id=run_id, token=token)
-        with self._lock:
-            with self.motion.db.session() as s:
-                index = store.next_station_index(s, run_id=run_id)
-            stored = capture.develop_posted(index, pose, image, joints=joints, problem=problem)
+        with self.motion.db.session() as s:
+            index = store.next_station_index(s, run_id=run_id)
+        taken = None if image is None else CalibStation(
+            f"{index:03d}", T_base_tcp=np.asarray(pose, dtype=float), image=image,
+            image_size=(image.shape[1], image.shape[0]), detection=detection)
+        stored = capture.develop_posted(index, pose, taken, joints=joints, problem=problem)
         if not stored:
             raise ConflictError(f"Run {run_id} stopped accepting stations meanwhile; the "
                                 "station was not stored.", code="invalid_state")
