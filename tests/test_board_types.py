@@ -9,6 +9,7 @@ import inspect
 from pathlib import Path
 
 import pytest
+from pydantic import ValidationError
 
 import calib.boards.charuco
 import calib.boards.checkerboard
@@ -72,3 +73,50 @@ def test_no_board_type_is_named_outside_calib(package: str) -> None:
     named = {str(p.relative_to(ROOT)): sorted(_names_used(p) & BOARD_NAMES)
              for p in (ROOT / package).rglob("*.py")}
     assert {p: n for p, n in named.items() if n} == {}
+
+
+#: Board configurations no cell has (issue 22, row 11): sizes outside 1 mm – 1 m, a marker
+#: not smaller than its square, corner counts no board has.
+BAD_TARGETS = [
+    {"inner_corners": [9, 6], "square_size_m": 1e-320},
+    {"inner_corners": [9, 6], "square_size_m": 0.0009},
+    {"inner_corners": [9, 6], "square_size_m": 1.5},
+    {"inner_corners": [9, 6], "square_size_m": -0.025},
+    {"inner_corners": [9, 6], "square_size_m": 0},
+    {"inner_corners": [1, 6], "square_size_m": 0.025},
+    {"inner_corners": [9, 1000], "square_size_m": 0.025},
+    {"inner_corners": [9, 6, 4], "square_size_m": 0.025},
+    {**EXAMPLES["charuco"], "marker_size_m": 0.04},
+    {**EXAMPLES["charuco"], "marker_size_m": 0.05},
+    {**EXAMPLES["charuco"], "marker_size_m": 1e-320},
+    {**EXAMPLES["charuco"], "square_size_m": 1e-320, "marker_size_m": 1e-321},
+    {**EXAMPLES["charuco"], "square_size_m": 2.0, "marker_size_m": 1.5},
+    {**EXAMPLES["charuco"], "squares": [2, 6]},
+    {**EXAMPLES["charuco"], "squares": [8, 6000]},
+]
+
+
+@pytest.mark.parametrize("bad", BAD_TARGETS)
+def test_each_boundary_refuses_a_board_no_cell_has(bad: dict[str, object]) -> None:
+    with pytest.raises(ValidationError):
+        TargetAdapter.validate_python(bad)
+    with pytest.raises(ValidationError):
+        RunCreate.model_validate({"stations": 5, "target": bad})
+    with pytest.raises(ValidationError):
+        StationSet.model_validate({
+            "format": "cellcal/stations@1", "target": bad,
+            "stations": [{"id": "000", "tcp_pose": [0.4, 0, 0.5, 3.1, 0, 0],
+                          "image": "000.png"}]})
+    with pytest.raises(ValidationError):
+        Settings(data_dir=ROOT, target=bad)
+    if "inner_corners" in bad:  # the older pair of settings
+        with pytest.raises(ValidationError):
+            Settings(data_dir=ROOT, target_inner_corners=bad["inner_corners"],
+                     target_square_size_m=bad["square_size_m"])
+
+
+@pytest.mark.parametrize("square_size_m", [1e-3, 1.0])
+def test_the_bounds_themselves_are_boards(square_size_m: float) -> None:
+    target = TargetAdapter.validate_python({"inner_corners": [9, 6],
+                                            "square_size_m": square_size_m})
+    assert board_from_target(target).kind == "checkerboard"

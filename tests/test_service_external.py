@@ -274,3 +274,40 @@ def test_external_run_takes_no_plan(client: TestClient, body: dict[str, Any]) ->
 def test_unknown_run_is_404(client: TestClient) -> None:
     assert post(client, "nope").status_code == 404
     assert client.post("/runs/nope/finish").status_code == 404
+
+
+@pytest.mark.timeout(60)
+def test_max_stations_holds_for_external_runs(tmp_path: Path) -> None:
+    """Issue 22, row 6: a run takes at most CELLCAL_MAX_STATIONS stations, posted ones too;
+    the one beyond is refused before its image is read, and nothing more is stored."""
+    with TestClient(create_app(settings(tmp_path, max_stations=3))) as client:
+        client.headers.update(AUTH)
+        run_id = external_run(client)
+        pose = robot_pose(client)
+        for _ in range(3):
+            assert post(client, run_id, pose=pose).status_code == 201
+        for image in (None, b"not an image", png(np.zeros((480, 640), np.uint8))):
+            r = post(client, run_id, pose=pose, image=image)
+            assert r.status_code == 409, r.text
+            assert r.json()["code"] == "too_many_stations"
+            assert "CELLCAL_MAX_STATIONS=3" in r.json()["detail"]
+        assert post(client, run_id).status_code == 409
+        run = client.get(f"/runs/{run_id}").json()
+        assert run["stations_captured"] + run["stations_skipped"] == 3
+        assert len(client.get(f"/runs/{run_id}/stations").json()) == 3
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("target", [
+    {"inner_corners": [9, 6], "square_size_m": 1e-320},
+    {"type": "charuco", "squares": [8, 6], "square_size_m": 0.04, "marker_size_m": 0.04,
+     "dictionary": "DICT_5X5_100"},
+])
+@pytest.mark.parametrize("mode", [{"mode": "external"}, {"stations": 5}])
+def test_a_board_no_cell_has_is_422_at_creation(client: TestClient, target: dict[str, Any],
+                                                mode: dict[str, Any]) -> None:
+    """Issue 22, row 11: refused when the run is created, not by a failing solve later."""
+    r = client.post("/runs", json={**mode, "target": target})
+    assert r.status_code == 422, r.text
+    assert r.json()["code"] == "invalid_request"
+    assert client.get("/runs").json() == []

@@ -10,8 +10,12 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from calib.boards.detection import Detection
 
-#: A nominal length of a board configuration (metres).
-TargetLength = Annotated[float, Field(gt=0.0, lt=1.0, allow_inf_nan=False)]
+#: A nominal length of a board configuration (metres): 1 mm to 1 m, the boards that are
+#: printed or milled for a robot cell (a length beyond either end is a unit mistake, and a
+#: subnormal one broke the solver long after the board was accepted).
+MIN_TARGET_LENGTH_M, MAX_TARGET_LENGTH_M = 1e-3, 1.0
+TargetLength = Annotated[float, Field(ge=MIN_TARGET_LENGTH_M, le=MAX_TARGET_LENGTH_M,
+                                      allow_inf_nan=False)]
 
 
 @runtime_checkable

@@ -13,7 +13,8 @@ worker process (``service.image_worker``): more pixels than allowed is 413
 ``image_too_large`` at once, and nothing is stored. An image that cannot be used otherwise
 (not PNG or JPEG, corrupt, truncated) becomes a skipped station with the reason, like a failed
 grab in the capture loop. Stations take the next free index; posts to one run are developed
-and stored one at a time, posts to different runs side by side.
+and stored one at a time, posts to different runs side by side. A run takes at most
+``max_stations`` stations (409 ``too_many_stations`` beyond, before the image is developed).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import threading
 from dataclasses import dataclass
 
 import numpy as np
+from sqlalchemy.orm import Session
 
 from calib import Station as CalibStation
 from calib import Target, check_joint_positions, check_ur_pose
@@ -69,6 +71,7 @@ class ExternalStations:
         with self.motion.db.session() as s:
             run = store.get_run(s, run_id=run_id)
             _check_accepts(run)
+            _check_room(s, run_id, self.motion.settings.max_stations)  # before the image
             token, target = run.owner, run_target(run)
         with self._run_lock(run_id):
             return self._add(run_id, token, target,
@@ -103,7 +106,7 @@ class ExternalStations:
         assert pose is not None and token is not None
         capture = Capture(self.motion, self.events, run_id=run_id, token=token)
         with self.motion.db.session() as s:
-            index = store.next_station_index(s, run_id=run_id)
+            index = _check_room(s, run_id, self.motion.settings.max_stations)
         taken = None if image is None else CalibStation(
             f"{index:03d}", T_base_tcp=np.asarray(pose, dtype=float), image=image,
             image_size=(image.shape[1], image.shape[0]), detection=detection)
@@ -129,6 +132,17 @@ def _checked(posted: PostedStation) -> tuple[list[float] | None, list[float] | N
         raise UnprocessableError(str(exc), code="invalid_pose") from None
     return (None if posted.pose is None else [float(v) for v in posted.pose],
             None if posted.joints is None else [float(v) for v in posted.joints])
+
+
+def _check_room(s: Session, run_id: str, limit: int) -> int:
+    """The index of the run's next station; 409 ``too_many_stations`` if the run already has
+    ``limit`` (``max_stations``), as a robot run may not plan more."""
+    index = store.next_station_index(s, run_id=run_id)
+    if index >= limit:
+        raise ConflictError(f"Run {run_id} has {index} stations, the most a run may have "
+                            f"(CELLCAL_MAX_STATIONS={limit}); finish it and calibrate, or "
+                            "start another run.", code="too_many_stations")
+    return index
 
 
 def _check_accepts(run: Run) -> None:
