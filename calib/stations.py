@@ -61,7 +61,9 @@ class Station:
     ``image_size`` (width, height) when known.
     ``detection``: what the board detection saw (None until detected). ``T_cam_target``: the
     measured camera pose (6,) of a pose-only station. ``rejected``: why the station cannot be
-    used, None when it can.
+    used, None when it can. ``freshness``: how the capture made sure the image was exposed
+    after the robot had settled (the camera's account, e.g. ``drivers.freshness``); None when
+    unknown (an image that came from elsewhere).
     """
 
     id: str
@@ -71,6 +73,7 @@ class Station:
     detection: Detection | None = None
     T_cam_target: np.ndarray | None = None
     rejected: str | None = None
+    freshness: str | None = None
 
 
 @dataclass(frozen=True)

@@ -106,6 +106,14 @@ class Camera(Protocol):
         """Request a resolution and/or exposure (seconds); unsupported requests raise."""
 
 
+@runtime_checkable
+class ReportsFreshness(Protocol):
+    """Capability of a camera: it says how its last grabbed frame was made fresh (stale
+    buffered or late frames skipped), one line kept with the captured station."""
+
+    freshness: str | None
+
+
 @dataclass(frozen=True)
 class CellHints:
     """What is known roughly about a cell before it is calibrated (None: not known).

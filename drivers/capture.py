@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib import Station, check_ur_pose, matrix_from_ur_pose, pose_error
-from drivers.base import Camera, Robot
+from drivers.base import Camera, ReportsFreshness, Robot
 from drivers.errors import RobotError
 
 
@@ -30,12 +30,13 @@ class CapturedStation:
     settled_at: float  # robot at rest
     grabbed_at: float  # frame returned by the camera
     pose_read_at: float  # tcp_pose read
+    freshness: str | None = None  # how the camera made sure the frame is fresh, if it says
 
     def station(self, station_id: str) -> Station:
         """The one station model of this capture (the pixels as its image)."""
         height, width = self.image.shape[:2]
         return Station(id=station_id, T_base_tcp=self.tcp_pose, image=self.image,
-                       image_size=(width, height))
+                       image_size=(width, height), freshness=self.freshness)
 
 
 @dataclass(frozen=True)
@@ -72,7 +73,8 @@ def capture_station(robot: Robot, camera: Camera, tcp_target: np.ndarray,
                          max_drift=options.max_drift)
     return CapturedStation(image=still.image, tcp_pose=still.tcp_pose, target_tcp_pose=target,
                            moved_at=moved_at, settled_at=settled_at,
-                           grabbed_at=still.grabbed_at, pose_read_at=still.pose_read_at)
+                           grabbed_at=still.grabbed_at, pose_read_at=still.pose_read_at,
+                           freshness=still.freshness)
 
 
 @dataclass(frozen=True)
@@ -83,6 +85,7 @@ class Still:
     tcp_pose: np.ndarray  # shape (6,), T_base_tcp read after the grab
     grabbed_at: float  # frame returned by the camera, time.time()
     pose_read_at: float  # tcp_pose read, time.time()
+    freshness: str | None = None  # the camera's ``ReportsFreshness.freshness`` of the frame
 
 
 def grab_at_rest(robot: Robot, camera: Camera, *, grab_timeout: float = 2.0,
@@ -106,4 +109,5 @@ def grab_at_rest(robot: Robot, camera: Camera, *, grab_timeout: float = 2.0,
             "image was taken; it had not settled. Increase the settle time and retry.",
             code="moved_during_grab")
     return Still(image=image, tcp_pose=np.asarray(after, dtype=float), grabbed_at=grabbed_at,
-                 pose_read_at=pose_read_at)
+                 pose_read_at=pose_read_at,
+                 freshness=camera.freshness if isinstance(camera, ReportsFreshness) else None)

@@ -1,9 +1,12 @@
-"""Cameras and recordings through ``cv2.VideoCapture``: ``v4l2://`` and ``file://`` URLs.
+"""Cameras and recordings through ``cv2.VideoCapture``: ``v4l2://``, network and ``file://`` URLs.
 
 ``OpenCVCamera`` implements ``drivers.base.Camera``. Sources, by URL:
 
 - ``v4l2:///dev/videoN`` (or any V4L2 device path, e.g. ``/dev/v4l/by-id/...``): a live camera
   through OpenCV's V4L2 backend.
+- ``http://``, ``https://`` or ``rtsp://`` URLs: a network camera's stream (MJPEG over HTTP,
+  RTSP) through OpenCV's FFmpeg backend, the URL handed over as it is (query and credentials
+  included; error messages leave the password out).
 - ``file:///path/video.avi``: a video file, one frame per grab.
 - ``file:///path/frame_%04d.png``: an image sequence named by a printf pattern (OpenCV's
   ``CAP_IMAGES``; numbering starts at 0 or 1), one image per grab.
@@ -20,7 +23,10 @@ the move). At the time of a grab at most B frames are ready, so after discarding
 next one arrived after the call. Its exposure may still have begun just before the call, so it
 is discarded too, and frame B + 2 is returned. This needs no timing heuristics; its cost is
 about one frame period when the queue was full (the usual case after a move) and up to B + 2
-periods when it was empty.
+periods when it was empty. A network stream's buffer has no known length and its frames arrive
+late, so its frames are grabbed until two consecutive ones that had to be waited for agree
+(``drivers.freshness``). ``freshness`` says, after each grab, how the frame was made fresh; the
+capture stores it with the station.
 
 Timeouts. A ``grab`` on a device that stopped streaming can block inside OpenCV for many
 seconds, so every ``cv2.VideoCapture`` call runs on one worker thread (OpenCV releases the GIL)
@@ -29,7 +35,10 @@ then time out too, until the device answers again or the camera is closed and re
 
 Losing the device. The camera closes itself when its device is unplugged (``camera_disconnected``:
 the V4L2 device node, or the directory of a recording, is gone) or stalls (``drivers.stall``:
-``camera_stalled`` for the ``stall_after``-th grab timeout in a row). ``opened`` is then False,
+``camera_stalled`` for the ``stall_after``-th grab timeout in a row); a network stream is lost
+(``camera_disconnected``) when its stream ends: the server closed it or went away. FFmpeg's own
+open and read timeouts are set to ``open_timeout`` so that a silent server frees the capture
+thread too. ``opened`` is then False,
 grabs raise ``camera_not_open``, and ``open()`` opens the device again once it is back (a
 recording then restarts from its first frame).
 """
@@ -50,6 +59,7 @@ import numpy as np
 
 from drivers.base import CameraSession, Robot
 from drivers.errors import CameraError, CameraTimeoutError
+from drivers.freshness import still_frame
 from drivers.stall import STALL_AFTER, StallCounter
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
@@ -58,6 +68,10 @@ DEFAULT_V4L2_BUFFERS = 4
 #: OpenCV's V4L2 backend passes exposure in the driver's unit: 100 µs.
 _V4L2_EXPOSURE_UNIT_S = 1e-4
 _V4L2_EXPOSURE_MANUAL = 1
+#: URL schemes of network cameras, opened through FFmpeg.
+STREAM_SCHEMES = ("http", "https", "rtsp")
+#: ``freshness`` of a recording's frame: a replay, nothing to wait for.
+RECORDING_FRESHNESS = "recording: its next frame, as recorded"
 
 _T = TypeVar("_T")
 
@@ -104,7 +118,7 @@ class _ImageDirectory:
 
 
 class OpenCVCamera(CameraSession):
-    """A ``v4l2://`` camera or ``file://`` recording; see the module docstring.
+    """A ``v4l2://`` or network camera, or a ``file://`` recording; see the module docstring.
 
     ``open_timeout`` bounds ``open()``, ``configure()`` and ``close()`` (seconds);
     ``stall_after`` consecutive grab timeouts close the camera as stalled. Use as a context
@@ -113,9 +127,11 @@ class OpenCVCamera(CameraSession):
 
     def __init__(self, url: str, *, open_timeout: float = 5.0,
                  stall_after: int = STALL_AFTER) -> None:
-        self.url = url
-        self.open_timeout = open_timeout
         self._kind, self._path = _parse_url(url)
+        self.url = _without_password(url) if self._kind == "stream" else url
+        self.open_timeout = open_timeout
+        #: How the last grabbed frame was made fresh (stored with a captured station).
+        self.freshness: str | None = None
         self._cap: Any = None
         self._worker: ThreadPoolExecutor | None = None
         self._size = (0, 0)
@@ -126,8 +142,8 @@ class OpenCVCamera(CameraSession):
 
     @property
     def live(self) -> bool:
-        """True for a V4L2 device, False for a recording."""
-        return self._kind == "v4l2"
+        """True for a V4L2 device or a network stream, False for a recording."""
+        return self._kind in ("v4l2", "stream")
 
     @property
     def opened(self) -> bool:
@@ -167,6 +183,7 @@ class OpenCVCamera(CameraSession):
             raise CameraError(self._open_failure(), code="camera_open_failed")
         self._size = self._call(self._read_size, self.open_timeout, "reading its resolution")
         self._frames_read = 0
+        self.freshness = None
         self._stall.delivered()
         self._lost = None
 
@@ -262,9 +279,10 @@ class OpenCVCamera(CameraSession):
                     f"{self.url} does not support {w}x{h}; it delivers {got[0]}x{got[1]}.",
                     code="camera_unsupported")
         if exposure is not None:
-            if not self.live:
-                raise CameraError(f"{self.url} is a recording: its exposure cannot be set.",
-                                  code="camera_unsupported")
+            if self._kind != "v4l2":
+                what = "a network stream: set its exposure in the camera's own settings" \
+                    if self.live else "a recording: its exposure cannot be set"
+                raise CameraError(f"{self.url} is {what}.", code="camera_unsupported")
             got_s = self._call(lambda: self._set_exposure(exposure), self.open_timeout,
                                "setting the exposure")
             if abs(got_s - exposure) > _V4L2_EXPOSURE_UNIT_S:
@@ -294,6 +312,11 @@ class OpenCVCamera(CameraSession):
     def _open_capture(self) -> Any:
         if self._kind == "directory":
             return _ImageDirectory(Path(self._path))
+        if self._kind == "stream":
+            timeout_ms = round(self.open_timeout * 1000)
+            return cv2.VideoCapture(self._path, cv2.CAP_FFMPEG,
+                                    [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, timeout_ms,
+                                     cv2.CAP_PROP_READ_TIMEOUT_MSEC, timeout_ms])
         if self._kind == "v4l2":
             m = re.fullmatch(r"/dev/video(\d+)", self._path)
             return cv2.VideoCapture(int(m.group(1)) if m else self._path, cv2.CAP_V4L2)
@@ -301,6 +324,10 @@ class OpenCVCamera(CameraSession):
                                 else cv2.CAP_ANY)
 
     def _open_failure(self) -> str:
+        if self._kind == "stream":
+            return (f"No camera stream at {self.url}: the server refused or did not answer "
+                    f"within {self.open_timeout:g} s, or sent no video OpenCV can decode. Check "
+                    "the address in a browser or with ffprobe.")
         if self._kind == "v4l2":
             return (f"{self._path} exists but cannot be opened as a V4L2 camera: is another "
                     "program using it, or does this user lack access (the 'video' group)?")
@@ -318,11 +345,21 @@ class OpenCVCamera(CameraSession):
     def _read(self, deadline: float, no_frame: str) -> np.ndarray:
         """Discard stale frames (live), grab the frame to return and decode it."""
         cap = self._cap
+        if self._kind == "stream":
+            fresh = still_frame(cap.grab, lambda: cap.retrieve()[1], deadline=deadline,
+                                url=self.url)
+            self.freshness = fresh.describe()
+            self._frames_read += 1
+            return fresh.frame
         if self.live:
             buffers = int(cap.get(cv2.CAP_PROP_BUFFERSIZE))
-            to_grab = (buffers if buffers > 0 else DEFAULT_V4L2_BUFFERS) + 2
+            queue = buffers if buffers > 0 else DEFAULT_V4L2_BUFFERS
+            to_grab = queue + 2
+            self.freshness = (f"v4l2: the queue of {queue} buffers and the frame exposed at the "
+                              f"call discarded ({queue + 1} frames), the next one returned")
         else:
             to_grab = 1
+            self.freshness = RECORDING_FRESHNESS
         while to_grab:
             if time.monotonic() > deadline:
                 raise CameraTimeoutError(no_frame)
@@ -368,16 +405,22 @@ class OpenCVCamera(CameraSession):
 
 
 def _parse_url(url: str) -> tuple[str, str]:
-    """(kind, path) of a ``v4l2://`` or ``file://`` URL, else ValueError.
+    """(kind, path) of a ``v4l2://``, network or ``file://`` URL, else ValueError.
 
-    ``kind`` is ``v4l2``, ``pattern`` (a printf pattern) or ``file`` (a video, or a directory
-    once ``open`` has seen it is one). The path is taken literally: no percent-decoding, so
-    ``%04d`` stays a pattern.
+    ``kind`` is ``v4l2``, ``stream`` (path: the whole URL), ``pattern`` (a printf pattern) or
+    ``file`` (a video, or a directory once ``open`` has seen it is one). The path is taken
+    literally: no percent-decoding, so ``%04d`` stays a pattern.
     """
     parts = urlsplit(url)
     scheme = parts.scheme.lower()
+    if scheme in STREAM_SCHEMES:
+        if not parts.hostname:
+            raise ValueError(f"{url!r}: a network camera URL names its host, e.g. "
+                             f"{scheme}://192.168.0.90/video.mjpg")
+        return "stream", url
     if scheme not in ("v4l2", "file"):
-        raise ValueError(f"not a camera URL: {url!r}; use v4l2:///dev/videoN or file:///path")
+        raise ValueError(f"not a camera URL: {url!r}; use v4l2:///dev/videoN, "
+                         "http(s)://HOST/PATH, rtsp://HOST/PATH or file:///path")
     if parts.netloc not in ("", "localhost") or not parts.path.startswith("/"):
         raise ValueError(f"{url!r}: write an absolute path after three slashes, e.g. "
                          f"{scheme}:///{(parts.netloc + parts.path).lstrip('/')}")
@@ -386,3 +429,12 @@ def _parse_url(url: str) -> tuple[str, str]:
     if scheme == "v4l2":
         return "v4l2", parts.path
     return ("pattern" if "%" in Path(parts.path).name else "file"), parts.path
+
+
+def _without_password(url: str) -> str:
+    """``url`` with the password of its credentials replaced by ``***`` (for messages)."""
+    parts = urlsplit(url)
+    if parts.password is None:
+        return url
+    netloc = parts.netloc.replace(f":{parts.password}@", ":***@", 1)
+    return parts._replace(netloc=netloc).geturl()

@@ -27,6 +27,9 @@ ROBOTS: dict[str, tuple[str, str]] = {
 }
 CAMERAS: dict[str, tuple[str, str]] = {
     "v4l2": ("drivers.opencv_camera:OpenCVCamera", "v4l2:///dev/videoN"),
+    "http": ("drivers.opencv_camera:OpenCVCamera", "http://HOST/PATH"),
+    "https": ("drivers.opencv_camera:OpenCVCamera", "https://HOST/PATH"),
+    "rtsp": ("drivers.opencv_camera:OpenCVCamera", "rtsp://HOST/PATH"),
     "file": ("drivers.opencv_camera:OpenCVCamera", "file:///path"),
     "mock": ("mocks.camera:MockCamera", "mock://"),
 }

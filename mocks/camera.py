@@ -46,6 +46,8 @@ class MockCamera(CameraSession):
         self._lock = threading.Lock()
         self.stall = StallCounter()
         self._T_mount_cam = np.eye(4)  # how far the camera moved on its mount (shift_mount)
+        #: How the last frame was made fresh (``drivers.base.ReportsFreshness``).
+        self.freshness: str | None = None
 
     companion_robot: ClassVar[str | None] = "mock://"
 
@@ -139,6 +141,7 @@ class MockCamera(CameraSession):
             period = 1.0 / self.fps  # the rest of the current frame, then one full frame
             time.sleep(min(2.0 * period - time.monotonic() % period, timeout))
         T_cam_target = camera_pose_for_tcp(self.scene, self.robot.true_pose)
+        self.freshness = "mock: rendered at the grab from the robot's pose then"
         with self._lock:
             T_cam_target = np.linalg.inv(self._T_mount_cam) @ T_cam_target
             image = render_board(self._params, T_cam_target, rng=self._rng)

@@ -116,9 +116,26 @@ def ik(pose: np.ndarray, q_seed: np.ndarray, *, iterations: int = 100,
 
     Damped least squares (Levenberg-Marquardt style) on the geometric Jacobian; converged when
     every error component is below 1e-10; accepted if below 1e-6 (m or rad) after ``iterations``.
+    A target on the other side of the base than the seed's TCP (the iteration would pass the
+    shoulder singularity and wander) is tried again from the seed with its base joint turned
+    toward the target.
     """
     T_target = matrix_from_ur_pose(pose)
-    q = np.asarray(q_seed, dtype=float).copy()
+    q_seed = np.asarray(q_seed, dtype=float)
+    q = _dls(T_target, q_seed, iterations, damping)
+    if q is None:
+        p_seed, p_target = fk_matrix(q_seed)[:3, 3], T_target[:3, 3]
+        turned = q_seed.copy()
+        turned[0] += (np.arctan2(p_target[1], p_target[0])
+                      - np.arctan2(p_seed[1], p_seed[0]))
+        q = _dls(T_target, turned, iterations, damping)
+    return q
+
+
+def _dls(T_target: np.ndarray, q_seed: np.ndarray, iterations: int,
+         damping: float) -> np.ndarray | None:
+    """``ik``'s damped least squares from one seed."""
+    q = q_seed.copy()
     for _ in range(iterations):
         err = pose_twist_error(T_target, fk_matrix(q))
         if float(np.abs(err).max()) < 1e-10:

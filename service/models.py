@@ -110,7 +110,9 @@ class Station(Base):
     run_id: Mapped[str] = mapped_column(ForeignKey("runs.id", ondelete="CASCADE"))
     index: Mapped[int]
     state: Mapped[str] = mapped_column(String(16))
-    target_pose: Mapped[list[Any]]
+    #: The TCP pose the run commanded (stored in the column first named ``target_pose``,
+    #: which is the board's pose in a result).
+    commanded_tcp_pose: Mapped[list[Any]] = mapped_column("target_pose")
     tcp_pose: Mapped[list[Any] | None]
     #: Joint positions (rad) at the image, when known.
     joint_positions: Mapped[list[Any] | None]
@@ -120,6 +122,8 @@ class Station(Base):
     detection: Mapped[dict[str, Any] | None]
     error: Mapped[str | None] = mapped_column(Text)
     error_code: Mapped[str | None] = mapped_column(String(64))
+    #: How the camera made sure the image was exposed after the robot settled.
+    freshness: Mapped[str | None] = mapped_column(Text)
     attempts: Mapped[int] = mapped_column(default=1)
     captured_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
 

@@ -150,8 +150,11 @@ class StationPublic(BaseModel):
 
     index: int
     state: Literal["captured", "skipped"]
-    target_pose: list[float] = Field(description="commanded TCP pose")
+    commanded_tcp_pose: list[float] = Field(description="the TCP pose the run commanded "
+                                                        "(T_base_tcp, UR pose vector)")
     tcp_pose: list[float] | None = Field(description="TCP pose read after the grab")
+    freshness: str | None = Field(None, description="how the camera made sure the image was "
+                                                    "exposed after the robot had settled")
     joint_positions: list[float] | None = Field(None, description="rad, when known")
     detection: DetectionPublic | None
     image_url: str | None

@@ -51,19 +51,20 @@ def station_of(row: StationRow) -> Station:
         image_size=None if row.image_size is None else (int(row.image_size[0]),
                                                         int(row.image_size[1])),
         detection=None if row.detection is None else detection_of(row.detection),
-        rejected=row.error)
+        rejected=row.error, freshness=row.freshness)
 
 
 def row_values(station: Station) -> dict[str, Any]:
     """The columns of a stored row that the station model fills: ``state`` (``captured``
     unless rejected), ``tcp_pose``, ``image_size``, ``detection`` and ``error`` (the rejection
-    reason); the capture adds the index, commanded pose, joints, image path, code, attempts."""
+    reason) and ``freshness``; the capture adds the index, commanded pose, joints, image path,
+    code, attempts."""
     T = station.T_base_tcp
     return {"state": "skipped" if station.rejected else "captured",
             "tcp_pose": None if T is None else [float(v) for v in T],
             "image_size": None if station.image_size is None else list(station.image_size),
             "detection": None if station.detection is None else detection_json(station.detection),
-            "error": station.rejected}
+            "error": station.rejected, "freshness": station.freshness}
 
 
 def run_target(run: Run) -> Target:

@@ -54,6 +54,8 @@ class StationEntry(BaseModel):
     tcp_pose: PoseVector | None = None
     image: str | None = None
     target_pose: PoseVector | None = None
+    #: How the capture made sure the image was exposed after the robot had settled.
+    freshness: str | None = None
 
     @field_validator("tcp_pose", "target_pose")
     @classmethod
@@ -96,7 +98,8 @@ class StationSet(BaseModel):
             intrinsics=None if self.intrinsics is None else (np.asarray(self.intrinsics.K),
                                                              np.asarray(self.intrinsics.dist)),
             stations=tuple(Station(id=s.id, T_base_tcp=_vector(s.tcp_pose), image=s.image,
-                                   T_cam_target=_vector(s.target_pose))
+                                   T_cam_target=_vector(s.target_pose),
+                                   freshness=s.freshness)
                            for s in self.stations))
 
 
@@ -136,11 +139,15 @@ def load_station_set(directory: str | Path, *,
 
 
 def station_record(station: Station, image_name: str) -> dict[str, Any]:
-    """The ``stations.json`` entry of a station with an image (``tcp_pose`` when known)."""
+    """The ``stations.json`` entry of a station with an image (``tcp_pose`` and
+    ``freshness`` when known)."""
     record: dict[str, Any] = {"id": station.id}
     if station.T_base_tcp is not None:
         record["tcp_pose"] = [float(v) for v in station.T_base_tcp]
-    return {**record, "image": image_name}
+    record["image"] = image_name
+    if station.freshness is not None:
+        record["freshness"] = station.freshness
+    return record
 
 
 def write_station_set(directory: str | Path, stations: Stations, *,

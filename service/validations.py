@@ -80,7 +80,7 @@ class Validations(MotionJobs):
                 raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished "
                                     "calibration can be validated.", code="invalid_state")
             run = store.get_run(s, run_id=cal.run_id)
-            stations = [(st.index, st.target_pose)
+            stations = [(st.index, st.commanded_tcp_pose)
                         for st in store.captured_stations(s, run_id=run.id)]
             robot_url, target, result = run.robot, run_target(run), cal.result
         if robot_url != self.settings.robot:

@@ -95,7 +95,7 @@ def test_camera_grab_image_directory(capsys, tmp_path: Path) -> None:
 @pytest.mark.timeout(30)
 @pytest.mark.parametrize(("argv", "message"), [
     (["--camera", "v4l2:///dev/video987", "--out", "x.png"], "No camera at /dev/video987"),
-    (["--camera", "http://cam", "--out", "x.png"], "unknown camera address"),
+    (["--camera", "gige://cam", "--out", "x.png"], "unknown camera address"),
     (["--camera", "mock://", "--out", "x.unknown"], "unknown image format"),
 ])
 def test_camera_grab_errors(capsys, argv: list[str], message: str) -> None:

@@ -116,7 +116,7 @@ def test_unreadable_sources(tmp_path: Path) -> None:
         OpenCVCamera(f"file://{tmp_path}/empty/f_%03d.png").open()
 
 
-@pytest.mark.parametrize("url", ["v4l2://dev/video0", "file://clip.avi", "http://cam/0",
+@pytest.mark.parametrize("url", ["v4l2://dev/video0", "file://clip.avi", "ftp://cam/0",
                                  "file:///a.avi?loop=1"])
 def test_malformed_urls(url: str) -> None:
     with pytest.raises(ValueError):

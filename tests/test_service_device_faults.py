@@ -246,7 +246,7 @@ def test_run_list_takes_a_fixed_number_of_queries(tmp_path):
                     s.add(run)
                     s.flush()
                     s.add(Station(run_id=run.id, index=0, state="skipped", error="x",
-                                  error_code="not_detected", target_pose=run.poses[0],
+                                  error_code="not_detected", commanded_tcp_pose=run.poses[0],
                                   attempts=2))
                 s.commit()
             statements.clear()

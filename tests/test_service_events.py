@@ -210,7 +210,7 @@ def add_rows(client: TestClient) -> None:
         s.add_all([hand, fixed])
         s.flush()
         s.add_all([Station(run_id=hand.id, index=k, state="captured" if k < 3 else "skipped",
-                           target_pose=[0.0] * 6, tcp_pose=None) for k in range(4)])
+                           commanded_tcp_pose=[0.0] * 6, tcp_pose=None) for k in range(4)])
         for run, minutes, seconds, state, result in [
                 (hand, 0, 10.0, "done", evidence_result("eye_in_hand", cv_rms_px=0.31,
                                                         verdict="pass")),

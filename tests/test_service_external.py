@@ -22,10 +22,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from drivers.errors import RobotError
 from service.app import create_app
 from service.cli.main import main
 from tests.helpers import SHARED
-from tests.test_service_api import AUTH, settings
+from tests.test_service_api import AUTH, finished, settings, wait_run
 
 pytestmark = pytest.mark.usefixtures("database")
 
@@ -129,7 +130,8 @@ def test_pose_only_station_is_grabbed_by_the_service(client: TestClient) -> None
     assert r.status_code == 201, r.text
     station = r.json()
     assert station["state"] == "captured" and station["detection"]["ok"]
-    assert station["tcp_pose"] == station["target_pose"] == pose
+    assert station["tcp_pose"] == station["commanded_tcp_pose"] == pose
+    assert "target_pose" not in station  # the board's pose in a result, not this
     assert station["joint_positions"] == [0.1, -1.2, 1.3, -1.6, -1.5, 0.2]
     image = client.get(station["image_url"])
     assert image.status_code == 200 and image.content.startswith(b"\x89PNG")
@@ -151,6 +153,34 @@ def test_bare_post_reads_the_robot_and_grabs(client: TestClient) -> None:
     assert (run["stations_captured"], run["stations_planned"]) == (2, 0)
 
 
+@pytest.mark.timeout(90)
+def test_bare_post_right_after_a_planned_run(client: TestClient) -> None:
+    """Issue 19 item 5: a planned run leaves the mock beyond the reach of the UR5e model it
+    computes joint angles with; the station is kept (without them), not refused with 503."""
+    r = client.post("/runs", json={"stations": 5})
+    assert r.status_code == 201, r.text
+    assert wait_run(client, r.json()["id"], finished)["state"] == "done"
+    station = post(client, external_run(client))
+    assert station.status_code == 201, station.text
+    assert station.json()["state"] == "captured"
+
+
+@pytest.mark.timeout(30)
+def test_bare_post_without_joints_keeps_the_station(client: TestClient) -> None:
+    """A robot that cannot tell its joint angles: the station is stored without them."""
+    robot = client.app.state.devices.get()[0]
+
+    def unknown() -> None:
+        raise RobotError("No joint angles here.", code="joints_unknown")
+
+    robot.joint_positions = unknown
+    station = post(client, external_run(client))
+    assert station.status_code == 201, station.text
+    assert station.json()["state"] == "captured"
+    assert station.json()["joint_positions"] is None
+    assert station.json()["freshness"].startswith("mock: rendered at the grab")
+
+
 @pytest.mark.timeout(30)
 def test_board_not_found_is_said_at_once(client: TestClient) -> None:
     run_id = external_run(client)
@@ -162,7 +192,7 @@ def test_board_not_found_is_said_at_once(client: TestClient) -> None:
     assert station["detection"]["ok"] is False and station["detection"]["reason"]
     assert station["error"] == {"code": "not_detected", "detail": "Checkerboard not found: "
                                 f"{station['detection']['reason']}."}
-    assert station["attempts"] == 2  # the last attempt: a posted image is not taken again
+    assert station["attempts"] == 1  # posted once, not taken again
 
 
 # ---- bad uploads: a skipped station with the reason, never a 500 ----------------------------

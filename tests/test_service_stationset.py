@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from calib import CheckerboardTarget, Station, Stations
 from service.cli.main import main
+from service.stationset import load_station_set, write_station_set
 from tests.test_service_api import (  # noqa: F401 (client: the fixture)
     client,
     finished,
@@ -60,6 +62,8 @@ def test_cellcal_calibrate_on_an_exported_run_gives_the_service_result(
     assert doc["format"] == "cellcal/stations@1"
     assert [s["id"] for s in doc["stations"]] == [f"{s['index']:03d}" for s in stored]
     assert [s["tcp_pose"] for s in doc["stations"]] == [s["tcp_pose"] for s in stored]
+    assert [s["freshness"] for s in doc["stations"]] == [s["freshness"] for s in stored]
+    assert all(s["freshness"].startswith("mock: rendered at the grab") for s in stored)
     for s, st in zip(doc["stations"], stored, strict=True):  # the stored PNGs, byte for byte
         image = client.get(f"/runs/{run_id}/stations/{st['index']}/image").content
         assert (station_dir / s["image"]).read_bytes() == image
@@ -72,6 +76,19 @@ def test_cellcal_calibrate_on_an_exported_run_gives_the_service_result(
         served["method"], served["setup"], served["options"])
     assert_same_calibration(served, cli)
     assert cli["quality"]["verdict"] == served["quality"]["verdict"]
+
+
+def test_station_set_keeps_how_freshness_was_ensured(tmp_path: Path) -> None:
+    image = np.zeros((8, 8), np.uint8)
+    fresh = "stream: 3 frames skipped, then two consecutive frames agree"
+    stations = Stations(setup="eye_in_hand", target=CheckerboardTarget(
+        inner_corners=(9, 6), square_size_m=0.03), stations=(
+        Station("000", T_base_tcp=np.array([0.3, 0, 0.4, 0, 3.1, 0]), image=image,
+                freshness=fresh),
+        Station("001", T_base_tcp=np.array([0.3, 0, 0.5, 0, 3.1, 0]), image=image)))
+    write_station_set(tmp_path, stations)
+    read = load_station_set(tmp_path).model().stations
+    assert [s.freshness for s in read] == [fresh, None]
 
 
 @pytest.mark.timeout(60)

@@ -33,7 +33,8 @@ def station_public(row: Station, *, corners: bool) -> StationPublic:
     joints, attempts, error code, time); ``corners`` adds the detected corners and ids."""
     station = station_of(row)
     return StationPublic(
-        index=row.index, state=row.state, target_pose=row.target_pose,
+        index=row.index, state=row.state, commanded_tcp_pose=row.commanded_tcp_pose,
+        freshness=station.freshness,
         tcp_pose=None if station.T_base_tcp is None else station.T_base_tcp.tolist(),
         joint_positions=row.joint_positions,
         detection=None if station.detection is None

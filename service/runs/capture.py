@@ -74,7 +74,8 @@ _STORED, _RETRY, _LOST = "stored", "retry", "lost"
 @dataclass
 class _Shot:
     """Try ``attempt`` at station ``index`` (commanded TCP pose ``pose``) for the worker: the
-    station ``taken`` (robot reading and frame, not yet detected), or why there is none."""
+    station ``taken`` (robot reading and frame, not yet detected), or why there is none.
+    ``final``: not taken again if the board is not found (a posted image)."""
 
     index: int
     pose: list[float]
@@ -84,6 +85,7 @@ class _Shot:
     error_code: str | None = None
     joints: list[float] | None = None
     late: int = 0  # grabs that timed out before this one (they use up no attempt)
+    final: bool = False
 
     @property
     def tries(self) -> int:
@@ -320,8 +322,8 @@ class Capture:
         with self.db.session() as s:
             self.board = board_from_target(run_target(store.get_run(s, run_id=self.run_id)))
         detail, code = problem or (None, None)
-        return self._develop(_Shot(index, pose, ATTEMPTS, taken, detail, code,
-                                   joints)) == _STORED
+        return self._develop(_Shot(index, pose, 1, taken, detail, code, joints,
+                                   final=True)) == _STORED
 
     # ---- the worker's part -----------------------------------------------------------------
 
@@ -338,7 +340,7 @@ class Capture:
             assert self.board is not None  # read with the run
             det = (self.board.detect(taken.image) if taken.detection is None
                    else taken.detection)
-            if not det.ok and shot.attempt < ATTEMPTS:
+            if not det.ok and shot.attempt < ATTEMPTS and not shot.final:
                 return _RETRY
             station = replace(taken, detection=det, rejected=None if det.ok
                               else f"{self.board.kind.capitalize()} not found: {det.reason}.")
@@ -383,7 +385,8 @@ class Capture:
         def commit(s: Session) -> bool:
             if not store.claim_run(s, run_id=self.run_id, token=self.token):
                 return False
-            s.add(StationRow(run_id=self.run_id, index=shot.index, target_pose=shot.pose,
+            s.add(StationRow(run_id=self.run_id, index=shot.index,
+                             commanded_tcp_pose=shot.pose,
                              joint_positions=shot.joints,
                              image_path=None if rel is None else rel.as_posix(),
                              error_code=code, attempts=shot.tries, **row))

@@ -19,6 +19,7 @@ and stored one at a time, posts to different runs side by side. A run takes at m
 
 from __future__ import annotations
 
+import logging
 import threading
 from dataclasses import dataclass
 
@@ -27,7 +28,9 @@ from sqlalchemy.orm import Session
 
 from calib import Station as CalibStation
 from calib import Target, check_joint_positions, check_ur_pose
+from drivers.base import ReportsFreshness, Robot
 from drivers.capture import grab_at_rest
+from drivers.errors import RobotError
 from service import store
 from service.errors import ConflictError, UnprocessableError
 from service.events import EventBus
@@ -36,6 +39,8 @@ from service.models import Run, Station
 from service.motion import Motion
 from service.runs.capture import Capture
 from service.station_rows import run_target
+
+log = logging.getLogger("cellcal.service")
 
 
 @dataclass(frozen=True)
@@ -86,7 +91,7 @@ class ExternalStations:
         """Develop and store one station of ``run_id`` (``posted``: pose and joints checked;
         the caller holds the run's lock)."""
         pose, joints = posted.pose, posted.joints
-        image, detection, problem = None, None, None
+        image, detection, problem, freshness = None, None, None, None
         if posted.image is not None:
             developed = self.images.develop(posted.image, target)
             image, detection = developed.image, developed.detection
@@ -95,27 +100,42 @@ class ExternalStations:
         elif pose is not None:
             _, camera = self.motion.devices.get()
             image = camera.grab(timeout=self.motion.settings.grab_timeout_s)
+            freshness = camera.freshness if isinstance(camera, ReportsFreshness) else None
         else:
             robot, camera = self.motion.devices.get()
             with self.motion.robot_lock:
                 still = grab_at_rest(robot, camera,
                                      grab_timeout=self.motion.settings.grab_timeout_s)
             image, pose = still.image, [float(v) for v in still.tcp_pose]
+            freshness = still.freshness
             if joints is None:
-                joints = [float(v) for v in robot.joint_positions()]
+                joints = _joints(robot)
         assert pose is not None and token is not None
         capture = Capture(self.motion, self.events, run_id=run_id, token=token)
         with self.motion.db.session() as s:
             index = _check_room(s, run_id, self.motion.settings.max_stations)
         taken = None if image is None else CalibStation(
             f"{index:03d}", T_base_tcp=np.asarray(pose, dtype=float), image=image,
-            image_size=(image.shape[1], image.shape[0]), detection=detection)
+            image_size=(image.shape[1], image.shape[0]), detection=detection,
+            freshness=freshness)
         stored = capture.develop_posted(index, pose, taken, joints=joints, problem=problem)
         if not stored:
             raise ConflictError(f"Run {run_id} stopped accepting stations meanwhile; the "
                                 "station was not stored.", code="invalid_state")
         with self.motion.db.session() as s:  # a new session sees the new row
             return store.get_station(s, run_id=run_id, index=index)
+
+
+def _joints(robot: Robot) -> list[float] | None:
+    """The robot's joint positions, or None when it cannot tell them (``joints_unknown``, as
+    the mock beyond its kinematic model's reach): a station is kept without them."""
+    try:
+        return [float(v) for v in robot.joint_positions()]
+    except RobotError as exc:
+        if exc.code != "joints_unknown":
+            raise
+        log.info("station stored without joint positions: %s", exc)
+        return None
 
 
 def _checked(posted: PostedStation) -> tuple[list[float] | None, list[float] | None]:
