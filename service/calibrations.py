@@ -42,10 +42,13 @@ log = logging.getLogger("cellcal.service")
 class Calibrations:
     """Queues solves in worker processes and records their results."""
 
-    def __init__(self, settings: Settings, db: Database, events: EventBus) -> None:
+    def __init__(self, settings: Settings, db: Database, events: EventBus,
+                 instance_id: str) -> None:
         self.settings = settings
         self.db = db
         self.events = events
+        #: This service's instance: the calibrations it solves name it.
+        self.instance_id = instance_id
         self._pool: WorkerPool | None = None
         self._pool_lock = threading.Lock()
         self._pending = 0  # solves queued or running, under _pool_lock
@@ -93,7 +96,8 @@ class Calibrations:
                 raise UnprocessableError(
                     f"Run {run_id} has {len(stations.stations)} captured stations; a "
                     f"calibration needs at least {MIN_IMAGES}.", code="too_few_stations")
-            cal = Calibration(run_id=run_id, state="running", options=options.model_dump())
+            cal = Calibration(run_id=run_id, cell=run.cell, instance_id=self.instance_id,
+                              state="running", options=options.model_dump())
             s.add(cal)
             s.commit()
             payload = {"cal_id": cal.id, "run_id": run_id, "stations": stations,

@@ -23,23 +23,32 @@ from sqlalchemy.orm import Session
 
 from service import store
 from service.db import Database
+from service.event_relay import EventRelay, announce
 from service.models import FINAL_JOB_STATES, FINAL_RUN_STATES, Topic
 
 
 class EventBus:
     """Events, stored and fanned out to server-sent-event listeners; publish from any
-    thread."""
+    thread. On PostgreSQL the other services' events arrive too (``service.event_relay``)."""
 
-    def __init__(self, db: Database) -> None:
+    def __init__(self, db: Database, instance_id: str) -> None:
         self.db = db
+        self.instance_id = instance_id
         self._lock = threading.Lock()
         self._listeners: dict[Topic, set[tuple[asyncio.AbstractEventLoop,
                                                asyncio.Queue[dict[str, Any]]]]] = {}
+        self._relay: EventRelay | None = None
+        if db.engine.dialect.name == "postgresql":
+            self._relay = EventRelay(db.engine, instance_id, self._deliver_stored)
+            self._relay.start()
         self._closed = False
 
     def close(self) -> None:
         """End every stream, open or opened later, with the ``shutdown`` event (after the
-        events already queued): the service is stopping."""
+        events already queued), and stop relaying other services' events: the service is
+        stopping."""
+        if self._relay is not None:
+            self._relay.close()
         with self._lock:
             self._closed = True
             for entries in self._listeners.values():
@@ -70,9 +79,26 @@ class EventBus:
         with self._lock:
             with self.db.session() as s:
                 event = {**event, "id": store.add_event(s, topic=topic, event=event)}
-            for loop, queue in self._listeners.get(topic, ()):
-                with contextlib.suppress(RuntimeError):  # the listener's loop has closed
-                    loop.call_soon_threadsafe(queue.put_nowait, event)
+                announce(s, topic=topic, event_id=event["id"], instance_id=self.instance_id)
+            self._fan_out(topic, event)
+
+    def _fan_out(self, topic: Topic, event: dict[str, Any]) -> None:
+        for loop, queue in self._listeners.get(topic, ()):
+            with contextlib.suppress(RuntimeError):  # the listener's loop has closed
+                loop.call_soon_threadsafe(queue.put_nowait, event)
+
+    def _deliver_stored(self, topic: Topic, event_id: int) -> None:
+        """Hand another service's stored event to this one's listeners of its topic (a
+        listener skips what it has already)."""
+        with self._lock:
+            if topic not in self._listeners:
+                return
+        with self.db.session() as s:
+            found = store.events_after(s, topic=topic, after=event_id - 1)
+        with self._lock:
+            for event in found:
+                if event["id"] == event_id:
+                    self._fan_out(topic, event)
 
     def publish_state(self, topic: Topic) -> None:
         """Publish the topic's stored state as a ``state`` event."""

@@ -4,8 +4,13 @@ calibration is active, validations.
 Images live as PNG files under the data directory; rows hold their paths relative to it.
 Two constraints carry the service's guarantees, so they hold across threads, processes and
 restarts: a station index is stored at most once per run (``uq_stations_run_index``: a resumed
-run never duplicates a station), and a robot has at most one active (capturing or paused) run
-(``uq_runs_one_active_per_robot``, a partial unique index).
+run never duplicates a station), and a cell's robot has at most one active (capturing or
+paused) run (``uq_runs_one_active_per_cell_robot``, a partial unique index).
+
+Many cell services may share one database (a plant): every run, calibration, validation and
+activation names its ``cell``; each service is an ``Instance`` with a heartbeat, and work in
+flight names the instance that does it, so a restarted service recovers only a dead one's.
+The schema is versioned (``service.migrations``): a change here needs a revision there.
 """
 
 from __future__ import annotations
@@ -77,11 +82,13 @@ class Run(Base):
 
     __tablename__ = "runs"
     __table_args__ = (
-        Index("uq_runs_one_active_per_robot", "robot", unique=True,
+        Index("uq_runs_one_active_per_cell_robot", "cell", "robot", unique=True,
               sqlite_where=_ACTIVE_SQL, postgresql_where=_ACTIVE_SQL),
+        Index("ix_runs_created", "created_at", "id"),
     )
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    cell: Mapped[str] = mapped_column(String(255))
     robot: Mapped[str] = mapped_column(String(255))
     state: Mapped[str] = mapped_column(String(16))
     #: ``robot``: the service moves the robot; ``external``: a cell controller posts stations.
@@ -91,6 +98,8 @@ class Run(Base):
     poses: Mapped[list[Any]]
     #: Token of the capture thread that may write stations; a new one on every (re)start.
     owner: Mapped[str | None] = mapped_column(String(32))
+    #: The service instance whose thread captures (or whose controller posts) the stations.
+    instance_id: Mapped[str | None] = mapped_column(String(32))
     error: Mapped[str | None] = mapped_column(Text)
     error_code: Mapped[str | None] = mapped_column(String(64))
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
@@ -134,8 +143,13 @@ class Calibration(Base):
     """A solve over a run's captured stations; ``result`` is the ``cellcal/result@1`` JSON."""
 
     __tablename__ = "calibrations"
+    __table_args__ = (Index("ix_calibrations_cell_created", "cell", "created_at", "id"),
+                      Index("ix_calibrations_created", "created_at", "id"))
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    cell: Mapped[str] = mapped_column(String(255))
+    #: The service instance that solves it.
+    instance_id: Mapped[str | None] = mapped_column(String(32))
     run_id: Mapped[str] = mapped_column(ForeignKey("runs.id", ondelete="CASCADE"), index=True)
     state: Mapped[str] = mapped_column(String(16))
     options: Mapped[dict[str, Any]]
@@ -186,14 +200,18 @@ class Topic:
 
 
 class Activation(Base):
-    """A calibration made the robot cell's current one at ``activated_at``; it stays current
-    until the robot's next activation, so the rows are the history of what was active when."""
+    """A calibration made a cell's current one for its setup at ``activated_at``; it stays
+    current until the next activation of that cell and setup, so the rows are the history of
+    what was active when."""
 
     __tablename__ = "activations"
-    __table_args__ = (Index("ix_activations_robot_id", "robot", "id"),)
+    __table_args__ = (Index("ix_activations_robot_id", "robot", "id"),
+                      Index("ix_activations_cell_setup_id", "cell", "setup", "id"))
 
     #: Increasing, so activations at the same instant keep the order they were made in.
     id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
+    cell: Mapped[str] = mapped_column(String(255))
+    setup: Mapped[str] = mapped_column(String(16))
     robot: Mapped[str] = mapped_column(String(255))
     calibration_id: Mapped[str] = mapped_column(
         ForeignKey("calibrations.id", ondelete="CASCADE"), index=True)
@@ -206,6 +224,11 @@ class Validation(Base):
     __tablename__ = "validations"
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    cell: Mapped[str] = mapped_column(String(255))
+    #: The robot it moves (dot-hit) or reads (pose prediction).
+    robot: Mapped[str] = mapped_column(String(255))
+    #: The service instance that runs it.
+    instance_id: Mapped[str | None] = mapped_column(String(32))
     calibration_id: Mapped[str] = mapped_column(
         ForeignKey("calibrations.id", ondelete="CASCADE"), index=True)
     kind: Mapped[str] = mapped_column(String(32))
@@ -214,3 +237,45 @@ class Validation(Base):
     error: Mapped[str | None] = mapped_column(Text)
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
     finished_at: Mapped[dt.datetime | None]
+
+
+class ActiveCalibration(Base):
+    """The calibration active now on a cell for a setup, and the ``Activation`` that made it
+    so; one row per cell and setup, updated in the same transaction as the history row."""
+
+    __tablename__ = "active_calibrations"
+
+    cell: Mapped[str] = mapped_column(String(255), primary_key=True)
+    setup: Mapped[str] = mapped_column(String(16), primary_key=True)
+    calibration_id: Mapped[str] = mapped_column(
+        ForeignKey("calibrations.id", ondelete="CASCADE"), index=True)
+    activation_id: Mapped[int]
+
+
+class Instance(Base):
+    """A running service: where it listens and its heartbeat. Its lease lasts until
+    ``heartbeat_at`` plus the lease time; work whose instance's lease ran out is recovered."""
+
+    __tablename__ = "instances"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    cell: Mapped[str] = mapped_column(String(255))
+    host: Mapped[str] = mapped_column(String(255))
+    port: Mapped[int]
+    pid: Mapped[int]
+    started_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+    heartbeat_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+
+
+class MotionClaim(Base):
+    """The row a job that moves a cell's robot (a capture run, a dot-hit validation) updates
+    first in the transaction that stores it: the database's lock on that robot, so the check
+    that it is free and the claim are one step across every service, and the last claim."""
+
+    __tablename__ = "motion_claims"
+
+    cell: Mapped[str] = mapped_column(String(255), primary_key=True)
+    robot: Mapped[str] = mapped_column(String(255), primary_key=True)
+    job: Mapped[str | None] = mapped_column(String(64))
+    instance_id: Mapped[str | None] = mapped_column(String(32))
+    claimed_at: Mapped[dt.datetime | None]

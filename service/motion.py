@@ -2,9 +2,12 @@
 
 The robot does one motion job at a time: a capture run (``service.runs``) or a dot-hit
 validation (``service.validations``). A validation is refused while a run is active (capturing
-or paused) and a run while a validation is running; ``claim`` makes each check and the row
-that claims the robot one step within the service, and the database's one-active-run index
-makes it hold across processes. Every commanded pose is checked against the workspace box.
+or paused) and a run while a validation is running. ``claim`` makes each check and the row
+that claims the robot one transaction that first writes the robot's ``motion_claims`` row, so
+it holds across every service on the database (its write lock makes a second claimer wait
+for the first one's commit); the one-active-run index backs it for runs. Robots are told
+apart by cell and URL: two cells' ``mock://`` robots are two robots. Every commanded pose is
+checked against the workspace box.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
+from sqlalchemy.orm import Session
 
 from drivers.errors import WorkspaceError
 from service import store
@@ -23,21 +27,25 @@ from service.db import Database
 from service.devices import Devices
 from service.errors import ConflictError
 from service.events import EventBus
+from service.instances import describe
+from service.models import Run, Validation
 from service.settings import Settings
 
 
 class Motion:
     """The robot's motion jobs: their threads, the locks that serialise them, the box."""
 
-    def __init__(self, settings: Settings, db: Database, devices: Devices) -> None:
+    def __init__(self, settings: Settings, db: Database, devices: Devices,
+                 instance_id: str) -> None:
         self.settings = settings
         self.db = db
         self.devices = devices
+        #: This service's instance (``service.instances``): its jobs' rows name it.
+        self.instance_id = instance_id
         #: Held by the one thread that drives the robot.
         self.robot_lock = threading.Lock()
         #: Set at shutdown: motion threads take no new step.
         self.stopping = threading.Event()
-        self._claim_lock = threading.Lock()
         self._threads: dict[str, threading.Thread] = {}  # run owner / validation id -> thread
         self._threads_lock = threading.Lock()
         self._stop_deadline: float | None = None  # when shutdown stops waiting for threads
@@ -45,32 +53,44 @@ class Motion:
     # ---- claiming the robot ----------------------------------------------------------------
 
     @contextlib.contextmanager
-    def claim(self, *, check: bool = True) -> Iterator[None]:
-        """Keep others from claiming the robot until the block, which stores the claiming
-        row, ends; first check that the robot is free (409 if not) unless the block makes
-        its own checks (``check=False``)."""
-        with self._claim_lock:
+    def claim(self, job: str, *, check: bool = True) -> Iterator[Session]:
+        """A session whose transaction holds the robot's claim (``store.claim_robot``) until
+        the block, which stores the claiming row ``job`` names, commits; first check that the
+        robot is free (409 if not) unless the block makes its own checks (``check=False``)."""
+        with self.db.session() as s:
+            store.claim_robot(s, cell=self.settings.cell, robot=self.settings.robot, job=job,
+                              instance_id=self.instance_id)
             if check:
-                self.check_free()
-            yield
+                self.check_free(s)
+            yield s
 
-    def check_free(self) -> None:
+    def check_free(self, s: Session | None = None) -> None:
         """409 while a run is active on the robot or a validation moves it."""
-        with self.db.session() as s:
-            if store.running_validation(s) is not None or store.active_run(
-                    s, robot=self.settings.robot) is not None:
-                raise self.busy()
+        with contextlib.ExitStack() as stack:
+            s = s or stack.enter_context(self.db.session())
+            if store.running_validation(s, **self._robot()) is not None or \
+                    store.active_run(s, **self._robot()) is not None:
+                raise self.busy(s)
 
-    def busy(self) -> ConflictError:
-        """The 409 that says what keeps the robot busy."""
-        with self.db.session() as s:
-            validation = store.running_validation(s)
-            active = store.active_run(s, robot=self.settings.robot)
-        if validation is not None and active is None:
-            return ConflictError(f"The robot is running validation {validation}; let it finish "
-                                 "first.", code="robot_busy")
-        return ConflictError(f"The robot already has an active run ({active}); cancel it or "
-                             "let it finish first.", code="robot_busy")
+    def busy(self, s: Session | None = None) -> ConflictError:
+        """The 409 that says what keeps the robot busy and which service holds it."""
+        with contextlib.ExitStack() as stack:
+            s = s or stack.enter_context(self.db.session())
+            job: Run | Validation | None = store.active_run(s, **self._robot())
+            what = "already has an active run"
+            if job is None:
+                job = store.running_validation(s, **self._robot())
+                what = "is running validation"
+            holder = store.get_instance(s, instance_id=job.instance_id if job else None)
+        held = f", held by {describe(holder)}" if holder is not None else ""
+        advice = ("let it finish first" if isinstance(job, Validation)
+                  else "cancel it or let it finish first")
+        return ConflictError(f"The robot {self.settings.robot} of cell {self.settings.cell} "
+                             f"{what} {job.id if job else ''}{held}; {advice}.",
+                             code="robot_busy")
+
+    def _robot(self) -> dict[str, str]:
+        return {"cell": self.settings.cell, "robot": self.settings.robot}
 
     # ---- motion threads --------------------------------------------------------------------
 

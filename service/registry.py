@@ -1,8 +1,9 @@
-"""The calibration registry: which calibration is a robot cell's current one, since when, and
-what was current before.
+"""The calibration registry: which calibration is a cell's current one for a setup, since
+when, and what was current before.
 
-Activations are rows (``models.Activation``); the newest one of a robot is its current
-calibration, so the history is never rewritten, only appended to.
+Activations are rows (``models.Activation``); ``models.ActiveCalibration`` names the current
+one per cell and setup, changed in the same transaction, so the history is never rewritten,
+only appended to, and many services on one database agree on what is current.
 """
 
 from __future__ import annotations
@@ -15,28 +16,26 @@ from service.models import Activation
 from service.schemas import ActivationPublic
 
 
-def activate(s: Session, *, cal_id: str) -> str:
-    """Make a finished calibration its run's robot's current one; the robot. Activating the
-    current calibration again changes nothing (idempotent)."""
+def activate(s: Session, *, cal_id: str) -> tuple[str, str]:
+    """Make a finished calibration the current one of its cell and setup; the cell and
+    setup. Activating the current calibration again changes nothing (idempotent)."""
     cal = store.get_calibration(s, cal_id=cal_id)
     if cal.state != "done" or cal.result is None:
         raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished calibration "
                             "can be activated.", code="invalid_state")
-    robot = store.get_run(s, run_id=cal.run_id).robot
-    current = store.activations(s, robot=robot, limit=1)
-    if not current or current[0].calibration_id != cal_id:
-        store.activate(s, cal_id=cal_id, robot=robot)
-    return robot
+    run = store.get_run(s, run_id=cal.run_id)
+    store.activate(s, cal_id=cal_id, cell=cal.cell, setup=run.setup, robot=run.robot)
+    return cal.cell, run.setup
 
 
-def current(s: Session, *, robot: str, history: int) -> tuple[Activation,
-                                                              list[ActivationPublic]]:
-    """The robot's current activation and its last ``history`` periods, newest first
-    (404 ``no_active_calibration`` if none was ever activated)."""
-    rows = store.activations(s, robot=robot, limit=history)
+def current(s: Session, *, cell: str, setup: str,
+            history: int) -> tuple[Activation, list[ActivationPublic]]:
+    """The cell's current activation for ``setup`` and its last ``history`` periods, newest
+    first (404 ``no_active_calibration`` if none was ever activated)."""
+    rows = store.activations(s, cell=cell, setup=setup, limit=history)
     if not rows:
-        raise NotFoundError(f"No calibration was activated for robot {robot}; activate one "
-                            "with POST /calibrations/{id}/activate.",
+        raise NotFoundError(f"No {setup} calibration was activated for cell {cell}; activate "
+                            "one with POST /calibrations/{id}/activate.",
                             code="no_active_calibration")
     until = [None, *(row.activated_at for row in rows[:-1])]
     return rows[0], [ActivationPublic(calibration_id=row.calibration_id,

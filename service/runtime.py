@@ -6,11 +6,11 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-from service import store
 from service.calibrations import Calibrations
 from service.db import Database
 from service.devices import DeviceOpener, Devices, settings_opener
 from service.events import EventBus
+from service.instances import InstanceLease
 from service.motion import Motion
 from service.runs import RunManager
 from service.settings import Settings
@@ -25,6 +25,7 @@ class Runtime:
 
     settings: Settings
     db: Database
+    instance: InstanceLease
     devices: Devices
     events: EventBus
     motion: Motion
@@ -34,20 +35,19 @@ class Runtime:
 
     @classmethod
     def open(cls, settings: Settings, open_devices: DeviceOpener | None = None) -> Runtime:
-        """Open the database and recover from a previous service's death; devices open on
-        first use (``open_devices`` replaces opening ``settings.robot`` / ``camera``)."""
+        """Open the database, register this instance and recover the work of this cell's
+        dead services; devices open on first use (``open_devices`` replaces opening
+        ``settings.robot`` / ``camera``)."""
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         db = Database(settings.database, busy_timeout_s=settings.database_busy_timeout_s)
+        instance = InstanceLease(settings, db)
+        instance.start()  # recovers the work of this cell's dead services first
         devices = Devices(open_devices or settings_opener(settings))
-        events = EventBus(db)
-        motion = Motion(settings, db, devices)
-        with db.session() as s:
-            runs, cals, vals = store.recover(s)
-        if runs or cals or vals:
-            log.warning("recovered after restart: %d run(s) interrupted, %d calibration(s) "
-                        "and %d validation(s) failed", runs, cals, vals)
-        return cls(settings=settings, db=db, devices=devices, events=events, motion=motion,
-                   runs=RunManager(motion, events), calibrations=Calibrations(settings, db, events),
+        events = EventBus(db, instance.id)
+        motion = Motion(settings, db, devices, instance.id)
+        return cls(settings=settings, db=db, instance=instance, devices=devices, events=events,
+                   motion=motion, runs=RunManager(motion, events),
+                   calibrations=Calibrations(settings, db, events, instance.id),
                    validations=Validations(motion, events))
 
     def halt(self) -> None:
@@ -62,7 +62,9 @@ class Runtime:
         self.runs.external.images.shutdown()
 
     def close(self) -> None:
-        """Stop the jobs, close the devices and the database."""
+        """Stop the jobs, close the devices, leave the instances and close the database."""
         self.stop_jobs()
         self.devices.close()
+        self.events.close()
+        self.instance.close()
         self.db.close()

@@ -323,6 +323,10 @@ class CalibrationQuery(BaseModel):
     """Filters and the page of ``GET /calibrations``."""
 
     run_id: str | None = Field(None, description="only this run's")
+    cell: str | None = Field(None, max_length=255, description="only this cell's (any service "
+                                                              "on the database lists them)")
+    active: bool | None = Field(None, description="true: only calibrations active now on "
+                                                  "their cell; false: only the others")
     state: Literal["running", "done", "failed"] | None = None
     setup: Literal["eye_in_hand", "eye_to_hand"] | None = None
     limit: int = Field(50, ge=1, le=200)
@@ -334,6 +338,7 @@ class CalibrationSummary(BaseModel):
 
     id: str
     run_id: str
+    cell: str
     setup: str
     robot: str
     state: Literal["running", "done", "failed"]
@@ -341,7 +346,7 @@ class CalibrationSummary(BaseModel):
     rms_px: float | None = Field(description="RMS reprojection error; None without camera model")
     verdict: Literal["pass", "warn", "fail"] | None = Field(
         None, description="the result's quality verdict; None while running or failed")
-    active: bool = Field(description="the robot cell's current calibration")
+    active: bool = Field(description="its cell's current calibration for its setup")
     error: str | None
     created_at: dt.datetime
     finished_at: dt.datetime | None
@@ -368,6 +373,8 @@ class ActivationPublic(BaseModel):
 class ActiveCalibration(BaseModel):
     """The calibration a cell controller should use now, and what was active when."""
 
+    cell: str
+    setup: str
     robot: str
     activated_at: dt.datetime
     calibration: CalibrationPublic

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import ipaddress
+import socket
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -42,6 +43,13 @@ class Settings(BaseSettings):
                            description="where the database (default) and images live")
     database_url: str | None = Field(
         None, description="SQLAlchemy URL; default sqlite:///<data_dir>/cellcal.db")
+    cell: Annotated[str, Field(min_length=1, max_length=255, pattern=r"^\S(.*\S)?$")] = Field(
+        default_factory=socket.gethostname,
+        description="the robot cell this service drives, named on every run and calibration "
+                    "so many cells can share one database (default: the host name)")
+    lease_s: Annotated[float, Field(ge=1.0, le=3600.0)] = Field(
+        15.0, description="heartbeat lease: a service silent this long is taken for dead and "
+                          "its runs, calibrations and validations are recovered by the others")
     api_key: SecretStr | None = Field(None, description="bearer token every call but /health "
                                                         "needs")
     host: str = "127.0.0.1"

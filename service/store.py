@@ -12,15 +12,21 @@ import datetime as dt
 from dataclasses import dataclass
 from typing import Any
 
-from sqlalchemy import func, select, update
+from sqlalchemy import delete, func, select, update
+from sqlalchemy.dialects.postgresql import insert as postgresql_insert
+from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 from sqlalchemy.orm import Session, defer
 
 from service.errors import NotFoundError
 from service.models import (
     ACTIVE_RUN_STATES,
     Activation,
+    ActiveCalibration,
+    Base,
     Calibration,
+    Instance,
     JobEvent,
+    MotionClaim,
     Run,
     RunEvent,
     Station,
@@ -115,6 +121,9 @@ class CalibrationFilter:
     """Which calibrations ``GET /calibrations`` lists (None: any)."""
 
     run_id: str | None = None
+    cell: str | None = None
+    #: True: only calibrations current on their cell; False: only the others.
+    active: bool | None = None
     state: str | None = None
     setup: str | None = None
 
@@ -133,10 +142,14 @@ def page_calibrations(s: Session, *, where: CalibrationFilter, limit: int,
                    Calibration.result[("camera", "rms_px")].as_float(),
                    Calibration.result[("quality", "verdict")].as_string()) \
         .join(Run, Run.id == Calibration.run_id).options(defer(Calibration.result))
-    for column, value in ((Calibration.run_id, where.run_id), (Calibration.state, where.state),
-                          (Run.setup, where.setup)):
+    for column, value in ((Calibration.run_id, where.run_id), (Calibration.cell, where.cell),
+                          (Calibration.state, where.state), (Run.setup, where.setup)):
         if value is not None:
             query = query.where(column == value)
+    if where.active is not None:
+        current = select(ActiveCalibration.calibration_id)
+        query = query.where(Calibration.id.in_(current) if where.active
+                            else Calibration.id.not_in(current))
     total = s.scalar(select(func.count()).select_from(query.subquery())) or 0
     rows = s.execute(query.order_by(Calibration.created_at.desc(), Calibration.id)
                      .limit(limit).offset(offset)).all()
@@ -146,25 +159,64 @@ def page_calibrations(s: Session, *, where: CalibrationFilter, limit: int,
 # ---- which calibration is active -----------------------------------------------------------
 
 
-def activate(s: Session, *, cal_id: str, robot: str) -> Activation:
-    """Make the calibration the robot cell's current one (a new history row)."""
-    row = Activation(robot=robot, calibration_id=cal_id)
+def activate(s: Session, *, cal_id: str, cell: str, setup: str, robot: str) -> bool:
+    """Make the calibration the cell's current one for ``setup``: the ``active_calibrations``
+    row changes and a history row is added, in one transaction, unless it is current already.
+    True if it changed.
+
+    The row is written before anything is read (an insert that does nothing if the row
+    exists, then an update conditional on another calibration being current), so of two
+    services activating at once the second waits for the first and then sees its outcome:
+    exactly one current calibration, and no history row for an activation that changed
+    nothing.
+    """
+    created = _insert_if_absent(s, ActiveCalibration, cell=cell, setup=setup,
+                                calibration_id=cal_id, activation_id=0)
+    if not created and not s.execute(
+            update(ActiveCalibration)
+            .where(ActiveCalibration.cell == cell, ActiveCalibration.setup == setup,
+                   ActiveCalibration.calibration_id != cal_id)
+            .values(calibration_id=cal_id)).rowcount:
+        s.commit()
+        return False
+    return _record_activation(s, cal_id=cal_id, cell=cell, setup=setup, robot=robot)
+
+
+def _insert_if_absent(s: Session, model: type[Base], **values: Any) -> bool:
+    """``INSERT ... ON CONFLICT DO NOTHING`` (SQLite and PostgreSQL); True if inserted. A
+    conflicting row another transaction is inserting is waited for."""
+    dialect = s.get_bind().dialect.name
+    insert = postgresql_insert if dialect == "postgresql" else sqlite_insert
+    key = next(iter(model.__table__.primary_key.columns))
+    return s.execute(insert(model).values(**values).on_conflict_do_nothing()
+                     .returning(key)).first() is not None
+
+
+def _record_activation(s: Session, *, cal_id: str, cell: str, setup: str, robot: str) -> bool:
+    """The history row of an activation the caller's transaction made; commits."""
+    row = Activation(cell=cell, setup=setup, robot=robot, calibration_id=cal_id)
     s.add(row)
+    s.flush()
+    s.execute(update(ActiveCalibration).where(ActiveCalibration.cell == cell,
+                                              ActiveCalibration.setup == setup)
+              .values(activation_id=row.id))
     s.commit()
-    return row
+    return True
 
 
-def activations(s: Session, *, robot: str, limit: int | None = None) -> list[Activation]:
-    """The robot cell's activations, newest first (the first one is the current one)."""
-    query = select(Activation).where(Activation.robot == robot).order_by(Activation.id.desc())
+def activations(s: Session, *, cell: str, setup: str,
+                limit: int | None = None) -> list[Activation]:
+    """The cell's activations for ``setup``, newest first (the first one is the current
+    one)."""
+    query = select(Activation).where(Activation.cell == cell, Activation.setup == setup) \
+        .order_by(Activation.id.desc())
     return list(s.scalars(query if limit is None else query.limit(limit)))
 
 
-def active_calibration_ids(s: Session, *, robots: list[str]) -> set[str]:
-    """Ids of the calibrations currently active on any of ``robots``."""
-    latest = select(func.max(Activation.id)).where(Activation.robot.in_(robots)) \
-        .group_by(Activation.robot)
-    return set(s.scalars(select(Activation.calibration_id).where(Activation.id.in_(latest))))
+def active_calibration_ids(s: Session, *, cal_ids: list[str]) -> set[str]:
+    """Those of ``cal_ids`` that are some cell's current calibration."""
+    return set(s.scalars(select(ActiveCalibration.calibration_id)
+                         .where(ActiveCalibration.calibration_id.in_(cal_ids))))
 
 
 # ---- counts --------------------------------------------------------------------------------
@@ -209,15 +261,27 @@ def runs_station_errors(s: Session, *, run_ids: list[str]
 # ---- who has the robot ---------------------------------------------------------------------
 
 
-def running_validation(s: Session) -> str | None:
-    """The id of a validation moving the robot, if any."""
-    return s.scalars(select(Validation.id).where(Validation.state == "running")).first()
+def claim_robot(s: Session, *, cell: str, robot: str, job: str, instance_id: str) -> None:
+    """Write the cell's robot's ``motion_claims`` row first in the caller's transaction: its
+    write lock keeps every other service's claim of that robot waiting until the caller
+    commits, so the checks that follow and the claiming row are one step. Does not commit."""
+    values = {"job": job, "instance_id": instance_id, "claimed_at": utcnow()}
+    if not _insert_if_absent(s, MotionClaim, cell=cell, robot=robot, **values):
+        s.execute(update(MotionClaim).where(MotionClaim.cell == cell,
+                                            MotionClaim.robot == robot).values(**values))
 
 
-def active_run(s: Session, *, robot: str) -> str | None:
-    """The id of the robot's capturing or paused run, if any."""
-    return s.scalars(select(Run.id).where(Run.robot == robot,
-                                          Run.state.in_(ACTIVE_RUN_STATES))).first()
+def running_validation(s: Session, *, cell: str, robot: str) -> Validation | None:
+    """The validation moving the cell's robot, if any."""
+    return s.scalars(select(Validation).where(
+        Validation.cell == cell, Validation.robot == robot,
+        Validation.state == "running")).first()
+
+
+def active_run(s: Session, *, cell: str, robot: str) -> Run | None:
+    """The cell's robot's capturing or paused run, if any."""
+    return s.scalars(select(Run).where(Run.cell == cell, Run.robot == robot,
+                                       Run.state.in_(ACTIVE_RUN_STATES))).first()
 
 
 def owns_run(s: Session, *, run_id: str, token: str) -> bool:
@@ -260,36 +324,72 @@ def finish_run(s: Session, *, run_id: str, token: str, **values: Any) -> bool:
 
 
 def finish_calibration(s: Session, *, cal_id: str, **values: Any) -> None:
-    """Store a calibration's outcome (``state``, ``result`` or ``error``)."""
-    s.execute(update(Calibration).where(Calibration.id == cal_id)
+    """Store a calibration's outcome (``state``, ``result`` or ``error``) if it is still
+    running: one that a restart found failed stays failed."""
+    s.execute(update(Calibration).where(Calibration.id == cal_id,
+                                        Calibration.state == "running")
               .values(finished_at=utcnow(), **values))
     s.commit()
 
 
 def finish_validation(s: Session, *, val_id: str, **values: Any) -> None:
-    """Store a validation's outcome (``state``, ``result`` or ``error``)."""
-    s.execute(update(Validation).where(Validation.id == val_id)
+    """Store a validation's outcome (``state``, ``result`` or ``error``) if it is still
+    running."""
+    s.execute(update(Validation).where(Validation.id == val_id, Validation.state == "running")
               .values(finished_at=utcnow(), **values))
     s.commit()
 
 
-def recover(s: Session) -> tuple[int, int, int]:
-    """After a restart: runs left capturing become interrupted, calibrations and validations
-    in flight failed; how many of each."""
+def recover(s: Session, *, cell: str, live: set[str]) -> tuple[int, int, int]:
+    """The cell's work whose service is not among the ``live`` instances: capturing runs
+    become interrupted, running calibrations and validations failed; how many of each.
+    Another cell's work and a live service's are not touched."""
+    def orphaned(model: type[Run] | type[Calibration] | type[Validation]) -> Any:
+        return (model.cell == cell) & (model.instance_id.is_(None)
+                                       | model.instance_id.not_in(live))
+
     runs = s.execute(
-        update(Run).where(Run.state == "capturing")
+        update(Run).where(Run.state == "capturing", orphaned(Run))
         .values(state="interrupted", owner=None, error_code="interrupted",
                 error=INTERRUPTED)).rowcount
     cals = s.execute(
-        update(Calibration).where(Calibration.state == "running")
+        update(Calibration).where(Calibration.state == "running", orphaned(Calibration))
         .values(state="failed", finished_at=utcnow(),
                 error="The service stopped during the computation; start it again.")).rowcount
     vals = s.execute(
-        update(Validation).where(Validation.state == "running")
+        update(Validation).where(Validation.state == "running", orphaned(Validation))
         .values(state="failed", finished_at=utcnow(),
                 error="The service stopped during the validation; start it again.")).rowcount
     s.commit()
     return runs, cals, vals
+
+
+# ---- service instances ---------------------------------------------------------------------
+
+
+def instances(s: Session, *, cell: str) -> list[Instance]:
+    """The cell's registered service instances."""
+    return list(s.scalars(select(Instance).where(Instance.cell == cell)))
+
+
+def get_instance(s: Session, *, instance_id: str | None) -> Instance | None:
+    return None if instance_id is None else s.get(Instance, instance_id)
+
+
+def renew_instance(s: Session, *, instance_id: str) -> bool:
+    """Renew the instance's lease; False if its row is gone (taken for dead)."""
+    changed = s.execute(update(Instance).where(Instance.id == instance_id)
+                        .values(heartbeat_at=utcnow())).rowcount
+    s.commit()
+    return bool(changed)
+
+
+def forget_instances(s: Session, *, cell: str, live: set[str],
+                     only: set[str] | None = None) -> None:
+    """Remove the cell's instance rows not in ``live`` (only those in ``only``, if given)."""
+    query = delete(Instance).where(Instance.cell == cell, Instance.id.not_in(live))
+    s.execute(query if only is None else query.where(Instance.id.in_(only)))
+    s.commit()
 
 
 # ---- events of runs, calibrations and validations -----------------------------------------

@@ -30,7 +30,7 @@ from drivers.errors import DeviceError, RobotConnectionError
 from service import store
 from service.checks import CheckPlan, check_plan, run_check
 from service.errors import ConflictError, ServiceError, UnprocessableError
-from service.models import Topic, Validation
+from service.models import Topic, Validation, new_id
 from service.motion import MotionJobs
 from service.results import stored_cell
 from service.schemas import CheckCreate, ValidationCreate
@@ -83,16 +83,20 @@ class Validations(MotionJobs):
             stations = [(st.index, st.commanded_tcp_pose)
                         for st in store.captured_stations(s, run_id=run.id)]
             robot_url, target, result = run.robot, run_target(run), cal.result
-        if robot_url != self.settings.robot:
+        if (run.cell, robot_url) != (self.settings.cell, self.settings.robot):
             raise UnprocessableError(f"Calibration {cal_id} was captured with robot "
-                                     f"{robot_url}; this service drives {self.settings.robot}.",
+                                     f"{robot_url} of cell {run.cell}; this service drives "
+                                     f"{self.settings.robot} of cell {self.settings.cell}.",
                                      code="other_robot")
         return target, result, stations
 
     def _launch(self, cal_id: str, kind: str, work: Work) -> Validation:
         """Store a running validation of ``kind`` and run ``work`` (its report) in a thread."""
-        with self.motion.claim(), self.db.session() as s:
-            val = Validation(calibration_id=cal_id, kind=kind, state="running")
+        val_id = new_id()
+        with self.motion.claim(f"validation {val_id}") as s:
+            val = Validation(id=val_id, cell=self.settings.cell, robot=self.settings.robot,
+                             instance_id=self.motion.instance_id, calibration_id=cal_id,
+                             kind=kind, state="running")
             s.add(val)
             s.commit()
         self.motion.start(val.id, self._validate, val.id, work,

@@ -7,6 +7,7 @@ app on the same database while the first one's capture thread is held mid-statio
 from __future__ import annotations
 
 import re
+import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -32,6 +33,8 @@ from tests.helpers import undeclared_fields
 pytestmark = pytest.mark.usefixtures("database")
 
 KEY = "test-key-0123456789abcdef"
+#: The cell of the services here (the default CELLCAL_CELL).
+CELL = socket.gethostname()
 AUTH = {"Authorization": f"Bearer {KEY}"}
 
 
@@ -378,7 +381,9 @@ def test_restart_mid_run_then_resume_loses_and_duplicates_nothing(tmp_path: Path
     with service(tmp_path, gated_opener(tmp_path, 2, gate)) as old:
         run_id = start_run(old, 6)
         wait_run(old, run_id, lambda r: r["stations_captured"] == 2)
-        # The old service hangs at station 2; a new one starts on the same database.
+        # The old service hangs at station 2 and is taken for dead (no heartbeat); a new one
+        # starts on the same database.
+        old.app.state.runtime.instance.close()
         with service(tmp_path) as new:
             run = new.get(f"/runs/{run_id}").json()
             assert (run["state"], run["stations_captured"]) == ("interrupted", 2)
@@ -393,6 +398,29 @@ def test_restart_mid_run_then_resume_loses_and_duplicates_nothing(tmp_path: Path
             assert station_indices(new, run_id) == list(range(6))
             assert new.get(f"/runs/{run_id}").json()["state"] == "done"
     assert len(list((tmp_path / "runs" / run_id).glob("*.png"))) == 6
+
+
+@pytest.mark.pg_fast
+@pytest.mark.timeout(40)
+def test_a_second_service_leaves_a_live_services_run_alone(tmp_path: Path) -> None:
+    """Two services of one cell and robot on one database: the second one's start-up touches
+    nothing of the first one's, and its run is refused naming the instance that holds the
+    robot."""
+    gate = threading.Event()
+    with service(tmp_path, gated_opener(tmp_path, 2, gate)) as first:
+        run_id = start_run(first, 4)
+        wait_run(first, run_id, lambda r: r["stations_captured"] == 2)
+        with service(tmp_path) as second:
+            assert second.get(f"/runs/{run_id}").json()["state"] == "capturing"
+            r = second.post("/runs", json={"poses": poses(3)})
+            assert r.status_code == 409
+            holder = first.app.state.runtime.instance
+            assert r.json()["code"] == "robot_busy"
+            assert f"{run_id}, held by instance {holder.id} (" in r.json()["detail"]
+            gate.set()
+            run = wait_run(second, run_id, finished)
+        assert (run["state"], run["stations_captured"], run["error"]) == ("done", 4, None)
+        assert station_indices(first, run_id) == [0, 1, 2, 3]
 
 
 # ---- events and calibrations ---------------------------------------------------------------

@@ -40,6 +40,7 @@ from service.models import Run, Station
 from service.settings import Settings
 from tests.helpers import wait_for
 from tests.test_pipeline import rendered_stations
+from tests.test_service_api import CELL
 
 KEY = "faults-key-0123456789abcdef"
 AUTH = {"Authorization": f"Bearer {KEY}"}
@@ -240,7 +241,8 @@ def test_run_list_takes_a_fixed_number_of_queries(tmp_path):
         def queries_for_listing(total_runs: int) -> int:
             with db.session() as s:
                 for k in range(total_runs - s.query(Run).count()):
-                    run = Run(robot=f"mock://{k}", state="done", setup="eye_in_hand",
+                    run = Run(cell=CELL, robot=f"mock://{k}", state="done",
+                              setup="eye_in_hand",
                               target={"inner_corners": [11, 8], "square_size_m": 0.03},
                               poses=[[0.3, 0.0, 0.4, 3.14, 0.0, 0.0]] * 2)
                     s.add(run)

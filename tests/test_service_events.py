@@ -19,6 +19,7 @@ from service.metrics import CONTENT_TYPE_LATEST
 from service.models import Calibration, Run, Station
 from tests.test_exports import full_result
 from tests.test_service_api import (
+    CELL,
     finished,
     gated_opener,
     service,
@@ -203,10 +204,10 @@ def evidence_result(setup: str, *, cv_rms_px: float, verdict: str) -> dict[str, 
 def add_rows(client: TestClient) -> None:
     """Two runs with stations and five calibrations with known durations and results."""
     with client.app.state.db.session() as s:
-        hand = Run(robot="mock://", state="done", setup="eye_in_hand", mode="robot",
-                   target={}, poses=[])
-        fixed = Run(robot="mock://", state="capturing", setup="eye_to_hand", mode="external",
-                    target={}, poses=[])
+        hand = Run(cell=CELL, robot="mock://", state="done", setup="eye_in_hand",
+                   mode="robot", target={}, poses=[])
+        fixed = Run(cell=CELL, robot="mock://", state="capturing", setup="eye_to_hand",
+                    mode="external", target={}, poses=[])
         s.add_all([hand, fixed])
         s.flush()
         s.add_all([Station(run_id=hand.id, index=k, state="captured" if k < 3 else "skipped",
@@ -221,7 +222,7 @@ def add_rows(client: TestClient) -> None:
                 (hand, 9, 1.0, "failed", None),
                 (hand, 10, None, "running", None)]:
             start = T0 + dt.timedelta(minutes=minutes)
-            s.add(Calibration(run_id=run.id, state=state, options={}, result=result,
+            s.add(Calibration(cell=CELL, run_id=run.id, state=state, options={}, result=result,
                               created_at=start, finished_at=None if seconds is None
                               else start + dt.timedelta(seconds=seconds)))
         s.commit()

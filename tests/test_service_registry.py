@@ -18,7 +18,7 @@ from fastapi.testclient import TestClient
 from service.app import create_app
 from service.models import Calibration, Run
 from tests.test_exports import full_result, pose_only_result
-from tests.test_service_api import AUTH, settings
+from tests.test_service_api import AUTH, CELL, settings
 
 pytestmark = [pytest.mark.timeout(20), pytest.mark.usefixtures("database")]
 
@@ -32,8 +32,9 @@ def client(tmp_path: Path) -> Iterator[TestClient]:
         yield c
 
 
-def add_run(client: TestClient, *, setup: str = "eye_in_hand", robot: str = "mock://") -> str:
-    run = Run(robot=robot, state="done", setup=setup,
+def add_run(client: TestClient, *, setup: str = "eye_in_hand", robot: str = "mock://",
+            cell: str = CELL) -> str:
+    run = Run(cell=cell, robot=robot, state="done", setup=setup,
               target={"inner_corners": [11, 8], "square_size_m": 0.03}, poses=[])
     with client.app.state.db.session() as s:
         s.add(run)
@@ -45,10 +46,11 @@ def add_calibration(client: TestClient, run_id: str, *, minute: int, state: str 
                     **columns: Any) -> str:
     """A calibration of ``run_id`` created ``minute`` minutes after T0 (a joint solve with
     ``full_result`` unless ``columns`` say otherwise); its id."""
-    values = {"options": {"method": "joint"}, "error": "boom" if state == "failed" else None,
+    values = {"cell": CELL, "options": {"method": "joint"},
+              "error": "boom" if state == "failed" else None,
               "result": full_result() if state == "done" else None, **columns}
-    cal = Calibration(run_id=run_id, state=state, created_at=T0 + dt.timedelta(minutes=minute),
-                      **values)
+    cal = Calibration(run_id=run_id, state=state,
+                      created_at=T0 + dt.timedelta(minutes=minute), **values)
     with client.app.state.db.session() as s:
         s.add(cal)
         s.commit()
@@ -163,17 +165,29 @@ def test_activating_an_unknown_calibration_is_404(client: TestClient) -> None:
     assert r.json()["code"] == "not_found"
 
 
-def test_each_robot_has_its_own_active_calibration(client: TestClient) -> None:
+@pytest.mark.pg_fast
+def test_each_cell_and_setup_has_its_own_active_calibration(client: TestClient) -> None:
     here = add_calibration(client, add_run(client), minute=1)
-    there = add_calibration(client, add_run(client, robot="ur://10.0.0.7"), minute=2)
-    client.post(f"/calibrations/{here}/activate")
-    client.post(f"/calibrations/{there}/activate")
+    there = add_calibration(client, add_run(client, cell="press-7"), minute=2, cell="press-7")
+    fixed = add_calibration(client, add_run(client, setup="eye_to_hand"), minute=3)
+    for cal_id in (here, there, fixed):
+        assert client.post(f"/calibrations/{cal_id}/activate").status_code == 200
     assert client.get("/calibrations/active").json()["calibration"]["id"] == here
-    other = client.get("/calibrations/active", params={"robot": "ur://10.0.0.7"}).json()
-    assert other["calibration"]["id"] == there
+    other = client.get("/calibrations/active", params={"cell": "press-7"}).json()
+    assert (other["cell"], other["setup"], other["calibration"]["id"]) == (
+        "press-7", "eye_in_hand", there)
     assert [h["calibration_id"] for h in other["history"]] == [there]
-    listed = {item["id"]: item["active"] for item in client.get("/calibrations").json()["items"]}
-    assert listed == {here: True, there: True}
+    assert client.get("/calibrations/active", params={"setup": "eye_to_hand"}).json()[
+        "calibration"]["id"] == fixed
+
+    def listed(**params: Any) -> list[str]:
+        return ids(client.get("/calibrations", params=params).json())
+
+    assert listed(active=True) == [fixed, there, here]
+    assert listed(cell="press-7", active=True) == [there]
+    assert listed(cell=CELL, active=True) == [fixed, here]
+    assert listed(active=False) == []
+    assert listed(cell="no-such-cell") == []
 
 
 @pytest.mark.parametrize("method, path", [("GET", "/calibrations"),

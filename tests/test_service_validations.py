@@ -10,6 +10,8 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +19,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from scipy.spatial.transform import Rotation
+from sqlalchemy import select
 
 from calib import make_transform
 from drivers.base import Camera, Robot
@@ -25,7 +28,7 @@ from service.app import create_app
 from service.devices import settings_opener
 from service.models import Calibration, Run, Validation
 from tests.test_exports import full_result
-from tests.test_service_api import AUTH, GatedCamera, finished, poses, settings, wait_run
+from tests.test_service_api import AUTH, CELL, GatedCamera, finished, poses, settings, wait_run
 from tests.test_service_events import Event, read_events
 
 pytestmark = pytest.mark.usefixtures("module_database")
@@ -165,7 +168,7 @@ def test_the_robot_does_one_motion_job_at_a_time(app_on: Client,
 
     client = app_on(open_devices=hanging)
     cal_id = calibrated[2]
-    interrupted = Run(robot="mock://", state="interrupted", setup="eye_in_hand",
+    interrupted = Run(cell=CELL, robot="mock://", state="interrupted", setup="eye_in_hand",
                       target={"inner_corners": [11, 8], "square_size_m": 0.03}, poses=poses(2))
     with client.app.state.db.session() as s:
         s.add(interrupted)
@@ -173,16 +176,50 @@ def test_the_robot_does_one_motion_job_at_a_time(app_on: Client,
     r = client.post(f"/calibrations/{cal_id}/validations", json={})
     assert r.status_code == 202
     val_id = r.json()["id"]
+    holder = client.app.state.runtime.instance.describe()
     for path, body in [(f"/calibrations/{cal_id}/validations", {}), ("/runs", {"stations": 5}),
                        ("/runs", {"poses": poses(2)}), (f"/runs/{interrupted.id}/resume", None)]:
         r = client.post(path, json=body)
         assert r.status_code == 409, (path, r.text)
-        assert r.json() == {"detail": f"The robot is running validation {val_id}; let it "
-                                      "finish first.", "code": "robot_busy"}
+        assert r.json() == {"detail": f"The robot mock:// of cell {CELL} is running validation "
+                                      f"{val_id}, held by {holder}; let it finish first.",
+                            "code": "robot_busy"}
     gate.set()
     assert wait_for(client, f"/validations/{val_id}")["state"] == "done"
     assert client.get(f"/runs/{interrupted.id}").json()["state"] == "interrupted"
     client.post(f"/runs/{interrupted.id}/cancel")
+
+
+@pytest.mark.timeout(240)
+def test_two_services_never_move_one_robot_at_once(app_on: Client,
+                                                   calibrated: tuple[Path, str, str]) -> None:
+    """Two services of one cell and robot start a dot-hit validation at the same moment, 20
+    times: the database's motion claim lets one move at a time (the other gets 409)."""
+    services = [app_on(), app_on()]
+    start = threading.Barrier(2)
+
+    def validate_now(client: TestClient) -> Any:
+        start.wait()
+        return client.post(f"/calibrations/{calibrated[2]}/validations",
+                           json={"points": ["centre"]})
+
+    accepted: list[str] = []
+    for _ in range(20):
+        with ThreadPoolExecutor(2) as pool:
+            answers = list(pool.map(validate_now, services))
+        codes = sorted(r.status_code for r in answers)
+        assert codes in ([202, 409], [202, 202]), [r.text for r in answers]
+        for r in answers:
+            if r.status_code == 202:
+                accepted.append(r.json()["id"])
+                assert wait_for(services[0], f"/validations/{r.json()['id']}")["state"] == "done"
+            else:
+                assert r.json()["code"] == "robot_busy"
+    with services[0].app.state.db.session() as s:
+        spans = sorted((v.created_at, v.finished_at) for v in s.scalars(
+            select(Validation).where(Validation.id.in_(accepted))))
+    assert len(spans) == len(accepted) >= 20
+    assert all(end <= next_start for (_, end), (next_start, _) in pairwise(spans))
 
 
 @pytest.mark.timeout(30)
@@ -249,8 +286,9 @@ def test_eye_to_hand_is_422(app_on: Client, calibrated: tuple[Path, str, str]) -
 def test_a_validation_cut_by_a_restart_is_failed(app_on: Client,
                                                  calibrated: tuple[Path, str, str]) -> None:
     client = app_on()
-    with client.app.state.db.session() as s:
-        val = Validation(calibration_id=calibrated[2], kind="dot_hit", state="running")
+    with client.app.state.db.session() as s:  # a validation of a service that died
+        val = Validation(cell=CELL, robot="mock://", calibration_id=calibrated[2],
+                         kind="dot_hit", state="running")
         s.add(val)
         s.commit()
     after = app_on().get(f"/validations/{val.id}").json()
@@ -261,7 +299,7 @@ def test_a_validation_cut_by_a_restart_is_failed(app_on: Client,
 def add_calibration(client: TestClient, run_id: str, state: str = "done",
                     result: dict[str, Any] | None = None) -> str:
     with client.app.state.db.session() as s:
-        cal = Calibration(run_id=run_id, state=state, options={}, result=result)
+        cal = Calibration(cell=CELL, run_id=run_id, state=state, options={}, result=result)
         s.add(cal)
         s.commit()
     return cal.id

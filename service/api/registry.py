@@ -3,7 +3,7 @@ current one with the history of what was active when."""
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query
 
@@ -25,12 +25,13 @@ def list_calibrations(session: SessionDep,
                       query: Annotated[CalibrationQuery, Query()]) -> CalibrationPage:
     """Calibrations, newest first, a page at a time (summaries: read one for its result)."""
     rows, total = store.page_calibrations(
-        session, where=store.CalibrationFilter(run_id=query.run_id, state=query.state,
+        session, where=store.CalibrationFilter(run_id=query.run_id, cell=query.cell,
+                                               active=query.active, state=query.state,
                                                setup=query.setup),
         limit=query.limit, offset=query.offset)
-    active = store.active_calibration_ids(session, robots=sorted({r[2] for r in rows}))
+    active = store.active_calibration_ids(session, cal_ids=[r[0].id for r in rows])
     items = [CalibrationSummary(
-        id=cal.id, run_id=cal.run_id, setup=setup, robot=robot, state=cal.state,
+        id=cal.id, run_id=cal.run_id, cell=cal.cell, setup=setup, robot=robot, state=cal.state,
         method=cal.options.get("method"), rms_px=rms, verdict=verdict, active=cal.id in active,
         error=cal.error, created_at=cal.created_at, finished_at=cal.finished_at)
         for cal, setup, robot, rms, verdict in rows]
@@ -41,11 +42,14 @@ def list_calibrations(session: SessionDep,
 
 @router.get("/active", responses={404: {"description": "no calibration was activated"}})
 def get_active(session: SessionDep, settings: SettingsDep,
-               robot: Annotated[str | None, Query(
-                   description="robot URL; default: this service's robot")] = None,
+               cell: Annotated[str | None, Query(
+                   max_length=255, description="default: this service's cell")] = None,
+               setup: Annotated[Literal["eye_in_hand", "eye_to_hand"] | None, Query(
+                   description="default: this service's setup")] = None,
                history: Annotated[int, Query(ge=1, le=500)] = 50) -> ActiveCalibration:
     """The calibration a cell controller should use now, and what was active when."""
-    return _active(session, robot=robot or settings.robot, history=history)
+    return _active(session, cell=cell or settings.cell,
+                   setup=setup or settings.calibration_setup(), history=history)
 
 
 @router.post("/{cal_id}/activate", responses={
@@ -53,13 +57,15 @@ def get_active(session: SessionDep, settings: SettingsDep,
     409: {"description": "the calibration is running or failed"}})
 def activate(cal_id: str, session: SessionDep,
              history: Annotated[int, Query(ge=1, le=500)] = 50) -> ActiveCalibration:
-    """Make a finished calibration the current one of its run's robot (idempotent)."""
-    return _active(session, robot=registry.activate(session, cal_id=cal_id), history=history)
+    """Make a finished calibration the current one of its cell and setup (idempotent)."""
+    cell, setup = registry.activate(session, cal_id=cal_id)
+    return _active(session, cell=cell, setup=setup, history=history)
 
 
-def _active(session: SessionDep, *, robot: str, history: int) -> ActiveCalibration:
-    now, periods = registry.current(session, robot=robot, history=history)
+def _active(session: SessionDep, *, cell: str, setup: str, history: int) -> ActiveCalibration:
+    now, periods = registry.current(session, cell=cell, setup=setup, history=history)
     cal = store.get_calibration(session, cal_id=now.calibration_id)
-    return ActiveCalibration(robot=robot, activated_at=now.activated_at,
+    return ActiveCalibration(cell=cell, setup=setup, robot=now.robot,
+                             activated_at=now.activated_at,
                              calibration=CalibrationPublic.model_validate(cal),
                              history=periods)

@@ -40,9 +40,11 @@ class RunManager(MotionJobs):
             poses = check_poses(self.motion, plan_poses(self.motion, n=body.stations,
                                                         target=target, setup=setup))
         token = new_id()
-        run = Run(robot=self.settings.robot, state="capturing", owner=token, setup=setup,
+        run = Run(id=new_id(), cell=self.settings.cell, robot=self.settings.robot,
+                  state="capturing", owner=token, instance_id=self.motion.instance_id,
+                  setup=setup,
                   target=target_json(target), poses=poses, mode=body.mode)
-        with self.motion.claim(), self.db.session() as s:
+        with self.motion.claim(f"run {run.id}") as s:
             s.add(run)
             try:
                 s.commit()
@@ -67,19 +69,23 @@ class RunManager(MotionJobs):
     def resume(self, run_id: str) -> None:
         """Continue a paused, interrupted or failed run at its first missing station."""
         token = new_id()
-        with self.motion.claim(check=False), self.db.session() as s:
+        with self.motion.claim(f"run {run_id}", check=False) as s:
             run = store.get_run(s, run_id=run_id)
             if run.state == "capturing":
                 return
             if run.state not in ("paused", "interrupted", "failed"):
                 raise ConflictError(f"Run {run_id} is {run.state}; only a paused, interrupted "
                                     "or failed run can be resumed.", code="invalid_state")
-            if store.running_validation(s) is not None:
-                raise self.motion.busy()
+            if run.cell != self.settings.cell or run.robot != self.settings.robot:
+                raise ConflictError(f"Run {run_id} belongs to robot {run.robot} of cell "
+                                    f"{run.cell}; resume it on that cell's service.",
+                                    code="other_cell")
+            if store.running_validation(s, cell=run.cell, robot=run.robot) is not None:
+                raise self.motion.busy(s)
             try:
                 changed = store.move_run(s, run_id=run_id, from_state=run.state,
                                          state="capturing", owner=token, error=None,
-                                         error_code=None)
+                                         error_code=None, instance_id=self.motion.instance_id)
             except IntegrityError:
                 s.rollback()
                 raise self.motion.busy() from None
