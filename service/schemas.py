@@ -104,6 +104,8 @@ class RunPublic(BaseModel):
     id: str
     state: RunState
     mode: Literal["robot", "external"]
+    cell: str = Field(description="the cell whose service captured it (CELLCAL_CELL); its "
+                                  "images are on that service")
     robot: str
     setup: str
     target: Target
@@ -209,6 +211,7 @@ class CalibrationPublic(BaseModel):
 
     id: str
     run_id: str
+    cell: str
     state: Literal["running", "done", "failed"]
     options: dict[str, Any]
     result: Result | None = Field(None, description="the cellcal/result@1 document once done")
@@ -330,7 +333,10 @@ class CalibrationQuery(BaseModel):
     state: Literal["running", "done", "failed"] | None = None
     setup: Literal["eye_in_hand", "eye_to_hand"] | None = None
     limit: int = Field(50, ge=1, le=200)
-    offset: int = Field(0, ge=0, le=MAX_INDEX)
+    cursor: str | None = Field(None, max_length=100,
+                               description="the next page: `next_cursor` of the page before "
+                                           "(keyset: as fast deep in the history as at its top)")
+    offset: int = Field(0, ge=0, le=MAX_INDEX, description="rows to skip (prefer `cursor`)")
 
 
 class CalibrationSummary(BaseModel):
@@ -353,13 +359,16 @@ class CalibrationSummary(BaseModel):
 
 
 class CalibrationPage(BaseModel):
-    """One page of a listing, newest first; ``next_offset`` is None on the last page."""
+    """One page of a listing, newest first; ``next_cursor`` (and ``next_offset``) is None on
+    the last page."""
 
     items: list[CalibrationSummary]
     total: int = Field(description="how many match the filters in all")
     limit: int
     offset: int
     next_offset: int | None
+    next_cursor: str | None = Field(description="give as `cursor` for the next page; None "
+                                                "when this page is not full")
 
 
 class ActivationPublic(BaseModel):

@@ -34,6 +34,7 @@ from service.models import (
     Validation,
     utcnow,
 )
+from service.pages import Cursor, newest_first
 
 #: Why a run stopped when the service did (at shutdown, or found so at the next start).
 INTERRUPTED = ("The service stopped while this run was capturing; resume it to continue from "
@@ -76,9 +77,9 @@ def get_station(s: Session, *, run_id: str, index: int) -> Station:
 # ---- listings ------------------------------------------------------------------------------
 
 
-def list_runs(s: Session, *, limit: int) -> list[Run]:
-    """Runs, newest first."""
-    return list(s.scalars(select(Run).order_by(Run.created_at.desc()).limit(limit)))
+def list_runs(s: Session, *, limit: int, cursor: Cursor | None = None) -> list[Run]:
+    """Runs, newest first, after ``cursor`` (the previous page's last)."""
+    return list(s.scalars(newest_first(select(Run), Run, cursor=cursor, limit=limit)))
 
 
 def list_stations(s: Session, *, run_id: str) -> list[Station]:
@@ -133,11 +134,11 @@ class CalibrationFilter:
 CalibrationRow = tuple[Calibration, str, str, float | None, str | None]
 
 
-def page_calibrations(s: Session, *, where: CalibrationFilter, limit: int,
-                      offset: int) -> tuple[list[CalibrationRow], int]:
-    """One page of calibrations, newest first, and how many match in all. The result
-    documents stay in the database (only their RMS error and verdict are read), so pages stay
-    small."""
+def page_calibrations(s: Session, *, where: CalibrationFilter, limit: int, offset: int,
+                      cursor: Cursor | None = None) -> tuple[list[CalibrationRow], int]:
+    """One page of calibrations, newest first (after ``cursor``, the previous page's last,
+    or skipping ``offset``), and how many match in all. The result documents stay in the
+    database (only their RMS error and verdict are read), so pages stay small."""
     query = select(Calibration, Run.setup, Run.robot,
                    Calibration.result[("camera", "rms_px")].as_float(),
                    Calibration.result[("quality", "verdict")].as_string()) \
@@ -151,8 +152,8 @@ def page_calibrations(s: Session, *, where: CalibrationFilter, limit: int,
         query = query.where(Calibration.id.in_(current) if where.active
                             else Calibration.id.not_in(current))
     total = s.scalar(select(func.count()).select_from(query.subquery())) or 0
-    rows = s.execute(query.order_by(Calibration.created_at.desc(), Calibration.id)
-                     .limit(limit).offset(offset)).all()
+    rows = s.execute(newest_first(query, Calibration, cursor=cursor, limit=limit)
+                     .offset(offset)).all()
     return [(cal, setup, robot, rms, verdict) for cal, setup, robot, rms, verdict in rows], total
 
 

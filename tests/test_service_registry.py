@@ -106,6 +106,38 @@ def test_pages_cover_every_calibration_once(client: TestClient) -> None:
     assert seen == made[::-1]
 
 
+@pytest.mark.pg_fast
+def test_cursors_cover_every_calibration_once_ties_and_new_rows_included(
+        client: TestClient) -> None:
+    """Keyset pages: rows created at the same instant are told apart by id, and a row added
+    while paging does not shift the pages."""
+    run_id = add_run(client)
+    made = [add_calibration(client, run_id, minute=m // 2) for m in range(7)]  # pairs tie
+    expected = sorted(made, key=lambda c: (made.index(c) // 2, c), reverse=True)
+    seen, cursor = [], None
+    while True:
+        page = client.get("/calibrations", params={"limit": 3, **(
+            {"cursor": cursor} if cursor else {})}).json()
+        seen += ids(page)
+        if len(seen) == 3:
+            add_calibration(client, run_id, minute=9)  # newer: on no page after the first
+        if (cursor := page["next_cursor"]) is None:
+            break
+    assert seen == expected
+
+
+def test_runs_pages_follow_the_link_header(client: TestClient) -> None:
+    made = [add_run(client) for _ in range(5)]
+    seen, url = [], "/runs?limit=2"
+    while url:
+        r = client.get(url)
+        seen += [run["id"] for run in r.json()]
+        url = r.links.get("next", {}).get("url")
+    assert sorted(seen) == sorted(made) and len(seen) == 5
+    bad = client.get("/calibrations", params={"cursor": "12.nope"})
+    assert (bad.status_code, bad.json()["code"]) == (422, "invalid_cursor")
+
+
 @pytest.mark.parametrize("params", [{"state": "finished"}, {"setup": "eye_on_hand"},
                                     {"limit": 0}, {"limit": 201}, {"offset": -1}])
 def test_bad_listing_parameters_are_422(client: TestClient, params: dict[str, Any]) -> None:

@@ -9,6 +9,7 @@ from fastapi import APIRouter, Query
 
 from service import registry, store
 from service.api.deps import SessionDep, SettingsDep
+from service.pages import Cursor
 from service.schemas import (
     ActiveCalibration,
     CalibrationPage,
@@ -28,7 +29,8 @@ def list_calibrations(session: SessionDep,
         session, where=store.CalibrationFilter(run_id=query.run_id, cell=query.cell,
                                                active=query.active, state=query.state,
                                                setup=query.setup),
-        limit=query.limit, offset=query.offset)
+        limit=query.limit, offset=query.offset,
+        cursor=None if query.cursor is None else Cursor.decode(query.cursor))
     active = store.active_calibration_ids(session, cal_ids=[r[0].id for r in rows])
     items = [CalibrationSummary(
         id=cal.id, run_id=cal.run_id, cell=cal.cell, setup=setup, robot=robot, state=cal.state,
@@ -36,8 +38,10 @@ def list_calibrations(session: SessionDep,
         error=cal.error, created_at=cal.created_at, finished_at=cal.finished_at)
         for cal, setup, robot, rms, verdict in rows]
     end = query.offset + len(items)
+    more = len(items) == query.limit
     return CalibrationPage(items=items, total=total, limit=query.limit, offset=query.offset,
-                           next_offset=end if end < total else None)
+                           next_offset=end if end < total and query.cursor is None else None,
+                           next_cursor=Cursor.of(rows[-1][0]).encode() if more else None)
 
 
 @router.get("/active", responses={404: {"description": "no calibration was activated"}})

@@ -7,7 +7,7 @@ import tempfile
 from pathlib import Path
 from typing import Annotated
 
-from fastapi import APIRouter, Query, status
+from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import FileResponse, StreamingResponse
 from starlette.background import BackgroundTask
 
@@ -16,6 +16,7 @@ from service.api.deps import EventsDep, RunsDep, SessionDep, SettingsDep
 from service.api.streams import LastEventId, event_stream, stream_doc
 from service.errors import ConflictError, NotFoundError
 from service.models import Run, Topic
+from service.pages import Cursor
 from service.schemas import Created, ErrorInfo, RunCreate, RunPublic, StationError
 from service.station_rows import captured_station_set, run_target
 from service.stationset import zip_station_set
@@ -33,7 +34,8 @@ def runs_public(session: SessionDep, runs: list[Run]) -> list[RunPublic]:
     counts = store.runs_counts(session, runs=runs)
     errors = store.runs_station_errors(session, run_ids=[run.id for run in runs])
     return [RunPublic(
-        id=run.id, state=run.state, mode=run.mode, robot=run.robot, setup=run.setup,
+        id=run.id, state=run.state, mode=run.mode, cell=run.cell, robot=run.robot,
+        setup=run.setup,
         target=run_target(run), **counts[run.id],
         error=None if run.error is None else ErrorInfo(code=run.error_code or "error",
                                                        detail=run.error),
@@ -51,10 +53,19 @@ def create_run(body: RunCreate, runs: RunsDep) -> Created:
 
 
 @router.get("")
-def list_runs(session: SessionDep,
-              limit: Annotated[int, Query(ge=1, le=500)] = 50) -> list[RunPublic]:
-    """Runs, newest first."""
-    return runs_public(session, store.list_runs(session, limit=limit))
+def list_runs(session: SessionDep, request: Request, response: Response,
+              limit: Annotated[int, Query(ge=1, le=500)] = 50,
+              cursor: Annotated[str | None, Query(
+                  max_length=100, description="the next page: the cursor of the `Link: <...>; "
+                                              "rel=\"next\"` header of the page before")] = None
+              ) -> list[RunPublic]:
+    """Runs, newest first; a full page's ``Link`` header names the next page (keyset)."""
+    runs = store.list_runs(session, limit=limit,
+                           cursor=None if cursor is None else Cursor.decode(cursor))
+    if len(runs) == limit:
+        after = request.url.include_query_params(cursor=Cursor.of(runs[-1]).encode())
+        response.headers["Link"] = f'<{after.path}?{after.query}>; rel="next"'
+    return runs_public(session, runs)
 
 
 @router.get("/{run_id}")
