@@ -69,7 +69,7 @@ class InstanceLease:
         now = utcnow()
         live = {self.id}
         for row in store.instances(s, cell=self.cell):
-            on_this_host_and_gone = row.host == self.host and not _process_alive(row.pid)
+            on_this_host_and_gone = row.host == self.host and not process_alive(row.pid)
             if row.heartbeat_at + self.lease > now and not on_this_host_and_gone:
                 live.add(row.id)
         return live
@@ -102,7 +102,8 @@ def describe(row: Instance) -> str:
     return f"instance {row.id} ({row.host}:{row.port}, pid {row.pid})"
 
 
-def _process_alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
+    """True while a process ``pid`` exists on this host (ours or another user's)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:

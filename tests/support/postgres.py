@@ -23,6 +23,7 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 
+from service.instances import process_alive
 from service.parent_death import die_with_parent
 
 #: Directories of servers made here: /tmp/cellcal-pg-<random>, with the creator's pid inside.
@@ -167,19 +168,9 @@ def remove_stale_servers() -> None:
             owner = int((root / "owner.pid").read_text())
         except (OSError, ValueError):
             continue
-        if _alive(owner):
+        if process_alive(owner):
             continue
         with contextlib.suppress(OSError, ValueError, IndexError):
             postmaster = int((root / "data" / "postmaster.pid").read_text().split()[0])
             os.kill(postmaster, signal.SIGQUIT)
         shutil.rmtree(root, ignore_errors=True)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
