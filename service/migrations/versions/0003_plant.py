@@ -7,8 +7,8 @@ database (``CELLCAL_CELL``, default the host name), since a database before this
 served one cell. Activations get their calibration's setup, validations their robot, and the
 newest activation per cell and setup becomes the active one.
 
-Revision ID: 0002
-Revises: 0001
+Revision ID: 0003
+Revises: 0002
 Create Date: 2026-11-25
 """
 
@@ -20,8 +20,8 @@ import socket
 import sqlalchemy as sa
 from alembic import op
 
-revision = "0002"
-down_revision = "0001"
+revision = "0003"
+down_revision = "0002"
 branch_labels = None
 depends_on = None
 
