@@ -109,3 +109,29 @@ def test_progress_bar_only_for_many_images(tmp_path, capsys, n_images, bar):
     d = write_image_set(tmp_path / "set", n=n_images)
     assert main(["calibrate", str(d), "--method", "sm", "--out", str(tmp_path / "r.json")]) == 0
     assert ("detecting corners" in capsys.readouterr().err) == bar
+
+
+@pytest.mark.parametrize(("out", "message"), [
+    ("missing/result.json", "no directory .*missing; create it first"),
+    (".", "is a directory; name the result file"),
+])
+def test_out_is_checked_before_the_solve(tmp_path, capsys, monkeypatch, out, message):
+    d = write_image_set(tmp_path / "set", n=3)
+    monkeypatch.chdir(tmp_path)
+    solved = []
+    monkeypatch.setattr("service.cli.calibrate.calibrate_stations",
+                        lambda *a, **k: solved.append(1))
+    assert main(["calibrate", str(d), "--out", out]) == 2
+    err = capsys.readouterr().err
+    assert re.match(f"cellcal: error: --out {re.escape(out)}: {message}", err), err
+    assert solved == []  # refused before any image was read or solved
+
+
+def test_rejected_stations_are_listed_on_the_terminal(tmp_path, capsys):
+    d = write_image_set(tmp_path / "set")
+    (d / "003.png").write_text("not an image")
+    assert main(["calibrate", str(d), "--out", str(tmp_path / "r.json")]) == 0
+    lines = capsys.readouterr().err.splitlines()
+    assert "cellcal: station 003 rejected: image file '003.png' is not a readable image " \
+           "(PNG or JPEG expected)" in lines
+    assert sum("rejected:" in line for line in lines) == 1

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Iterable
 from pathlib import Path
@@ -76,6 +77,8 @@ PROGRESS_MIN_IMAGES = 10
 
 def run(args: argparse.Namespace) -> int:
     """Calibrate ``args.station_dir`` and write the result document."""
+    if args.out not in (None, "-"):
+        check_out_path(args.out)
     stations = load_station_set(args.station_dir, max_stations=args.max_stations).model()
     command = " ".join(["cellcal", *sys.argv[1:]])
     if stations.pose_only:
@@ -97,6 +100,9 @@ def run(args: argparse.Namespace) -> int:
     else:
         doc = _calibrate_images(args, stations, command)
     text = json.dumps(doc, indent=2)
+    for rejected in doc.get("rejected") or []:
+        print(f"cellcal: station {rejected['id']} rejected: {rejected['reason']}",
+              file=sys.stderr)
     print(verdict_line(doc), file=sys.stderr)
     if args.out in (None, "-"):
         print(text)
@@ -105,6 +111,21 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {args.out}", file=sys.stderr)
     failed = (doc.get("quality") or {}).get("verdict") == "fail"
     return EXIT_VERDICT_FAIL if failed else 0
+
+
+def check_out_path(out: str) -> None:
+    """``ValueError`` if the result could not be written to ``out`` (told before the solve,
+    not after it): its directory must exist and be writable, and ``out`` not be a directory."""
+    path = Path(out)
+    directory = path.parent
+    if path.is_dir():
+        raise ValueError(f"--out {out}: is a directory; name the result file, e.g. "
+                         f"{path / 'result.json'}")
+    if not directory.is_dir():
+        raise ValueError(f"--out {out}: no directory {directory}; create it first "
+                         f"(mkdir -p {directory})")
+    if not os.access(directory, os.W_OK):
+        raise ValueError(f"--out {out}: the directory {directory} is not writable")
 
 
 def verdict_line(doc: dict[str, Any]) -> str:
