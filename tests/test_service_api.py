@@ -22,7 +22,7 @@ from fastapi.testclient import TestClient
 
 from calib.geometry import ur_pose_from_matrix
 from drivers.base import Camera, Robot
-from drivers.errors import RobotConnectionError
+from drivers.errors import CameraError, RobotConnectionError
 from mocks.scene import default_scene, sample_station_poses
 from service.app import create_app
 from service.devices import DeviceOpener, settings_opener
@@ -358,6 +358,21 @@ def test_unreachable_robot_fails_the_run(tmp_path: Path) -> None:
     assert run["stations_captured"] == 0
     assert devices["robot"]["connected"] is False
     assert devices["robot"]["error"]["code"] == "robot_unreachable"
+    # the camera, opened after the robot, was not tried: the robot's error is not its own
+    assert devices["camera"] == {"url": "mock://", "opened": False, "resolution": None,
+                                 "error": None}
+
+
+@pytest.mark.timeout(20)
+def test_missing_camera_is_the_camera_error_alone(tmp_path: Path) -> None:
+    def no_camera() -> tuple[Robot, Camera]:
+        raise CameraError("No camera at /dev/video0.", code="camera_not_found")
+
+    with service(tmp_path, no_camera) as c:
+        devices = c.get("/devices").json()
+    assert devices["camera"]["error"] == {"code": "camera_not_found",
+                                          "detail": "No camera at /dev/video0."}
+    assert devices["robot"]["error"] is None and devices["robot"]["connected"] is False
 
 
 @pytest.mark.timeout(30)

@@ -194,3 +194,27 @@ def test_docs_render_in_chromium_asking_no_other_host(served: LocalService, tmp_
     # what the bundles would fetch from elsewhere (ReDoc: its vendor's logo) the page's
     # Content-Security-Policy stopped in the browser
     assert all(not u.startswith(served.url) for u in blocked), blocked
+
+
+@pytest.mark.timeout(300)
+def test_devices_line_refreshes_itself(tmp_path: Path) -> None:
+    """Issue 19 item 1: the devices line was read once, when the page connected. The robot
+    moves (a run through the API, not the page); the line follows without a click."""
+    with local_service(tmp_path / "data", KEY) as service, \
+            Browser(tmp_path / "chromium") as browser:
+        browser.goto(f"{service.url}/#key={KEY}")
+        browser.wait_for("the page to connect", "document.querySelector('#status')"
+                         ".textContent === 'connected'")
+        before = text(browser, "#devices")
+        assert "Robot mock://: connected" in before and "TCP at" in before
+        headers = {"Authorization": f"Bearer {KEY}"}
+        run = httpx.post(f"{service.url}/runs", json={"stations": 3}, headers=headers).json()
+        while httpx.get(f"{service.url}/runs/{run['id']}",
+                        headers=headers).json()["state"] == "capturing":
+            browser.wait_for("a moment", "new Promise((r) => setTimeout(() => r(true), 200))")
+        x_mm = httpx.get(f"{service.url}/devices", headers=headers).json()["robot"][
+            "tcp_pose"][0] * 1000
+        browser.wait_for("the devices line to show where the robot went",
+                         f"document.querySelector('#devices').textContent"
+                         f".includes('TCP at ' + ({x_mm!r}).toFixed(1) + ' ')")
+        assert text(browser, "#devices") != before

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from drivers.errors import DeviceError
+from drivers.errors import CameraError, DeviceError, RobotError
 from service.api.deps import DevicesDep, SettingsDep
 from service.schemas import CameraInfo, DevicesPublic, ErrorInfo, RobotInfo
 
@@ -25,7 +25,12 @@ def get_devices(devices: DevicesDep, settings: SettingsDep) -> DevicesPublic:
     try:
         robot, camera = devices.get()
     except (DeviceError, ValueError) as exc:
-        robot_info.error = camera_info.error = _error(exc)
+        # The robot is opened first and the camera after it: a robot error leaves the camera
+        # untried (not failed), a camera error is the camera's alone.
+        if not isinstance(exc, CameraError):
+            robot_info.error = _error(exc)
+        if not isinstance(exc, RobotError):
+            camera_info.error = _error(exc)
         return DevicesPublic(robot=robot_info, camera=camera_info, workspace=workspace)
     try:
         st = robot.status()

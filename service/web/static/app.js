@@ -34,13 +34,31 @@ function cell(row, text, cls) {
 
 function short(id) { return id.slice(0, 8); }
 
+// The devices line is read again every DEVICES_REFRESH_MS, so a robot or camera that comes,
+// goes or moves shows without a reload.
+const DEVICES_REFRESH_MS = 5000;
+let devicesTimer = null;
+
 async function loadDevices() {
   const d = await json("GET", "/devices");
+  const tcp = d.robot.tcp_pose
+    ? `, TCP at ${d.robot.tcp_pose.slice(0, 3).map((v) => (v * 1000).toFixed(1)).join(" ")} mm`
+    : "";
   const robot = d.robot.error ? `error: ${d.robot.error.detail}`
-    : `${d.robot.connected ? "connected" : "not connected"}, ${d.robot.mode ?? ""}`;
+    : `${d.robot.connected ? "connected" : "not connected"}, ${d.robot.mode ?? ""}${tcp}`;
   const camera = d.camera.error ? `error: ${d.camera.error.detail}`
-    : `${d.camera.opened ? "open" : "closed"} ${(d.camera.resolution ?? []).join("x")}`;
-  $("#devices").textContent = `Robot ${d.robot.url}: ${robot}. Camera ${d.camera.url}: ${camera}.`;
+    : d.camera.opened ? `open ${(d.camera.resolution ?? []).join("x")}`
+      : d.robot.error ? "not opened (it is opened once the robot connects)" : "closed";
+  const checked = new Date().toLocaleTimeString();
+  $("#devices").textContent =
+    `Robot ${d.robot.url}: ${robot}. Camera ${d.camera.url}: ${camera}. (checked ${checked})`;
+}
+
+function watchDevices() {
+  if (devicesTimer !== null) return;
+  devicesTimer = setInterval(() => loadDevices().catch((error) => {
+    $("#devices").textContent = `Devices: ${error.message}`;
+  }), DEVICES_REFRESH_MS);
 }
 
 async function loadRuns() {
@@ -295,6 +313,7 @@ async function run(action) {
 
 async function loadAll() {
   await Promise.all([loadDevices(), loadRuns(), loadCalibrations()]);
+  watchDevices();
   setStatus("connected");
 }
 
