@@ -45,16 +45,16 @@ from calib.boards.detection import (
 )
 from calib.boards.markers import markers_seen_reason
 
-#: Images at least this large (smaller side, px) are searched at half size first.
-_COARSE_MIN_SIZE = 960
-#: SB detector flags, tried in order until one reads the board: the fast common case first,
-#: then without normalisation (the histogram equalisation can drown a board in a bright or
-#: unevenly lit image), then the exhaustive search with and without it, and last with
-#: ``CALIB_CB_ACCURACY``, whose up-sampled search reads some boards the others miss (it is
-#: 4x slower, and its corners are replaced by :func:`refine_corners`'s anyway).
-_SB_FLAG_SETS = (
+#: Images at least this large (smaller side, px) are searched at half size first: SB's cost
+#: grows with the pixel count, and a board that fills a 1280x720 or larger image has squares
+#: wide enough at half size (all of ``rwhe-kuka_1``'s 28x17 boards at 1928x1208 are read there).
+_COARSE_MIN_SIZE = 720
+#: SB detector flags tried, in order, only when the default call (flags 0, what an OpenCV user
+#: writes) fails: with normalisation (low contrast), the exhaustive search with and without it,
+#: and last with ``CALIB_CB_ACCURACY``, whose up-sampled search reads some boards the others
+#: miss (it is 4x slower, and its corners are replaced by :func:`refine_corners`'s anyway).
+_FALLBACK_FLAGS = (
     cv2.CALIB_CB_NORMALIZE_IMAGE,
-    0,
     cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE,
     cv2.CALIB_CB_EXHAUSTIVE,
     cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY,
@@ -197,13 +197,13 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
 
 def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], survey: _GridSurvey, *,
                quick: bool = False) -> tuple[bool, np.ndarray | None]:
-    """OpenCV's SB detector, first on a half-size copy of a large image (about 4x faster).
+    """OpenCV's SB detector with its default flags, on a half-size copy of a large image first
+    (about 4x faster), then on the full image: the common case costs one call.
 
     Half-size corners are scaled back (a half-size pixel centre x sits at 2x + 0.5) and are
-    only a start for :func:`refine_corners` at full resolution; when the half-size search fails
-    (small or distant board) the full image is searched with each of ``_SB_FLAG_SETS`` in
-    turn, and last the exhaustive search on a locally equalised copy (CLAHE) for boards in
-    shadow or glare. The common case costs one call; only a missing board costs them all,
+    only a start for :func:`refine_corners` at full resolution. Only when the default call
+    fails is the full image searched with each of ``_FALLBACK_FLAGS`` in turn, and last the
+    exhaustive search on a locally equalised copy (CLAHE) for boards in shadow or glare;
     except when ``survey`` sees a board larger than ``inner_corners``: SB reads a board of
     exactly the size asked for, so the searches could not succeed (a wrong ``inner_corners``
     is then told in a fraction of a second instead of several). ``quick`` (faint images,
@@ -212,20 +212,23 @@ def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], survey: _GridSu
     in_view = survey
     if min(grey.shape) >= _COARSE_MIN_SIZE:
         half = cv2.pyrDown(grey)
-        found, raw = cv2.findChessboardCornersSB(half, inner_corners, flags=_SB_FLAG_SETS[0])
+        found, raw = cv2.findChessboardCornersSB(half, inner_corners)
         if found:
             return True, raw * 2.0 + 0.5
         in_view = _GridSurvey(half)  # a grid has the same size at half size, 4x cheaper
+    found, raw = cv2.findChessboardCornersSB(grey, inner_corners)
+    if found:
+        return True, raw
     if not quick and in_view.larger_than(inner_corners):
         return False, None
-    for flags in _SB_FLAG_SETS[::2][:2] if quick else _SB_FLAG_SETS:
+    for flags in _FALLBACK_FLAGS[:2] if quick else _FALLBACK_FLAGS:
         found, raw = cv2.findChessboardCornersSB(grey, inner_corners, flags=flags)
         if found:
             return True, raw
     if quick:
         return False, None
     found, raw = cv2.findChessboardCornersSB(_CLAHE.apply(grey), inner_corners,
-                                             flags=_SB_FLAG_SETS[2])
+                                             flags=_FALLBACK_FLAGS[1])
     return (True, raw) if found else (False, None)
 
 
@@ -283,7 +286,12 @@ def _check_inner_corners(inner_corners: tuple[int, int]) -> tuple[int, int]:
 class _GridSurvey:
     """The checkerboard grid in view, whatever its size (at least 3x3 inner corners, its
     squares really alternating black and white; ``CALIB_CB_LARGER``): found once, on first
-    use, for the search and the diagnosis of a missing board."""
+    use, for the search and the diagnosis of a missing board.
+
+    ``CALIB_CB_LARGER`` may extend a board by a row of points on its outer edge, where the
+    outer squares meet a dark plate, a frame or a white margin: those are no corners, and the
+    board no larger grid. Such rows are trimmed (:func:`_without_edge_rows`).
+    """
 
     def __init__(self, grey: np.ndarray) -> None:
         self.grey = grey
@@ -300,7 +308,7 @@ class _GridSurvey:
                 grid = pts.reshape(*meta.shape[:2], 2).astype(float)
                 lo, hi = grey_range(self.grey)
                 if abs(_even_square_darkness(self.grey, grid)) >= 0.25 * (hi - lo):
-                    self._grid = grid
+                    self._grid = _without_edge_rows(self.grey, grid, 0.25 * (hi - lo))
         return self._grid
 
     def larger_than(self, inner_corners: tuple[int, int]) -> bool:
@@ -309,6 +317,44 @@ class _GridSurvey:
             return False
         seen, wanted = sorted(self.grid.shape[1::-1]), sorted(inner_corners)
         return seen != wanted and seen[0] >= wanted[0] and seen[1] >= wanted[1]
+
+
+def _without_edge_rows(grey: np.ndarray, grid: np.ndarray, contrast: float
+                       ) -> np.ndarray | None:
+    """``grid`` (rows, cols, 2) without its outer rows or columns of points that are no
+    corners: a true corner row has alternating squares on both sides, so the ring of squares
+    just beyond the outermost row (extrapolated by one spacing) must alternate by at least
+    ``contrast`` grey levels too. Beyond a row found on the board's edge lies the plate, the
+    frame or the margin: one colour. A ring that leaves the image proves nothing and is kept.
+    None when fewer than 3x3 corners remain."""
+    trimmed = True
+    while trimmed and min(grid.shape[:2]) >= 3:
+        trimmed = False
+        for turn in range(4):  # each side in turn as row 0
+            turned = np.rot90(grid, turn)
+            alternation = _ring_alternation(grey, turned)
+            if alternation is not None and alternation < contrast:
+                grid = np.rot90(turned[1:], -turn)
+                trimmed = True
+                break
+    return grid if min(grid.shape[:2]) >= 3 else None
+
+
+def _ring_alternation(grey: np.ndarray, grid: np.ndarray) -> float | None:
+    """Mean grey of the even minus the odd squares (absolute) in the ring of squares beyond
+    row 0 of ``grid`` (rows, cols, 2), each sampled at its centre and halfway to its corners;
+    None when a sample falls outside the image."""
+    edge, beyond = grid[0], 2 * grid[0] - grid[1]
+    corners = (edge[:-1], edge[1:], beyond[:-1], beyond[1:])
+    centre = sum(corners) / 4
+    samples = np.stack([centre] + [(centre + c) / 2 for c in corners])  # (5, cols - 1, 2)
+    h, w = grey.shape
+    if (samples < 0).any() or (samples[..., 0] > w - 1).any() or (samples[..., 1] > h - 1).any():
+        return None
+    m = samples.reshape(-1, 1, 2).astype(np.float32)
+    vals = cv2.remap(grey, m[..., 0], m[..., 1], cv2.INTER_LINEAR).reshape(samples.shape[:2])
+    vals = vals.astype(float).mean(axis=0)
+    return float(abs(vals[::2].mean() - vals[1::2].mean()))
 
 
 def _diagnose_missing_board(survey: _GridSurvey, inner_corners: tuple[int, int]) -> str:
