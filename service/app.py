@@ -46,9 +46,9 @@ from service.errors import (
     UnprocessableError,
 )
 from service.guard import PayloadTooLargeError, RequestGuard
-from service.results import software_version
 from service.runtime import Runtime
 from service.settings import Settings
+from service.version import software_version
 from service.web import mount_page
 
 log = logging.getLogger("cellcal.service")

@@ -4,7 +4,6 @@ stored result read back as the cell it describes (:func:`stored_cell`)."""
 from __future__ import annotations
 
 import datetime as dt
-from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
 import numpy as np
@@ -26,6 +25,7 @@ from calib import (
     ur_pose_from_matrix,
 )
 from service.errors import UnprocessableError
+from service.version import software_version
 
 
 def stored_cell(result: dict[str, Any], target: Target, *, use: str) -> StoredCell:
@@ -44,13 +44,6 @@ def stored_cell(result: dict[str, Any], target: Target, *, use: str) -> StoredCe
                       target_pose=np.asarray(target_pose["matrix"], dtype=float),
                       board=board_from_target(target), kappa=float(result["target"]["kappa"]),
                       nu=float(result["target"]["nu"]))
-
-
-def software_version() -> str:
-    try:
-        return version("cellcal")
-    except PackageNotFoundError:
-        return "unknown"
 
 
 def _transform(T: np.ndarray) -> dict[str, Any]:

@@ -14,7 +14,7 @@ import pytest
 from service.cli.exit_codes import EXIT_FAILED, EXIT_USAGE
 from service.cli.main import main
 from service.exports import FORMATS, ExportNames, export
-from service.results import software_version
+from service.version import software_version
 from tests.test_export_consumers import intrinsics_only_result
 from tests.test_exports import full_result
 

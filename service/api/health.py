@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from service.results import software_version
 from service.schemas import Health
+from service.version import software_version
 
 router = APIRouter(tags=["health"])
 

@@ -43,9 +43,6 @@ from service.image_files import DEFAULT_MAX_PIXELS, read_station_image
 from service.results import cv_dropped_clause
 from service.stationset import DEFAULT_MAX_STATIONS, load_station_set
 
-#: The command's line in ``cellcal --help``.
-HELP = "calibrate a station set directory (stations.json)"
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``calibrate`` command's arguments."""

@@ -19,9 +19,6 @@ from service.cli import client
 from service.cli.exit_codes import EXIT_FAILED
 from service.exports import FORMATS
 
-#: The command's line in ``cellcal --help``.
-HELP = "list, show, start, activate or export calibrations of a running service"
-
 _COLUMNS = ["id", "run_id", "state", "verdict", "rms_px", "active", "method", "created_at"]
 
 

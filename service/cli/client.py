@@ -17,16 +17,13 @@ from typing import Any
 import httpx
 from tqdm import tqdm
 
+from service.cli.errors import ServiceCallError
+
 DEFAULT_URL = "http://127.0.0.1:8000"
 #: Reconnects of an event stream in a row (each after a dropped connection) before giving up.
 MAX_RECONNECTS = 5
 #: Seconds an event stream may stay silent: the service sends a keep-alive every 15 s.
 STREAM_READ_TIMEOUT_S = 60.0
-
-
-class ServiceCallError(Exception):
-    """A call to the service failed: the service is down, refused the key, or answered an
-    error; the message says which in one line."""
 
 
 @dataclass(frozen=True)

@@ -11,9 +11,6 @@ from __future__ import annotations
 import argparse
 import sys
 
-#: The command's line in ``cellcal --help``.
-HELP = "upgrade the service's database or show its schema revision"
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``db`` command's arguments."""

@@ -22,8 +22,6 @@ DEMO = "mocks.demo:run_demo"
 POSE_DEMO = "mocks.demo:run_pose_demo"
 
 
-#: The command's line in ``cellcal --help``.
-HELP = "run the service on a simulated cell: capture, calibrate, validate"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -11,7 +11,7 @@ import argparse
 import contextlib
 import json
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import cv2
 import numpy as np
@@ -33,14 +33,14 @@ _URLS_HELP = (f"Device addresses: {ROBOT_URLS} for robots; {CAMERA_URLS} for cam
               "(default: the built-in demo cell).")
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``robot``, ``camera`` and ``devices`` commands to the ``cellcal`` parser."""
+def register(subparsers: argparse._SubParsersAction, help_lines: Mapping[str, str]) -> None:
+    """Add the ``robot``, ``camera`` and ``devices`` commands to the ``cellcal`` parser, with
+    their ``help_lines`` in ``cellcal --help``."""
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--scene", metavar="SCENE_JSON",
                         help="mock scene file for mock:// devices (default: built-in cell)")
 
-    robot = subparsers.add_parser("robot", help="read or move the robot",
-                                  description=_URLS_HELP)
+    robot = subparsers.add_parser("robot", help=help_lines["robot"], description=_URLS_HELP)
     robot_sub = robot.add_subparsers(dest="robot_command", required=True, metavar="ACTION")
     pose = robot_sub.add_parser(
         "pose", parents=[common], help="print the TCP pose as JSON",
@@ -63,7 +63,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="seconds to wait for the robot to come to rest (default 10)")
     move.set_defaults(func=_robot_move)
 
-    camera = subparsers.add_parser("camera", help="grab camera frames", description=_URLS_HELP)
+    camera = subparsers.add_parser("camera", help=help_lines["camera"], description=_URLS_HELP)
     camera_sub = camera.add_subparsers(dest="camera_command", required=True, metavar="ACTION")
     grab = camera_sub.add_parser(
         "grab", parents=[common], help="save one fresh frame",
@@ -76,7 +76,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="seconds to wait for a frame (default 5)")
     grab.set_defaults(func=_camera_grab)
 
-    devices = subparsers.add_parser("devices", help="check the cell's devices",
+    devices = subparsers.add_parser("devices", help=help_lines["devices"],
                                     description=_URLS_HELP)
     devices_sub = devices.add_subparsers(dest="devices_command", required=True,
                                          metavar="ACTION")

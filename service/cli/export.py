@@ -21,8 +21,6 @@ from service.result_schema import Result, parse_result
 MAX_RESULT_BYTES = 256 * 1024 * 1024
 
 
-#: The command's line in ``cellcal --help``.
-HELP = "export a result file for OpenCV, ROS, a URDF or a UR program"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

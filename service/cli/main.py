@@ -1,8 +1,10 @@
 """``cellcal`` command line: the parser and the error policy; each command is a module.
 
-A command module offers ``HELP`` (its line in ``cellcal --help``), a docstring (its description
-in ``cellcal COMMAND --help``), ``add_arguments(parser)`` and ``run(args)`` (the exit status);
-``devices`` adds its command groups (``robot``, ``camera``, ``devices``) itself.
+A command module offers a docstring (its description in ``cellcal COMMAND --help``),
+``add_arguments(parser)`` and ``run(args)`` (the exit status); ``devices`` adds its command
+groups (``robot``, ``camera``, ``devices``) itself. Only the module of the command given is
+imported, when it is given (``COMMANDS``): ``cellcal --version`` and ``--help`` start without
+numpy, OpenCV or the service, and each command loads what it needs.
 
 Every error prints one line on stderr and exits non-zero; no traceback reaches a user
 (set ``CELLCAL_DEBUG=1`` to see one).
@@ -11,19 +13,41 @@ Every error prints one line on stderr and exits non-zero; no traceback reaches a
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import sys
 from collections.abc import Callable, Sequence
-from types import ModuleType
 
 from drivers.errors import DeviceError
-from service.cli import calibrate, calibrations, db, demo, devices, export, report, runs, serve
-from service.cli.client import ServiceCallError
+from service.cli.errors import ServiceCallError
 from service.cli.exit_codes import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
-from service.results import software_version
+from service.version import software_version
+
+#: Each command: its module and its line in ``cellcal --help``, in the order listed there.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "calibrate": ("service.cli.calibrate", "calibrate a station set directory (stations.json)"),
+    "calibrations": ("service.cli.calibrations",
+                     "list, show, start, activate or export calibrations of a running service"),
+    "db": ("service.cli.db", "upgrade the service's database or show its schema revision"),
+    "demo": ("service.cli.demo", "run the service on a simulated cell: capture, calibrate, "
+                                 "validate"),
+    "robot": ("service.cli.devices", "read or move the robot"),
+    "camera": ("service.cli.devices", "grab camera frames"),
+    "devices": ("service.cli.devices", "check the cell's devices"),
+    "export": ("service.cli.export", "export a result file for OpenCV, ROS, a URDF or a UR "
+                                     "program"),
+    "report": ("service.cli.report", "write the HTML report of a calibration result"),
+    "runs": ("service.cli.runs",
+             "list, show, start, pause, resume or cancel capture runs of a running service"),
+    "serve": ("service.cli.serve", "run the REST service"),
+}
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
+    """The ``cellcal`` parser with the full arguments of the command named in ``argv``
+    (its module imported), and the others by name and help line only."""
+    argv = sys.argv[1:] if argv is None else argv
+    given = next((a for a in argv if not a.startswith("-")), None)
     parser = argparse.ArgumentParser(
         prog="cellcal",
         description="Camera and hand-eye calibration for robot cells. Units: metres and "
@@ -31,26 +55,24 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version",
                         version=f"cellcal {software_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    _add_command(sub, "calibrate", calibrate)
-    _add_command(sub, "calibrations", calibrations)
-    _add_command(sub, "db", db)
-    _add_command(sub, "demo", demo)
-    devices.register(sub)
-    _add_command(sub, "export", export)
-    _add_command(sub, "report", report)
-    _add_command(sub, "runs", runs)
-    _add_command(sub, "serve", serve)
+    wanted = COMMANDS.get(given or "", ("", ""))[0]
+    for name, (module_name, help_line) in COMMANDS.items():
+        if module_name != wanted:
+            sub.add_parser(name, help=help_line)
+        elif module_name == "service.cli.devices":
+            if name == "robot":  # the first of its commands: it adds all three
+                importlib.import_module(module_name).register(
+                    sub, {n: h for n, (m, h) in COMMANDS.items() if m == module_name})
+        else:
+            command = importlib.import_module(module_name)
+            command_parser = sub.add_parser(name, help=help_line, description=command.__doc__)
+            command.add_arguments(command_parser)
+            command_parser.set_defaults(func=command.run)
     return parser
 
 
-def _add_command(sub: argparse._SubParsersAction, name: str, command: ModuleType) -> None:
-    parser = sub.add_parser(name, help=command.HELP, description=command.__doc__)
-    command.add_arguments(parser)
-    parser.set_defaults(func=command.run)
-
-
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser(argv).parse_args(argv)
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         return func(args)

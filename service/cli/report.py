@@ -13,9 +13,6 @@ import json
 import sys
 from pathlib import Path
 
-#: The command's line in ``cellcal --help``.
-HELP = "write the HTML report of a calibration result"
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``report`` command's arguments."""

@@ -18,9 +18,6 @@ from typing import Any
 from service.cli import client
 from service.cli.exit_codes import EXIT_FAILED
 
-#: The command's line in ``cellcal --help``.
-HELP = "list, show, start, pause, resume or cancel capture runs of a running service"
-
 _COLUMNS = ["id", "state", "mode", "stations_captured", "stations_skipped", "stations_planned",
             "created_at"]
 

@@ -20,9 +20,6 @@ from typing import Any
 
 from pydantic import ValidationError
 
-#: The command's line in ``cellcal --help``.
-HELP = "run the REST service"
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``serve`` command's arguments."""

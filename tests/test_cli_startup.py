@@ -1,0 +1,38 @@
+"""``cellcal --version`` and ``--help`` load no numerics, OpenCV or service: a command loads
+only what it needs, when it runs (the start-up time itself is measured in
+``benchmarks/end_to_end.py``, not here)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+HEAVY = ("numpy", "scipy", "cv2", "calib", "fastapi", "sqlalchemy")
+_PROBE = """
+import sys
+from service.cli.main import main
+try:
+    main({argv!r})
+except SystemExit:
+    pass
+print(" ".join(sorted({{m.split(".")[0] for m in sys.modules}})))
+"""
+
+
+def _modules_after(argv: list[str]) -> set[str]:
+    out = subprocess.run([sys.executable, "-c", _PROBE.format(argv=argv)], capture_output=True,
+                         text=True, check=True)
+    return set(out.stdout.split())
+
+
+@pytest.mark.parametrize("argv", [["--version"], ["--help"], ["runs", "--help"]])
+def test_version_help_and_client_commands_load_no_numerics(argv):
+    assert not _modules_after(argv) & set(HEAVY)
+
+
+def test_a_command_loads_what_it_needs():
+    loaded = _modules_after(["calibrate", "--help"])
+    assert {"calib", "numpy", "cv2"} <= loaded
+    assert "fastapi" not in loaded
