@@ -44,8 +44,10 @@ from calib.chain import (
     station_motions,
     target_from_station,
 )
+from calib.coldstart import Bootstrap, Guess, View, bootstrap, camera_position
 from calib.crossval import CrossValidation, PoseStations
 from calib.evidence import Trust, choose_pose_only
+from calib.explorer import ColdStart, Proposal
 from calib.geometry import (
     PoseError,
     check_joint_positions,
@@ -100,6 +102,8 @@ from calib.selection import KAPPA_MODES, Candidate, Selection
 from calib.selection import RULE as SELECTION_RULE
 from calib.stations import Station, StationInputs, Stations
 from calib.validation import dot_hit, leave_one_out, motion_residuals, reprojection_rms
+from calib.viewselect import Scene as ColdStartScene
+from calib.viewselect import hand_eye_sigma
 
 __all__ = [
     "CAMERA_PARAMS",
@@ -114,6 +118,7 @@ __all__ = [
     "SETUPS",
     "Board",
     "BoardTarget",
+    "Bootstrap",
     "CalibrationResult",
     "Candidate",
     "CellGuess",
@@ -123,10 +128,13 @@ __all__ = [
     "CheckVerdict",
     "Checkerboard",
     "CheckerboardTarget",
+    "ColdStart",
+    "ColdStartScene",
     "CornerStations",
     "CrossValidation",
     "Detection",
     "Expected",
+    "Guess",
     "HandEyeResult",
     "IntrinsicsOptions",
     "IntrinsicsResult",
@@ -140,6 +148,7 @@ __all__ = [
     "PlanOptions",
     "PoseError",
     "PoseStations",
+    "Proposal",
     "RefineOptions",
     "RobotNoise",
     "Selection",
@@ -152,12 +161,15 @@ __all__ = [
     "Target",
     "TargetAdapter",
     "Trust",
+    "View",
     "board_from_target",
     "board_points",
+    "bootstrap",
     "calibrate_hand_eye",
     "calibrate_intrinsics",
     "calibrate_stations",
     "camera_from_robot",
+    "camera_position",
     "check_joint_positions",
     "check_setup",
     "check_transforms",
@@ -170,6 +182,7 @@ __all__ = [
     "detect_checkerboard",
     "dot_hit",
     "hand_eye_from_station",
+    "hand_eye_sigma",
     "image_corner_error",
     "invert",
     "leave_one_out",

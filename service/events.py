@@ -158,4 +158,5 @@ def run_state_event(s: Session, *, run_id: str) -> dict[str, Any]:
     return {"type": "state", "run_id": run_id, "state": run.state,
             **store.run_counts(s, run=run),
             "error": None if run.error is None else {"code": run.error_code,
-                                                     "detail": run.error}}
+                                                     "detail": run.error},
+            "stop_reason": None if run.cold_start is None else run.cold_start.get("stop_reason")}

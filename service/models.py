@@ -96,6 +96,9 @@ class Run(Base):
     setup: Mapped[str] = mapped_column(String(16))
     target: Mapped[dict[str, Any]]
     poses: Mapped[list[Any]]
+    #: A run planned station by station from a cold start (``service.runs.coldstart``): its
+    #: station count or stop rule, start pose, progress and stop reason; None otherwise.
+    cold_start: Mapped[dict[str, Any] | None]
     #: Token of the capture thread that may write stations; a new one on every (re)start.
     owner: Mapped[str | None] = mapped_column(String(32))
     #: The service instance whose thread captures (or whose controller posts) the stations.

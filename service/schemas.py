@@ -39,26 +39,32 @@ class _Input(BaseModel):
 
 def _only(mode: str | None, given: str | None) -> dict[str, Any]:
     """The JSON schema of a run-creation body with ``mode`` and exactly ``given`` of
-    stations / poses (None: neither)."""
-    kinds = {"stations": {"type": "integer"}, "poses": {"type": "array"}}
+    stations / poses / tolerance_mm (None: neither); a tolerance goes with tolerance_deg."""
+    kinds = {"stations": {"type": "integer"}, "poses": {"type": "array"},
+             "tolerance_mm": {"type": "number"}}
     props: dict[str, Any] = {k: v if k == given else {"type": "null"} for k, v in kinds.items()}
+    if given != "tolerance_mm":
+        props |= {"tolerance_deg": {"type": "null"}, "max_stations": {"type": "null"}}
     branch: dict[str, Any] = {"properties": props}
     if mode == "external":
         props["mode"] = {"const": "external"}
         branch["required"] = ["mode"]
     else:
         props["mode"] = {"const": "robot"}
-        branch["required"] = [given]
+        branch["required"] = [given] if given != "tolerance_mm" else [given, "tolerance_deg"]
     return branch
 
 
 class RunCreate(_Input):
-    """Either ``stations`` (automatic planning) or explicit ``poses``; ``target`` optional.
-    In ``external`` mode neither: a cell controller posts the stations."""
+    """``stations`` (automatic planning), a tolerance (``tolerance_mm`` with
+    ``tolerance_deg``: plan until the hand-eye's σ meets it, at most ``max_stations``) or
+    explicit ``poses``; ``target`` optional. In ``external`` mode none of them: a cell
+    controller posts the stations."""
 
-    # the rule of ``_one_plan`` in the OpenAPI document: exactly one of the three shapes
+    # the rule of ``_one_plan`` in the OpenAPI document: exactly one of the four shapes
     model_config = ConfigDict(json_schema_extra={"oneOf": [
-        _only("robot", "stations"), _only("robot", "poses"), _only("external", None)]})
+        _only("robot", "stations"), _only("robot", "poses"), _only("robot", "tolerance_mm"),
+        _only("external", None)]})
 
     mode: Literal["robot", "external"] = Field(
         "robot", description="robot: the service moves the robot through the stations; "
@@ -68,6 +74,14 @@ class RunCreate(_Input):
         None, description="number of stations to plan automatically")
     poses: Annotated[list[Pose], Field(min_length=1)] | None = Field(
         None, description="TCP poses to visit in order")
+    tolerance_mm: Annotated[float, Field(gt=0.0, le=100.0)] | None = Field(
+        None, description="stop once the hand-eye translation's honest 1-sigma (root-sum-"
+                          "square over the axes) is within this many mm; with tolerance_deg")
+    tolerance_deg: Annotated[float, Field(gt=0.0, le=10.0)] | None = Field(
+        None, description="... and its rotation's within this many degrees")
+    max_stations: Annotated[int, Field(ge=3, le=500)] | None = Field(
+        None, description="with a tolerance: stop after this many stations at the latest "
+                          "(default 40)")
     target: Target | None = Field(
         None, description="the board to detect: a checkerboard (type 'checkerboard', the "
                           "default when 'type' is left out) or a ChArUco board (type "
@@ -75,14 +89,55 @@ class RunCreate(_Input):
 
     @model_validator(mode="after")
     def _one_plan(self) -> RunCreate:
+        tolerance = (self.tolerance_mm, self.tolerance_deg)
+        if (None in tolerance) != (tolerance == (None, None)):
+            raise ValueError("give tolerance_mm and tolerance_deg together")
+        if self.max_stations is not None and self.tolerance_mm is None:
+            raise ValueError("max_stations goes with a tolerance (tolerance_mm, "
+                             "tolerance_deg); a fixed count is 'stations'")
+        shapes = [self.stations, self.poses, self.tolerance_mm]
+        given = sum(v is not None for v in shapes)
         if self.mode == "external":
-            if self.stations is not None or self.poses is not None:
+            if given:
                 raise ValueError("an 'external' run takes its stations from POST "
-                                 "/runs/{id}/stations: give neither 'stations' nor 'poses'")
-        elif (self.stations is None) == (self.poses is None):
-            raise ValueError("give either 'stations' (a number to plan) or 'poses' "
-                             "(a list of [x, y, z, rx, ry, rz]), not both or neither")
+                                 "/runs/{id}/stations: give none of 'stations', 'poses' or "
+                                 "a tolerance")
+        elif given != 1:
+            raise ValueError("give exactly one of 'stations' (a number to plan), "
+                             "'tolerance_mm' with 'tolerance_deg' (plan until the hand-eye is "
+                             "that good) or 'poses' (a list of [x, y, z, rx, ry, rz])")
         return self
+
+    @property
+    def stop_rule(self) -> StopRule | None:
+        """The cold-start stop rule of a tolerance run (None for other runs)."""
+        if self.tolerance_mm is None or self.tolerance_deg is None:
+            return None
+        return StopRule(tolerance_mm=self.tolerance_mm, tolerance_deg=self.tolerance_deg,
+                        max_stations=self.max_stations or DEFAULT_MAX_STATIONS)
+
+
+#: ``max_stations`` of a tolerance run that does not give one.
+DEFAULT_MAX_STATIONS = 40
+
+
+class StopRule(BaseModel):
+    """When a tolerance run stops: both σ within tolerance, or ``max_stations``."""
+
+    tolerance_mm: float
+    tolerance_deg: float
+    max_stations: int
+
+
+class SigmaPoint(BaseModel):
+    """The hand-eye's 1-σ after a station: root-sum-square over the axes."""
+
+    stations: int = Field(description="good stations so far (exploratory views included)")
+    rot_deg: float
+    trans_mm: float
+    kind: Literal["honest", "estimate"] = Field(
+        description="honest: the σ a calibration of these stations reports (jackknife floor "
+                    "included); estimate: the planner's formal σ before enough stations")
 
 
 class Created(BaseModel):
@@ -115,8 +170,24 @@ class RunPublic(BaseModel):
     error: ErrorInfo | None = Field(None, description="why the run failed or stopped")
     station_errors: list[StationError] = Field(
         default_factory=list, description="stations skipped after a retry, with the reason")
+    cold_start: ColdStartPublic | None = Field(
+        None, description="a run planned station by station from a cold start: its stop rule, "
+                          "exploratory moves, σ history and why it stopped")
     created_at: dt.datetime
     updated_at: dt.datetime
+
+
+class ColdStartPublic(BaseModel):
+    """How a cold-start run went (``service.runs.coldstart``)."""
+
+    stop_rule: StopRule | None = Field(None, description="a tolerance run's rule; None for a "
+                                                         "run of a fixed station count")
+    stop_reason: Literal["tolerance_met", "max_stations", "no_feasible_view"] | None = Field(
+        None, description="why it stopped; None while capturing")
+    exploratory_moves: int = 0
+    sigma_history: list[SigmaPoint] = Field(default_factory=list)
+    notes: list[str] = Field(default_factory=list, description="e.g. a configured guess that "
+                                                               "did not fit and was ignored")
 
 
 class DetectionPublic(BaseModel):

@@ -229,6 +229,14 @@ def run_counts(s: Session, *, run: Run) -> dict[str, int]:
     return runs_counts(s, runs=[run])[run.id]
 
 
+def planned_stations(run: Run) -> int:
+    """The stations a run plans: its poses, or a cold-start run's count or station limit."""
+    plan = run.cold_start
+    if plan is None:
+        return len(run.poses)
+    return int(plan["stations"] or plan["stop_rule"]["max_stations"])
+
+
 def runs_counts(s: Session, *, runs: list[Run]) -> dict[str, dict[str, int]]:
     """``run_counts`` of many runs in one query (a page of ``GET /runs``), by run id."""
     by_state: dict[str, dict[str, int]] = {run.id: {} for run in runs}
@@ -236,7 +244,7 @@ def runs_counts(s: Session, *, runs: list[Run]) -> dict[str, dict[str, int]]:
             select(Station.run_id, Station.state, func.count())
             .where(Station.run_id.in_(list(by_state))).group_by(Station.run_id, Station.state)):
         by_state[run_id][state] = n
-    return {run.id: {"stations_planned": len(run.poses),
+    return {run.id: {"stations_planned": planned_stations(run),
                      "stations_captured": by_state[run.id].get("captured", 0),
                      "stations_skipped": sum(by_state[run.id].values())
                      - by_state[run.id].get("captured", 0)} for run in runs}

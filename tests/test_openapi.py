@@ -123,6 +123,11 @@ RUN_BODIES = [
     {}, {"mode": "robot"}, {"stations": 5, "poses": [[0.1] * 6]},
     {"mode": "external", "stations": 5}, {"mode": "external", "poses": [[0.1] * 6]},
     {"stations": None, "poses": None}, {"mode": "fast", "stations": 5},
+    {"tolerance_mm": 0.5, "tolerance_deg": 0.05}, {"tolerance_mm": 0.5},
+    {"tolerance_mm": 0.5, "tolerance_deg": 0.05, "max_stations": 30},
+    {"tolerance_deg": 0.05, "max_stations": 30}, {"stations": 5, "max_stations": 30},
+    {"stations": 5, "tolerance_mm": 0.5, "tolerance_deg": 0.05},
+    {"mode": "external", "tolerance_mm": 0.5, "tolerance_deg": 0.05},
 ]
 
 
@@ -131,7 +136,7 @@ def test_run_body_schema_says_exactly_one_of_stations_or_poses(doc: dict[str, An
                                                                body: dict[str, Any]) -> None:
     """The document accepts exactly the bodies the service accepts (``RunCreate``)."""
     assert body_schema(doc, "RunCreate").is_valid(body) == _accepts(RunCreate, body)
-    assert len(doc["components"]["schemas"]["RunCreate"]["oneOf"]) == 3
+    assert len(doc["components"]["schemas"]["RunCreate"]["oneOf"]) == 4
 
 
 @pytest.mark.parametrize("body", [{}, {"stations": 3}, {"poses": [[0.1] * 6]},
@@ -146,7 +151,7 @@ def test_both_stations_and_poses_is_the_json_422(client: TestClient) -> None:
     assert r.status_code == 422
     body = r.json()
     assert ErrorBody.model_validate(body).code == "invalid_request"
-    assert "either 'stations'" in body["detail"]
+    assert "exactly one of 'stations'" in body["detail"]
 
 
 def test_method_not_allowed_names_every_method_of_the_path(client: TestClient) -> None:

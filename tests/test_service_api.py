@@ -177,8 +177,8 @@ def test_settings_fail_fast(tmp_path: Path, overrides: dict[str, Any], match: st
 
 @pytest.mark.timeout(20)
 @pytest.mark.parametrize("body, code, match", [
-    ({}, "invalid_request", "either 'stations'"),
-    ({"stations": 5, "poses": poses(3)}, "invalid_request", "either 'stations'"),
+    ({}, "invalid_request", "exactly one of 'stations'"),
+    ({"stations": 5, "poses": poses(3)}, "invalid_request", "exactly one of 'stations'"),
     ({"poses": [[0.1, 0.2, 0.3]]}, "invalid_request", r"body\.poses\[0\]"),
     ({"poses": [[0.1, 0.2, 0.3, 0, 0, "x"]]}, "invalid_request", r"body\.poses\[0\]\[5\]"),
     ({"poses": poses(3), "speed": 9}, "invalid_request", "speed"),

@@ -17,7 +17,14 @@ from service.api.streams import LastEventId, event_stream, stream_doc
 from service.errors import ConflictError, NotFoundError
 from service.models import Run, Topic
 from service.pages import Cursor
-from service.schemas import Created, ErrorInfo, RunCreate, RunPublic, StationError
+from service.schemas import (
+    ColdStartPublic,
+    Created,
+    ErrorInfo,
+    RunCreate,
+    RunPublic,
+    StationError,
+)
 from service.station_rows import captured_station_set, run_target
 from service.stationset import zip_station_set
 
@@ -41,6 +48,8 @@ def runs_public(session: SessionDep, runs: list[Run]) -> list[RunPublic]:
                                                        detail=run.error),
         station_errors=[StationError(index=i, code=code, detail=detail)
                         for i, code, detail in errors[run.id]],
+        cold_start=None if run.cold_start is None else ColdStartPublic.model_validate(
+            run.cold_start),
         created_at=run.created_at, updated_at=run.updated_at) for run in runs]
 
 

@@ -68,7 +68,7 @@ _CAMERA_GONE = ("camera_not_open", "camera_not_found", "camera_open_failed",
 ATTEMPTS = 2
 
 #: What the worker made of a station.
-_STORED, _RETRY, _LOST = "stored", "retry", "lost"
+STORED, _RETRY, _LOST = "stored", "retry", "lost"
 
 
 @dataclass
@@ -128,6 +128,8 @@ class Capture:
                                       speed=self.settings.move_speed)
         #: The run's board, read with the run (``_plan``, ``develop_posted``).
         self.board: Board | None = None
+        #: The station the worker last developed (stored or not), for a planner to read.
+        self.developed: Station | None = None
 
     # ---- the thread body: every way a capture ends -----------------------------------------
 
@@ -275,7 +277,7 @@ class Capture:
             if again is None:
                 return False
             shot, future = again, self._develop_async(again)
-        return outcome == _STORED
+        return outcome == STORED
 
     def _shoot(self, index: int, pose: list[float], first_attempt: int) -> _Shot | None:
         """Move, settle, grab and read the pose, retrying a device error once; None if the
@@ -323,12 +325,12 @@ class Capture:
             self.board = board_from_target(run_target(store.get_run(s, run_id=self.run_id)))
         detail, code = problem or (None, None)
         return self._develop(_Shot(index, pose, 1, taken, detail, code, joints,
-                                   final=True)) == _STORED
+                                   final=True)) == STORED
 
     # ---- the worker's part -----------------------------------------------------------------
 
     def _develop(self, shot: _Shot) -> str:
-        """The worker's part of a station: detect, write the PNG and commit (``_STORED``),
+        """The worker's part of a station: detect, write the PNG and commit (``STORED``),
         or ``_RETRY`` for a first detection failure, or ``_LOST`` if the run is not ours."""
         code, taken = shot.error_code, shot.taken
         if taken is not None and (too_many := self._too_many_pixels(taken)) is not None:
@@ -345,7 +347,8 @@ class Capture:
             station = replace(taken, detection=det, rejected=None if det.ok
                               else f"{self.board.kind.capitalize()} not found: {det.reason}.")
             code = None if det.ok else "not_detected"
-        return _STORED if self._store(shot, station, code) else _LOST
+        self.developed = station
+        return STORED if self._store(shot, station, code) else _LOST
 
     def _too_many_pixels(self, taken: Station) -> str | None:
         """Why a camera frame is too large to search, or None: a camera set to a larger

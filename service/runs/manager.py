@@ -12,8 +12,9 @@ from service.events import EventBus
 from service.models import Run, Topic, new_id
 from service.motion import Motion, MotionJobs
 from service.runs.capture import Capture
+from service.runs.coldstart import ColdStartCapture
 from service.runs.external import ExternalStations
-from service.runs.planning import check_poses, plan_poses
+from service.runs.planning import check_poses, cold_start_plan, informed_backend, plan_poses
 from service.schemas import RunCreate
 from service.station_rows import target_json
 
@@ -30,20 +31,27 @@ class RunManager(MotionJobs):
         """Validate the plan, store the run and start capturing; 409 if the robot is busy."""
         target = body.target or self.settings.run_target()
         setup = self.settings.calibration_setup()
-        if body.mode == "external":
-            poses: list[list[float]] = []
-        elif body.poses is not None:
+        cold_start = None
+        poses: list[list[float]] = []
+        if body.poses is not None:
             poses = check_poses(self.motion, body.poses)
-        else:
-            assert body.stations is not None
+        elif body.mode == "robot":
             self.motion.check_free()
-            poses = check_poses(self.motion, plan_poses(self.motion, n=body.stations,
-                                                        target=target, setup=setup))
+            rule = body.stop_rule
+            if rule is None and informed_backend(self.motion):
+                assert body.stations is not None
+                poses = check_poses(self.motion, plan_poses(self.motion, n=body.stations,
+                                                            target=target, setup=setup))
+            else:
+                cold_start = cold_start_plan(
+                    self.motion, target=target, stations=body.stations,
+                    stop_rule=None if rule is None else rule.model_dump())
         token = new_id()
         run = Run(id=new_id(), cell=self.settings.cell, robot=self.settings.robot,
                   state="capturing", owner=token, instance_id=self.motion.instance_id,
                   setup=setup,
-                  target=target_json(target), poses=poses, mode=body.mode)
+                  target=target_json(target), poses=poses, mode=body.mode,
+                  cold_start=cold_start)
         with self.motion.claim(f"run {run.id}") as s:
             s.add(run)
             try:
@@ -52,7 +60,7 @@ class RunManager(MotionJobs):
                 s.rollback()
                 raise self.motion.busy() from None
         if run.mode == "robot":
-            self._start_capture(run.id, token)
+            self._start_capture(run.id, token, cold=cold_start is not None)
         return run
 
     def pause(self, run_id: str) -> None:
@@ -94,7 +102,7 @@ class RunManager(MotionJobs):
                                 code="invalid_state")
         self._publish_state(run_id)
         if run.mode == "robot":
-            self._start_capture(run_id, token)
+            self._start_capture(run_id, token, cold=run.cold_start is not None)
 
     def finish(self, run_id: str) -> None:
         """End an external run: it takes no more stations and can be calibrated; idempotent
@@ -129,6 +137,7 @@ class RunManager(MotionJobs):
     def _publish_state(self, run_id: str) -> None:
         self.events.publish_state(Topic("run", run_id))
 
-    def _start_capture(self, run_id: str, token: str) -> None:
-        capture = Capture(self.motion, self.events, run_id=run_id, token=token)
+    def _start_capture(self, run_id: str, token: str, *, cold: bool) -> None:
+        kind = ColdStartCapture if cold else Capture
+        capture = kind(self.motion, self.events, run_id=run_id, token=token)
         self.motion.start(token, capture.run, name=f"capture-{run_id[:8]}")

@@ -1,7 +1,10 @@
 """Where a run goes: stations planned around the board seen from the robot's current pose,
-or poses given by the user, checked against the robot's limits and the workspace box."""
+or poses given by the user, checked against the robot's limits and the workspace box; or a
+cold start (``service.runs.coldstart``), planned station by station as the run goes."""
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 
@@ -18,6 +21,7 @@ from calib import (
     rough_target_from_image,
     ur_pose_from_matrix,
 )
+from drivers import registry
 from service.errors import UnprocessableError
 from service.motion import Motion
 
@@ -26,18 +30,15 @@ def plan_poses(motion: Motion, *, n: int, target: Target,
                setup: str) -> list[list[float]]:
     """Plan ``n`` stations around the board as seen from the robot's current pose.
 
-    The board pose comes from one image at the current pose; the hand-eye and the camera
-    from the configured rough guesses or, failing those, from what the robot's backend knows
-    (``Settings.cell_hints``: a simulator knows its scene). The distance band is 0.8 to 1.3
-    times the current camera-to-board distance.
+    Only for a backend that knows its cell (``informed_backend``: a simulator that describes
+    its scene); every other cell plans from a cold start. The board pose comes from one image
+    at the current pose; the hand-eye and the camera from the configured rough guesses or,
+    failing those, from what the backend knows (``Settings.cell_hints``). The distance band is
+    0.8 to 1.3 times the current camera-to-board distance.
     """
     settings = motion.settings
-    hints = settings.cell_hints()
-    if hints.hand_eye is None or (hints.K is None and settings.focal_px_guess is None):
-        raise UnprocessableError(
-            "Automatic planning needs rough guesses of the hand-eye and the focal length: set "
-            "CELLCAL_HAND_EYE_GUESS ([x, y, z, rx, ry, rz]) and CELLCAL_FOCAL_PX_GUESS, or "
-            "give the stations as 'poses'.", code="planning_unavailable")
+    hints = settings.cell_hints()  # an informed backend's (``informed_backend``), or guesses
+    assert hints.hand_eye is not None
     X, K, dist = hints.hand_eye, hints.K, hints.dist
     robot, camera = motion.devices.get()
     with motion.robot_lock:
@@ -66,6 +67,39 @@ def plan_poses(motion: Motion, *, n: int, target: Target,
         raise UnprocessableError(f"Cannot plan {n} stations: {exc}.",
                                  code="planning_failed") from None
     return ur_pose_from_matrix(plan.tcp_poses).tolist()
+
+
+def informed_backend(motion: Motion) -> bool:
+    """Whether the robot's backend itself knows the hand-eye and the camera (a simulator
+    that describes its scene): then ``stations`` runs keep the one-shot plan, which needs
+    no exploration; a real cell, or a blind simulator, plans from a cold start."""
+    known = registry.describe_cell(motion.settings.robot, motion.settings.scene)
+    return known.hand_eye is not None and known.K is not None
+
+
+def cold_start_plan(motion: Motion, *, target: Target, stations: int | None,
+                    stop_rule: dict[str, Any] | None) -> dict[str, Any]:
+    """The stored plan of a cold-start run from the robot's current pose (the run's
+    ``cold_start`` column): one image there must show the board (422 ``planning_failed``),
+    and the pose must lie in the workspace box (422 ``outside_workspace``)."""
+    robot, camera = motion.devices.get()
+    with motion.robot_lock:
+        start = robot.tcp_pose()
+        image = camera.grab(timeout=motion.settings.grab_timeout_s)
+    if (outside := motion.outside_workspace(start)) is not None:
+        raise UnprocessableError(f"The robot's current pose: {outside}; jog it into the box "
+                                 "where the camera sees the board.", code="outside_workspace")
+    det = board_from_target(target).detect(image)
+    if not det.ok:
+        raise UnprocessableError(
+            f"Cannot start: the board is not in view at the robot's current pose "
+            f"({det.reason}). Jog the robot so the camera sees the board.",
+            code="planning_failed")
+    h, w = image.shape[:2]
+    return {"stations": stations, "stop_rule": stop_rule,
+            "start_pose": [float(v) for v in start], "image_size": [w, h],
+            "seed": int(np.random.default_rng().integers(2**31)), "stop_reason": None,
+            "exploratory_moves": 0, "sigma_history": [], "notes": []}
 
 
 def check_poses(motion: Motion, poses: list[list[float]]) -> list[list[float]]:

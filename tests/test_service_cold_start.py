@@ -1,0 +1,128 @@
+"""Cold-start runs through the service against the blind mock (issue 17): a 20-station run
+with no guess, the same with a wrong guess configured, a tolerance run, and never a move
+outside the box."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from calib import pose_error, ur_pose_from_matrix
+from mocks.blindcells import random_blind_scene
+from service.app import create_app
+from service.settings import Settings
+from tests.helpers import wait_for
+
+pytestmark = pytest.mark.usefixtures("database")
+
+KEY = "cold-start-key-0123456789abcdef"
+AUTH = {"Authorization": f"Bearer {KEY}"}
+
+
+def _settings(tmp_path, scene, **extra) -> Settings:
+    path = tmp_path / "scene.json"
+    path.write_text(scene.model_dump_json())
+    return Settings(data_dir=tmp_path / "data", api_key=KEY, scene=path,
+                    workspace_min=scene.workspace.lo, workspace_max=scene.workspace.hi, **extra)
+
+
+def _finished(client: TestClient, run_id: str) -> dict:
+    return wait_for(f"run {run_id}", lambda: (r := client.get(f"/runs/{run_id}").json())[
+        "state"] not in ("capturing",) and r, timeout=900)
+
+
+def _calibrated_error(client: TestClient, run_id: str, scene) -> tuple[float, float, dict]:
+    cal_id = client.post(f"/runs/{run_id}/calibrations", json={}).json()["id"]
+    cal = wait_for("the calibration", lambda: (c := client.get(f"/calibrations/{cal_id}").json())[
+        "state"] in ("done", "failed") and c, timeout=600)
+    assert cal["state"] == "done", cal
+    result = cal["result"]
+    X = np.array(result["hand_eye"]["matrix"])
+    rot, trans = pose_error(X, scene.hand_eye_matrix)
+    return float(np.degrees(rot)), float(trans * 1e3), result
+
+
+def _run(tmp_path, scene, body, **settings):
+    with TestClient(create_app(_settings(tmp_path, scene, **settings))) as client:
+        client.headers.update(AUTH)
+        created = client.post("/runs", json=body)
+        assert created.status_code == 201, created.text
+        run = _finished(client, created.json()["id"])
+        robot = client.app.state.devices.get()[0]
+        assert robot.refused_moves == 0  # no commanded pose left the box
+        errors = _calibrated_error(client, run["id"], scene) if run["state"] == "done" else None
+        return run, errors
+
+
+@pytest.mark.slow
+def test_twenty_stations_from_a_cold_start_land_within_a_millimetre(tmp_path):
+    scene = random_blind_scene(2, "eye_in_hand")
+    run, (rot_deg, trans_mm, _) = _run(tmp_path, scene, {"stations": 20})
+    assert run["state"] == "done" and run["stations_captured"] == 20
+    assert run["cold_start"]["stop_reason"] == "max_stations"
+    assert run["cold_start"]["exploratory_moves"] <= 8
+    assert rot_deg <= 0.1 and trans_mm <= 1.0
+
+
+@pytest.mark.slow
+def test_a_wrong_guess_is_logged_and_ignored(tmp_path):
+    scene = random_blind_scene(2, "eye_in_hand")
+    flipped = scene.hand_eye_matrix.copy()
+    flipped[:3, :3] = flipped[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # rotated 180°
+    run, (rot_deg, trans_mm, _) = _run(
+        tmp_path, scene, {"stations": 20},
+        hand_eye_guess=tuple(ur_pose_from_matrix(flipped)),
+        focal_px_guess=2.0 * scene.camera.k_matrix[0, 0])
+    assert run["state"] == "done"
+    assert any("guess" in note and "ignored" in note for note in run["cold_start"]["notes"])
+    assert rot_deg <= 0.1 and trans_mm <= 1.0
+
+
+@pytest.mark.slow
+def test_a_tolerance_run_stops_when_the_honest_sigma_meets_it(tmp_path):
+    scene = random_blind_scene(3, "eye_to_hand")
+    body = {"tolerance_mm": 1.0, "tolerance_deg": 0.1, "max_stations": 30}
+    run, (rot_deg, trans_mm, result) = _run(tmp_path, scene, body)
+    cold = run["cold_start"]
+    assert run["state"] == "done" and cold["stop_reason"] == "tolerance_met", run
+    assert cold["stop_rule"] == {"tolerance_mm": 1.0, "tolerance_deg": 0.1, "max_stations": 30}
+    assert run["stations_planned"] == 30 and run["stations_captured"] < 30
+    last = cold["sigma_history"][-1]
+    assert last["kind"] == "honest" and last["stations"] == run["stations_captured"]
+    assert last["rot_deg"] <= 0.1 and last["trans_mm"] <= 1.0
+    # the last σ of the history is the σ the calibration of the same stations reports
+    sigma = result["uncertainty"]
+    assert last["rot_deg"] == pytest.approx(
+        np.degrees(np.linalg.norm(sigma["hand_eye_rot_rad"])), rel=0.02)
+    assert last["trans_mm"] == pytest.approx(
+        1e3 * np.linalg.norm(sigma["hand_eye_trans_m"]), rel=0.02)
+    assert rot_deg <= 2 * 0.1 and trans_mm <= 2 * 1.0
+
+
+def test_a_tolerance_needs_both_figures_and_excludes_stations(tmp_path):
+    scene = random_blind_scene(3, "eye_to_hand")
+    with TestClient(create_app(_settings(tmp_path, scene))) as client:
+        client.headers.update(AUTH)
+        for body in ({"tolerance_mm": 0.5}, {"tolerance_mm": 0.5, "tolerance_deg": 0.05,
+                                              "stations": 10},
+                     {"stations": 10, "max_stations": 20}, {"tolerance_mm": -1,
+                                                            "tolerance_deg": 0.05}):
+            answer = client.post("/runs", json=body)
+            assert answer.status_code == 422, (body, answer.text)
+            assert answer.json()["code"]
+
+
+def test_a_short_cold_start_run_explores_then_plans_inside_the_box(tmp_path):
+    scene = random_blind_scene(4, "eye_to_hand")
+    with TestClient(create_app(_settings(tmp_path, scene))) as client:
+        client.headers.update(AUTH)
+        run = _finished(client, client.post("/runs", json={"stations": 8}).json()["id"])
+        assert client.app.state.devices.get()[0].refused_moves == 0
+        events = client.get(f"/runs/{run['id']}/events").text
+    assert run["state"] == "done" and run["stations_captured"] == 8, run
+    cold = run["cold_start"]
+    assert cold["stop_reason"] == "max_stations" and cold["stop_rule"] is None
+    assert 2 <= cold["exploratory_moves"] <= 8
+    assert run["stations_planned"] == 8
+    assert '"stop_reason": "max_stations"' in events
