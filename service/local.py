@@ -22,7 +22,8 @@ import httpx
 
 from service.parent_death import die_with_parent
 
-STARTUP_TIMEOUT_S = 30.0
+#: Only a bound against a hang: a loaded machine starts a service many times slower.
+STARTUP_TIMEOUT_S = 120.0
 
 
 class ServiceStartError(RuntimeError):
@@ -111,13 +112,19 @@ def _child_setup(then: Callable[[], None] | None) -> Callable[[], None]:
     return setup
 
 
+#: How long a stopped service may take (it stops its robot and exits within its 10 s grace
+#: period when idle; a loaded machine is slower) before it is killed, seconds.
+STOP_TIMEOUT_S = 60.0
+
+
 def stop(proc: subprocess.Popen[bytes]) -> None:
-    """SIGTERM to the child's process group, SIGKILL if it is still there after 10 s."""
+    """SIGTERM to the child's process group, SIGKILL if it is still there after
+    ``STOP_TIMEOUT_S``."""
     for sig in (signal.SIGTERM, signal.SIGKILL):
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, sig)
         try:
-            proc.wait(10.0)
+            proc.wait(STOP_TIMEOUT_S)
             return
         except subprocess.TimeoutExpired:
             continue

@@ -25,7 +25,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from tests.helpers import wait_for
+from tests.helpers import ends_with_this_process, wait_for
 
 #: Deadline of one wait (s): a guard against a hang, not a speed requirement.
 WAIT_S = 120.0
@@ -62,7 +62,7 @@ class Browser:
              "--hide-scrollbars", f"--window-size={width},{height}", "about:blank"],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
             stderr=self._log, close_fds=False,
-            preexec_fn=as_fds_3_and_4)
+            preexec_fn=ends_with_this_process(then=as_fds_3_and_4))
         os.close(to_chromium)
         os.close(from_chromium)
         self._sent: list[tuple[str, str]] = []  # (request id, URL)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -14,8 +15,23 @@ from scipy.spatial.transform import Rotation
 
 from calib.geometry import make_transform, pose_error
 from mocks.posesim import Cell, default_cell, robot_poses, sample_camera_poses
+from service.parent_death import die_with_parent
 
 T = TypeVar("T")
+
+
+def ends_with_this_process(sig: int = signal.SIGKILL, *,
+                            then: Callable[[], None] | None = None) -> Callable[[], None]:
+    """A ``preexec_fn`` for a process a test starts: it receives ``sig`` when the test's
+    thread ends, so a test run killed mid-way (a CI timeout) leaves it not behind; ``then``
+    runs next (issue 22, row 12)."""
+    parent = os.getpid()
+
+    def setup() -> None:
+        die_with_parent(sig, parent)
+        if then is not None:
+            then()
+    return setup
 
 
 def random_transforms(rng: np.random.Generator, n: int, *, scale: float = 1.0) -> np.ndarray:

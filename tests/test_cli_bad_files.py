@@ -21,6 +21,7 @@ from pathlib import Path
 import cv2
 import pytest
 
+from tests.helpers import ends_with_this_process
 from tests.test_cli_images import write_image_set
 
 #: Memory a calibration of bad files may take (issue 11 acceptance), bytes.
@@ -34,8 +35,9 @@ HANG_TIMEOUT_S = 120
 #: test process would report at least the test process's own RSS (hundreds of MB after other
 #: tests ran in it); a child of this small launcher starts afresh.
 _PEAK_RSS_LAUNCHER = """
-import os, subprocess, sys
-child = subprocess.Popen(sys.argv[2:])
+import ctypes, os, signal, subprocess, sys
+child = subprocess.Popen(sys.argv[2:],  # dies with this launcher (PR_SET_PDEATHSIG)
+                         preexec_fn=lambda: ctypes.CDLL(None).prctl(1, signal.SIGKILL, 0, 0, 0))
 _, status, usage = os.wait4(child.pid, 0)
 with open(sys.argv[1], "w") as f:
     f.write(str(usage.ru_maxrss))
@@ -54,7 +56,7 @@ def run_cli(*args: str) -> tuple[int, str, str, float]:
         proc = subprocess.Popen([sys.executable, "-c", _PEAK_RSS_LAUNCHER, str(peak_file),
                                  sys.executable, "-m", "service.cli", *args],
                                 stdin=subprocess.DEVNULL, stdout=out, stderr=err,
-                                start_new_session=True)
+                                start_new_session=True, preexec_fn=ends_with_this_process())
         try:
             proc.wait(HANG_TIMEOUT_S)
         except subprocess.TimeoutExpired:

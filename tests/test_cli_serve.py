@@ -19,7 +19,7 @@ from tests.test_cli_devices import assert_one_line_error
 KEY = "serve-key-0123456789abcdef"
 
 
-@pytest.mark.timeout(90)
+@pytest.mark.timeout(300)
 def test_local_service_serves_on_the_port_it_held_from_the_start(tmp_path: Path) -> None:
     with local_service(tmp_path / "data", KEY, ServeOptions()) as service:
         port = httpx.URL(service.url).port

@@ -18,6 +18,7 @@ import pytest
 from service.cli.client import Event, parse_events
 from service.cli.exit_codes import EXIT_FAILED
 from service.local import LocalService, listening_socket, local_service
+from tests.helpers import ends_with_this_process
 from tests.test_cli_devices import assert_one_line_error
 
 KEY = "cli-key-0123456789abcdef"
@@ -38,7 +39,8 @@ def cellcal(*args: str, url: str | None = None,
     env |= {"CELLCAL_URL": url} if url else {}
     env |= {"CELLCAL_API_KEY": key} if key else {}
     return subprocess.run([sys.executable, "-m", "service.cli", *args], env=env,
-                          capture_output=True, text=True, timeout=540, check=False)
+                          capture_output=True, text=True, timeout=540, check=False,
+                          preexec_fn=ends_with_this_process())
 
 
 def rest(service: LocalService, path: str, **params: str) -> httpx.Response:

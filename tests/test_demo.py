@@ -15,6 +15,8 @@ from pathlib import Path
 import httpx
 import pytest
 
+from tests.helpers import ends_with_this_process
+
 REPO = Path(__file__).resolve().parents[1]
 DEMO = [sys.executable, "-m", "service.cli", "demo"]
 SERVICE_LINE = re.compile(r"^service: (http://127\.0\.0\.1:\d+) .*data in (\S+), removed on exit",
@@ -46,7 +48,8 @@ def start(reaped: list[subprocess.Popen[str]], *args: str) -> subprocess.Popen[s
     proc = subprocess.Popen([*DEMO, *args], cwd=REPO, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "COLUMNS": "100"},
-                            preexec_fn=_ctrl_c_reaches_it)
+                            preexec_fn=ends_with_this_process(signal.SIGTERM,
+                                                              then=_ctrl_c_reaches_it))
     reaped.append(proc)
     return proc
 
@@ -58,11 +61,12 @@ def assert_gone(url: str, data: str) -> None:
     assert not Path(data).exists()
 
 
-@pytest.mark.timeout(120)
+# The timeouts only catch a hang: under load the demo runs several times slower than idle.
+@pytest.mark.timeout(600)
 def test_demo_runs_the_service_flow(tmp_path: Path,
                                     reaped: list[subprocess.Popen[str]]) -> None:
     proc = start(reaped, "--out", str(tmp_path / "out"))
-    out, err = proc.communicate(timeout=110)
+    out, err = proc.communicate(timeout=540)
     assert proc.returncode == 0, err
     url, data = SERVICE_LINE.search(err).groups()  # type: ignore[union-attr]
     assert_gone(url, data)
@@ -82,7 +86,7 @@ def test_demo_runs_the_service_flow(tmp_path: Path,
     assert f"Result: {tmp_path / 'out' / 'calibration.json'}" in out
 
 
-@pytest.mark.timeout(60)
+@pytest.mark.timeout(300)
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_interrupted_demo_stops_the_service_and_removes_its_data(
         tmp_path: Path, reaped: list[subprocess.Popen[str]], sig: signal.Signals) -> None:
@@ -92,19 +96,19 @@ def test_interrupted_demo_stops_the_service_and_removes_its_data(
     match = SERVICE_LINE.match(first)
     assert match, first
     proc.send_signal(sig)
-    _, err = proc.communicate(timeout=40)
+    _, err = proc.communicate(timeout=180)
     assert proc.returncode == 130, err
     assert err.rstrip().endswith("cellcal: interrupted")
     assert_gone(*match.groups())
 
 
-@pytest.mark.timeout(60)
+@pytest.mark.timeout(300)
 def test_a_bad_scene_is_one_error_line(tmp_path: Path,
                                        reaped: list[subprocess.Popen[str]]) -> None:
     scene = tmp_path / "scene.json"
     scene.write_text('{"format": "cellcal/scene@1"}')
     proc = start(reaped, "--scene", str(scene), "--out", str(tmp_path / "out"))
-    out, err = proc.communicate(timeout=50)
+    out, err = proc.communicate(timeout=240)
     assert proc.returncode == 1
     assert out == ""
     assert err.startswith("cellcal: error: demo: the service exited at startup: configuration: "

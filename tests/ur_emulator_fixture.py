@@ -19,6 +19,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+from tests.helpers import ends_with_this_process
+
 REPO = Path(__file__).resolve().parents[1]
 PORTS = (29999, 30003, 30004)
 
@@ -72,7 +74,7 @@ def wait_ports(host: str, proc: subprocess.Popen | None = None, *,
 
 
 @contextmanager
-def running_emulator(*args: str, timeout: float = 30.0) -> Iterator[EmulatorProcess]:
+def running_emulator(*args: str, timeout: float = 120.0) -> Iterator[EmulatorProcess]:
     """Run ``python -m mocks.ur_emulator --host auto ARGS`` for the block; always reap it.
 
     The emulator binds the first free loopback address itself and names it on its first
@@ -81,7 +83,7 @@ def running_emulator(*args: str, timeout: float = 30.0) -> Iterator[EmulatorProc
     """
     proc = subprocess.Popen(
         [sys.executable, "-m", "mocks.ur_emulator", "--host", "auto", *args],
-        cwd=REPO, stdout=subprocess.PIPE, text=True)
+        cwd=REPO, stdout=subprocess.PIPE, text=True, preexec_fn=ends_with_this_process())
     try:
         line = _first_line(proc, timeout)
         m = re.match(r"ur_emulator listening on (\S+) ", line)
