@@ -31,6 +31,7 @@ from service.db import Database
 from service.errors import ConflictError, QueueFullError, UnprocessableError
 from service.events import EventBus
 from service.models import Calibration, Topic
+from service.outcomes import Outcomes
 from service.schemas import CalibrationOptions
 from service.settings import Settings
 from service.station_rows import captured_station_set
@@ -43,12 +44,13 @@ class Calibrations:
     """Queues solves in worker processes and records their results."""
 
     def __init__(self, settings: Settings, db: Database, events: EventBus,
-                 instance_id: str) -> None:
+                 instance_id: str, outcomes: Outcomes) -> None:
         self.settings = settings
         self.db = db
         self.events = events
         #: This service's instance: the calibrations it solves name it.
         self.instance_id = instance_id
+        self.outcomes = outcomes
         self._pool: WorkerPool | None = None
         self._pool_lock = threading.Lock()
         self._pending = 0  # solves queued or running, under _pool_lock
@@ -148,7 +150,10 @@ class Calibrations:
             log.error("calibration %s: %s: %s", cal_id, type(exc).__name__, exc)
             values = {"state": "failed",
                       "error": f"Internal error ({type(exc).__name__}: {exc})."}
-        self._settle(cal_id, outcome=values, progress_ended=not solved)
+        try:
+            self._settle(cal_id, outcome=values, progress_ended=not solved)
+        except Exception:  # a future's callback must not die silently: the job would hang
+            log.exception("calibration %s: storing its outcome", cal_id)
 
     def _progress(self, message: tuple[str, dict[str, Any] | None]) -> None:
         """A worker's message ``(calibration id, progress event)``, or ``(id, None)`` after
@@ -166,7 +171,8 @@ class Calibrations:
         """Store the outcome and publish the final ``state`` once both the outcome and the
         solve's last progress message are in (they come by different pipes), so the stored
         state turns final together with the event that ends the stream, after every
-        progress event."""
+        progress event (none is published once the solve has left ``_ending``). The outcome
+        is stored through ``service.outcomes``: retried, spooled if the database fails."""
         with self._events_lock:
             ending = self._ending.get(cal_id)
             if ending is None:
@@ -176,9 +182,7 @@ class Calibrations:
             if ending.outcome is None or not ending.progress_ended:
                 return
             del self._ending[cal_id]
-            with self.db.session() as s:
-                store.finish_calibration(s, cal_id=cal_id, **ending.outcome)
-            self.events.publish_state(Topic("calibration", cal_id))
+        self.outcomes.finish(Topic("calibration", cal_id), ending.outcome)
 
 
 def solve_calibration(payload: dict[str, Any]) -> dict[str, Any]:

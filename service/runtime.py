@@ -12,6 +12,7 @@ from service.devices import DeviceOpener, Devices, settings_opener
 from service.events import EventBus
 from service.instances import InstanceLease
 from service.motion import Motion
+from service.outcomes import Outcomes
 from service.runs import RunManager
 from service.settings import Settings
 from service.validations import Validations
@@ -29,6 +30,7 @@ class Runtime:
     devices: Devices
     events: EventBus
     motion: Motion
+    outcomes: Outcomes
     runs: RunManager
     calibrations: Calibrations
     validations: Validations
@@ -41,14 +43,17 @@ class Runtime:
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         db = Database(settings.database, busy_timeout_s=settings.database_busy_timeout_s)
         instance = InstanceLease(settings, db)
-        instance.start()  # recovers the work of this cell's dead services first
         devices = Devices(open_devices or settings_opener(settings))
         events = EventBus(db, instance.id)
+        outcomes = Outcomes(settings, db, events)
+        if spooled := outcomes.recover():  # before dead services' jobs are marked failed
+            log.warning("stored %d outcome(s) spooled during a database outage", spooled)
+        instance.start()  # recovers the work of this cell's dead services first
         motion = Motion(settings, db, devices, instance.id)
         return cls(settings=settings, db=db, instance=instance, devices=devices, events=events,
-                   motion=motion, runs=RunManager(motion, events),
-                   calibrations=Calibrations(settings, db, events, instance.id),
-                   validations=Validations(motion, events))
+                   motion=motion, outcomes=outcomes, runs=RunManager(motion, events),
+                   calibrations=Calibrations(settings, db, events, instance.id, outcomes),
+                   validations=Validations(motion, events, outcomes))
 
     def halt(self) -> None:
         """Stop the robot now; no motion job takes another step (returns at once)."""
@@ -64,6 +69,7 @@ class Runtime:
     def close(self) -> None:
         """Stop the jobs, close the devices, leave the instances and close the database."""
         self.stop_jobs()
+        self.outcomes.close()
         self.devices.close()
         self.events.close()
         self.instance.close()

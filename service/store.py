@@ -281,10 +281,11 @@ def claim_robot(s: Session, *, cell: str, robot: str, job: str, instance_id: str
 
 
 def running_validation(s: Session, *, cell: str, robot: str) -> Validation | None:
-    """The validation moving the cell's robot, if any."""
-    return s.scalars(select(Validation).where(
+    """The validation moving the cell's robot, if any (one whose worker has ended shows its
+    outcome, ``service.outcomes``, even before the database has it, and holds nothing)."""
+    return next((v for v in s.scalars(select(Validation).where(
         Validation.cell == cell, Validation.robot == robot,
-        Validation.state == "running")).first()
+        Validation.state == "running")) if v.state == "running"), None)
 
 
 def active_run(s: Session, *, cell: str, robot: str) -> Run | None:
@@ -333,19 +334,19 @@ def finish_run(s: Session, *, run_id: str, token: str, **values: Any) -> bool:
 
 
 def finish_calibration(s: Session, *, cal_id: str, **values: Any) -> None:
-    """Store a calibration's outcome (``state``, ``result`` or ``error``) if it is still
-    running: one that a restart found failed stays failed."""
+    """Store a calibration's outcome (``state``, ``result`` or ``error``; ``finished_at``
+    defaults to now) if it is still running: one that a restart found failed stays failed."""
     s.execute(update(Calibration).where(Calibration.id == cal_id,
                                         Calibration.state == "running")
-              .values(finished_at=utcnow(), **values))
+              .values(**{"finished_at": utcnow(), **values}))
     s.commit()
 
 
 def finish_validation(s: Session, *, val_id: str, **values: Any) -> None:
-    """Store a validation's outcome (``state``, ``result`` or ``error``) if it is still
-    running."""
+    """Store a validation's outcome (``state``, ``result`` or ``error``; ``finished_at``
+    defaults to now) if it is still running."""
     s.execute(update(Validation).where(Validation.id == val_id, Validation.state == "running")
-              .values(finished_at=utcnow(), **values))
+              .values(**{"finished_at": utcnow(), **values}))
     s.commit()
 
 

@@ -29,9 +29,12 @@ from drivers.capture import CaptureOptions
 from drivers.errors import DeviceError, RobotConnectionError
 from service import store
 from service.checks import CheckPlan, check_plan, run_check
+from service.db import TRANSIENT_ERRORS
 from service.errors import ConflictError, ServiceError, UnprocessableError
+from service.events import EventBus
 from service.models import Topic, Validation, new_id
-from service.motion import MotionJobs
+from service.motion import Motion, MotionJobs
+from service.outcomes import Outcomes
 from service.results import stored_cell
 from service.schemas import CheckCreate, ValidationCreate
 from service.station_rows import run_target
@@ -53,6 +56,10 @@ Work = Callable[[Report], dict[str, Any]]
 
 class Validations(MotionJobs):
     """Starts dot-hit runs on the robot and records their reports."""
+
+    def __init__(self, motion: Motion, events: EventBus, outcomes: Outcomes) -> None:
+        super().__init__(motion, events)
+        self.outcomes = outcomes
 
     def start(self, cal_id: str, body: ValidationCreate) -> Validation:
         """Check a dot-hit request, claim the robot and start the run in a thread."""
@@ -109,7 +116,10 @@ class Validations(MotionJobs):
         topic = Topic("validation", val_id)
 
         def report(event: dict[str, Any]) -> None:
-            self.events.publish(topic, {**event, "validation_id": val_id})
+            try:
+                self.events.publish(topic, {**event, "validation_id": val_id})
+            except TRANSIENT_ERRORS as exc:  # a progress event is not worth the validation
+                log.warning("validation %s: progress event lost (%s)", val_id, exc)
 
         values: dict[str, Any] = {"state": "failed"}
         try:
@@ -123,9 +133,7 @@ class Validations(MotionJobs):
         except Exception as exc:
             log.exception("validation %s", val_id)
             values["error"] = f"Internal error ({type(exc).__name__}: {exc})."
-        with self.db.session() as s:
-            store.finish_validation(s, val_id=val_id, **values)
-        self.events.publish_state(topic)
+        self.outcomes.finish(topic, values)
 
     def _check(self, plan: CheckPlan, report: Report) -> dict[str, Any]:
         """Revisit the plan's stations and compare them with the calibration."""

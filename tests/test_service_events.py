@@ -56,6 +56,8 @@ def read_events(client: TestClient, run_id: str, *,
                 key, _, value = line.partition(": ")
                 fields[key] = value
                 continue
+            if not fields:  # the blank line that ends a keep-alive comment
+                continue
             events.append((int(fields["id"]), fields["event"], json.loads(fields["data"])))
             fields = {}
             if until(events):

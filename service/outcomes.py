@@ -1,0 +1,197 @@
+"""The final outcome of a calibration or a validation: stored whatever the database does.
+
+A job's end is one write (its state, result or error) and one event (the final ``state``,
+which ends its stream). When that write failed (a lock held for 40 s, a full disk), the job
+stayed ``running`` for good, a validation held the robot (409 ``robot_busy`` for every new
+run), the result was lost and listeners hung (issue 22). Now :meth:`Outcomes.finish`
+
+* retries the write like a capture's (``service.db.retry_transient``, for
+  ``Settings.database_retry_s``);
+* if the database still fails, spools the outcome to ``<data_dir>/spool/`` (one JSON file per
+  job, written atomically) and a drain thread stores it, then publishes the final state, as
+  soon as the database answers again; a spooled outcome left by a service that stopped is
+  stored at the next start (:meth:`Outcomes.recover`, before running jobs are marked failed);
+* from the moment the job's worker ends until its outcome is stored, every row of the job
+  read from the database shows that outcome (a SQLAlchemy ``load`` listener), so a job whose
+  worker has ended is never shown ``running`` and its validation does not hold the robot.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import event
+from sqlalchemy.orm.attributes import set_committed_value
+
+from service import store
+from service.db import Database, DatabaseUnavailableError, retry_transient
+from service.events import EventBus
+from service.models import Calibration, Topic, Validation, utcnow
+from service.settings import Settings
+
+log = logging.getLogger("cellcal.service")
+
+#: Pause between two attempts of the drain thread, seconds.
+DRAIN_INTERVAL_S = 1.0
+_ROWS: dict[str, type[Calibration] | type[Validation]] = {"calibration": Calibration,
+                                                          "validation": Validation}
+
+
+class Outcomes:
+    """Stores jobs' final outcomes, through database outages (see the module doc)."""
+
+    def __init__(self, settings: Settings, db: Database, events: EventBus) -> None:
+        self.settings = settings
+        self.db = db
+        self.events = events
+        self.dir = Path(settings.data_dir) / "spool"
+        self._pending: dict[Topic, dict[str, Any]] = {}
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._closed = threading.Event()
+        self._drainer: threading.Thread | None = None
+        for row in _ROWS.values():
+            event.listen(row, "load", self._overlay)
+
+    # ---- a job ends ------------------------------------------------------------------------
+
+    def finish(self, topic: Topic, values: dict[str, Any]) -> None:
+        """Store the outcome ``values`` (``state`` and ``result`` or ``error``) of the job
+        ``topic`` and publish its final state; spooled if the database does not answer."""
+        values = {**values, "finished_at": utcnow()}
+        with self._lock:  # shown from now on, while the write is tried
+            self._pending[topic] = values
+        try:
+            retry_transient(lambda: self._store(topic, values),
+                            budget_s=self.settings.database_retry_s,
+                            what=f"storing the outcome of {topic.kind} {topic.id}")
+        except Exception as exc:  # DatabaseUnavailableError, or a fault of the disk
+            log.error("%s %s: %s; the outcome is spooled and stored once the database "
+                      "answers", topic.kind, topic.id, exc)
+            self._spool(topic, values)
+            return
+        with self._lock:
+            self._pending.pop(topic, None)
+        self._publish(topic)
+
+    def _store(self, topic: Topic, values: dict[str, Any]) -> None:
+        with self.db.session() as s:
+            if topic.kind == "calibration":
+                store.finish_calibration(s, cal_id=topic.id, **values)
+            else:
+                store.finish_validation(s, val_id=topic.id, **values)
+
+    def _publish(self, topic: Topic) -> None:
+        """The final ``state`` event; retried, and left to the drain thread if it fails."""
+        try:
+            retry_transient(lambda: self.events.publish_state(topic),
+                            budget_s=self.settings.database_retry_s,
+                            what=f"publishing the end of {topic.kind} {topic.id}")
+        except DatabaseUnavailableError as exc:
+            log.error("%s %s: %s", topic.kind, topic.id, exc)
+            self._spool(topic, None)
+
+    # ---- the spool -------------------------------------------------------------------------
+
+    def _spool(self, topic: Topic, values: dict[str, Any] | None) -> None:
+        """Keep ``values`` (None: stored, only the event is missing) until the drain thread
+        has stored them, in memory and in a file that the next start reads."""
+        with self._lock:
+            self._pending[topic] = values or {}
+            if self._drainer is None:
+                self._drainer = threading.Thread(target=self._drain, name="outcome-spool",
+                                                 daemon=True)
+                self._drainer.start()
+        if values is not None:
+            try:
+                _write_atomically(self._file(topic), json.dumps(
+                    {"kind": topic.kind, "id": topic.id, "values": _jsonable(values)}))
+            except OSError as exc:
+                log.error("%s %s: cannot spool the outcome to %s (%s); it is kept in memory "
+                          "until the database answers", topic.kind, topic.id, self.dir, exc)
+        self._wake.set()
+
+    def _file(self, topic: Topic) -> Path:
+        return self.dir / f"{topic.kind}-{topic.id}.json"
+
+    def _drain(self) -> None:
+        """Store the spooled outcomes, then publish their final states, as soon as the
+        database takes them."""
+        while not self._closed.is_set():
+            self._wake.wait(DRAIN_INTERVAL_S)
+            self._wake.clear()
+            with self._lock:
+                pending = list(self._pending.items())
+            for topic, values in pending:
+                try:
+                    if values:
+                        self._store(topic, values)
+                    self.events.publish_state(topic)
+                except Exception as exc:  # still unavailable: the next round tries again
+                    log.debug("%s %s still spooled: %s", topic.kind, topic.id, exc)
+                    continue
+                with self._lock:
+                    self._pending.pop(topic, None)
+                self._file(topic).unlink(missing_ok=True)
+                log.warning("%s %s: the spooled outcome is stored", topic.kind, topic.id)
+
+    def _overlay(self, row: Calibration | Validation, _context: Any) -> None:
+        """A job row just read shows its spooled outcome."""
+        kind = "calibration" if isinstance(row, Calibration) else "validation"
+        values = self._pending.get(Topic(kind, row.id))
+        for key, value in (values or {}).items():
+            set_committed_value(row, key, value)
+
+    # ---- start and stop --------------------------------------------------------------------
+
+    def recover(self) -> int:
+        """Store the outcomes a previous service spooled (their events too); how many."""
+        stored = 0
+        for path in sorted(self.dir.glob("*.json")) if self.dir.is_dir() else []:
+            try:
+                doc = json.loads(path.read_text())
+                topic, values = Topic(doc["kind"], doc["id"]), _from_json(doc["values"])
+            except (OSError, ValueError, KeyError, TypeError) as exc:
+                log.error("spooled outcome %s cannot be read (%s); left in place", path, exc)
+                continue
+            self._store(topic, values)
+            self.events.publish_state(topic)
+            path.unlink()
+            stored += 1
+        return stored
+
+    def close(self) -> None:
+        """Stop the drain thread (what is still spooled is stored at the next start)."""
+        self._closed.set()
+        self._wake.set()
+        if self._drainer is not None:
+            self._drainer.join(5.0)
+        for row in _ROWS.values():
+            event.remove(row, "load", self._overlay)
+
+
+def _jsonable(values: dict[str, Any]) -> dict[str, Any]:
+    return {k: v.isoformat() if isinstance(v, datetime) else v for k, v in values.items()}
+
+
+def _from_json(values: dict[str, Any]) -> dict[str, Any]:
+    finished = values.get("finished_at")
+    return {**values, "finished_at": None if finished is None
+            else datetime.fromisoformat(finished)}
+
+
+def _write_atomically(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file, synced, then renamed."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    with tmp.open("w") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)

@@ -1,0 +1,122 @@
+"""A database that fails as a calibration or a validation ends (issue 22, row 4).
+
+The job's last write used to fail once: the validation stayed ``running`` for good, every new
+run got 409 ``robot_busy``, the calibration's result was lost and its listeners hung. Here
+another connection holds the SQLite write lock from just after the job starts until its
+outcome has gone to the spool (``service.outcomes``), so the ends of both jobs meet a
+database that does not answer for longer than the service retries (``database_retry_s``,
+shortened by configuration, as in ``test_service_database_outage``). Meanwhile the job shows
+its outcome and holds no robot; once the lock is gone the outcome is stored, the listener gets
+the final state, and nothing is lost.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.app import create_app
+from tests.helpers import wait_for
+from tests.test_service_api import AUTH, finished, poses, settings, start_run, wait_run
+from tests.test_service_events import Event, read_events
+
+#: The service's SQLite busy timeout and write retry budget in this test, seconds.
+BUSY_S, RETRY_S = 0.5, 2.0
+
+
+@contextmanager
+def locked(database: Path) -> Iterator[sqlite3.Connection]:
+    """The database's write lock, held by another program while the block runs."""
+    lock = sqlite3.connect(database, timeout=30, isolation_level=None)
+    try:
+        lock.execute("BEGIN IMMEDIATE")
+        yield lock
+    finally:
+        lock.execute("ROLLBACK")
+        lock.close()
+
+
+@contextmanager
+def listening(client: TestClient, path: str) -> Iterator[list[Event]]:
+    """The events of the stream at ``path``, read in a thread until it ends (joined at the
+    end of the block)."""
+    events: list[Event] = []
+    failed: list[BaseException] = []
+
+    def read() -> None:
+        try:
+            events.extend(read_events(client, "", path=path))
+        except BaseException as exc:
+            failed.append(exc)
+            raise
+
+    reader = threading.Thread(target=read)
+    reader.start()
+    wait_for("the listener", lambda: client.app.state.runtime.events._listeners)
+    yield events
+    reader.join(120)
+    assert not reader.is_alive(), "the stream did not end"
+    assert not failed, failed
+
+
+def row_state(db: sqlite3.Connection | Path, table: str, job_id: str) -> tuple[Any, ...]:
+    conn = db if isinstance(db, sqlite3.Connection) else sqlite3.connect(db)
+    return conn.execute(f"SELECT state, result, error FROM {table} WHERE id = ?",
+                        (job_id,)).fetchone()
+
+
+def end_in_a_lock(client: TestClient, data: Path, kind: str, job_id: str) -> dict[str, Any]:
+    """Hold the lock from now until the job's outcome is spooled; check what the service
+    shows meanwhile; the job as answered then."""
+    table, spooled = f"{kind}s", data / "spool" / f"{kind}-{job_id}.json"
+    with locked(data / "cellcal.db") as lock:
+        assert row_state(lock, table, job_id)[0] == "running", "the job ended before the lock"
+        wait_for(f"the {kind}'s outcome to be spooled", spooled.exists, 300)
+        shown = client.get(f"/{table}/{job_id}").json()
+        assert shown["state"] != "running"  # its worker has ended: so says the service
+        assert row_state(lock, table, job_id)[0] == "running"  # though the database has not
+        if kind == "validation":  # a new run is refused for the database, not the robot
+            r = client.post("/runs", json={"poses": poses(3)})
+            assert r.status_code == 503 and r.json()["code"] == "database_unavailable"
+    wait_for("the spooled outcome to be stored", lambda: not spooled.exists(), 60)
+    state, result, error = row_state(data / "cellcal.db", table, job_id)
+    assert (state, error) == (shown["state"], shown["error"])
+    assert json.loads(result) == shown["result"]  # nothing lost
+    return shown
+
+
+@pytest.mark.timeout(600)
+def test_jobs_ending_in_a_database_lock_end_done(tmp_path: Path) -> None:
+    app = create_app(settings(tmp_path, database_busy_timeout_s=BUSY_S,
+                              database_retry_s=RETRY_S))
+    with TestClient(app) as client:
+        client.headers.update(AUTH)
+        run_id = start_run(client, 12)
+        assert wait_run(client, run_id, finished, 300)["state"] == "done"
+
+        r = client.post(f"/runs/{run_id}/calibrations")
+        assert r.status_code == 202, r.text
+        cal_id = r.json()["id"]
+        with listening(client, f"/calibrations/{cal_id}/events") as events:
+            cal = end_in_a_lock(client, tmp_path, "calibration", cal_id)
+        assert cal["state"] == "done" and cal["result"]["format"] == "cellcal/result@1"
+        assert events[-1][1:] == ("state", {"type": "state", "calibration_id": cal_id,
+                                            "state": "done", "error": None})
+
+        r = client.post(f"/calibrations/{cal_id}/checks", json={})
+        assert r.status_code == 202, r.text
+        val_id = r.json()["id"]
+        with listening(client, f"/validations/{val_id}/events") as events:
+            val = end_in_a_lock(client, tmp_path, "validation", val_id)
+        assert val["state"] == "done" and val["result"]["kind"] == "check"
+        assert events[-1][2]["state"] == "done"
+        # the robot is free: a new run starts
+        assert client.post("/runs", json={"poses": poses(3)}).status_code == 201
