@@ -31,8 +31,9 @@ pytestmark = pytest.mark.timeout(600)
 
 
 def _limit_open_files() -> None:
-    """In the service's process: at most ``FD_LIMIT`` open files, soft and hard."""
-    resource.setrlimit(resource.RLIMIT_NOFILE, (FD_LIMIT, FD_LIMIT))
+    """In the service's process: at most ``FD_LIMIT`` open files (hard), and a soft limit
+    below it for the service to raise."""
+    resource.setrlimit(resource.RLIMIT_NOFILE, (FD_LIMIT // 2, FD_LIMIT))
 
 
 @contextlib.contextmanager
@@ -93,6 +94,7 @@ def test_idle_flood_leaves_health_and_capture_working(tmp_path: Path) -> None:
     with (_own_fd_limit(IDLE_CONNECTIONS + 256),
           local_service(tmp_path / "data", KEY, options) as service, _sockets() as idle):
         fds = Path(f"/proc/{service.proc.pid}/fd")
+        began = time.monotonic()
         for _ in range(IDLE_CONNECTIONS):
             idle.append(socket.create_connection(_address(service), timeout=HANG_S))
         health = httpx.get(f"{service.url}/health", timeout=HANG_S)
@@ -102,15 +104,17 @@ def test_idle_flood_leaves_health_and_capture_working(tmp_path: Path) -> None:
         final = _wait_run(service, run.json()["id"])
         open_fds = len(list(fds.iterdir()))
         log = service.log.read_text()
+        took = time.monotonic() - began
     assert health.status_code == 200 and health.json()["status"] == "ok"
     assert final["state"] == "done" and final["stations_captured"] == 4, final
     assert open_fds < FD_LIMIT
     assert "Too many open files" not in log and "out of system resource" not in log
-    assert "open files: limit 1024 (soft = hard)" in log
+    assert "open files: soft limit raised from 512 to the hard limit 1024" in log
     assert "at most 724 open at once" in log
-    # every refusal or eviction is logged, but at most once per 10 s
+    # evictions are logged, but at most once per 10 s (over 300 happened)
     lines = [ln for ln in log.splitlines() if "the oldest idle one was closed" in ln]
-    assert 1 <= len(lines) <= 10, lines
+    assert 1 <= len(lines) <= 1 + took / 10, (took, lines)
+    assert "more like this" in "".join(lines[1:]) or len(lines) == 1
 
 
 def test_a_connection_without_a_request_is_closed(tmp_path: Path) -> None:

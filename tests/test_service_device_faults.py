@@ -62,7 +62,7 @@ def recording_service(tmp_path: Path, frames: Path) -> Iterator[LocalService]:
     """``cellcal serve`` with the mock robot and the recording ``frames`` as its camera."""
     env = {**os.environ, "CELLCAL_ROBOT": "mock://", "CELLCAL_CAMERA": f"file://{frames}"}
     with local_service(tmp_path / "data", KEY,
-                       ServeOptions(env=env, mock=False, startup_timeout=60)) as service:
+                       ServeOptions(env=env, mock=False)) as service:
         yield service
 
 
