@@ -76,7 +76,7 @@ STARTUP_TIMEOUT_S = 30.0
 @contextlib.contextmanager
 def serve(data_dir: Path, key: str) -> Iterator[str]:
     """``cellcal serve --mock`` on a free loopback port; yields the base URL, always reaped."""
-    from service.local import ServeOptions, local_service
+    from service.serving.local import ServeOptions, local_service
 
     with local_service(data_dir / "data", key,
                        ServeOptions(env=clean_env(), startup_timeout=STARTUP_TIMEOUT_S)) as service:

@@ -64,15 +64,15 @@ def capture_in_process(jobs: Any, poses: list[list[float]],
                        timeout: float) -> tuple[str, float]:
     """Create a run through the run manager and wait for it; returns its id and the wall
     time (s)."""
-    from service.models import Run
     from service.schemas import RunCreate
+    from service.store.records import RunRecord
 
     t0 = time.perf_counter()
     run_id = jobs.runs.create(RunCreate(poses=poses)).id
     deadline = time.monotonic() + timeout
     while True:
         with jobs.db.session() as s:
-            state = s.get(Run, run_id).state
+            state = s.get(RunRecord, run_id).state
         if state in FINAL:
             break
         if time.monotonic() > deadline:
@@ -80,7 +80,7 @@ def capture_in_process(jobs: Any, poses: list[list[float]],
         time.sleep(0.02)
     wall = time.perf_counter() - t0
     with jobs.db.session() as s:
-        run = s.get(Run, run_id)
+        run = s.get(RunRecord, run_id)
         if run.state != "done" or any(st.state != "captured" for st in run.stations):
             raise RuntimeError(f"in-process run ended {run.state} or skipped stations")
     return run_id, wall
@@ -105,19 +105,19 @@ def time_get_run(jobs: Any, run_id: str, reps: int = TIME_GET_REPS) -> HandlerTi
     from sqlalchemy import func, select
 
     from service.api.runs import run_public
-    from service.models import Run, Station
+    from service.store.records import RunRecord, StationRecord
 
     def handler() -> None:
         with jobs.db.session() as s:
-            run_public(s, s.get(Run, run_id)).model_dump_json()
+            run_public(s, s.get(RunRecord, run_id)).model_dump_json()
 
     def counted() -> None:
         with jobs.db.session() as s:
-            run = s.get(Run, run_id)
-            dict(s.execute(select(Station.state, func.count()).where(
-                Station.run_id == run_id).group_by(Station.state)).all())
-            s.scalars(select(Station.index).where(Station.run_id == run_id,
-                                                  Station.error.is_not(None))).all()
+            run = s.get(RunRecord, run_id)
+            dict(s.execute(select(StationRecord.state, func.count()).where(
+                StationRecord.run_id == run_id).group_by(StationRecord.state)).all())
+            s.scalars(select(StationRecord.index).where(StationRecord.run_id == run_id,
+                                                  StationRecord.error.is_not(None))).all()
             del run
 
     full_gcs: list[float] = []

@@ -33,7 +33,7 @@ from calib import POSE_METHODS, calibrate_hand_eye, pose_error
 from mocks.posesim import default_cell, simulate
 from mocks.scene import MockScene, read_scene
 from service.exports import FORMATS
-from service.local import ServeOptions, ServiceStartError, local_service
+from service.serving.local import ServeOptions, ServiceStartError, local_service
 
 #: Seconds to wait for the service to answer /health, and for a calibration or validation.
 JOB_TIMEOUT_S = 90.0

@@ -24,19 +24,19 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from drivers.errors import DeviceError, WorkspaceError
 from service.api import (
+    active,
     calibrations,
     devices,
     health,
     metrics,
-    registry,
     runs,
     stations,
     validations,
 )
 from service.api.deps import require_api_key
+from service.api.guard import PayloadTooLargeError, RequestGuard
 from service.api.openapi import document_errors
-from service.db import TRANSIENT_ERRORS, DatabaseUnavailableError
-from service.devices import DeviceOpener, Devices
+from service.cell.devices import DeviceOpener, Devices
 from service.errors import (
     AuthError,
     ConflictError,
@@ -45,9 +45,9 @@ from service.errors import (
     ServiceError,
     UnprocessableError,
 )
-from service.guard import PayloadTooLargeError, RequestGuard
 from service.runtime import Runtime
 from service.settings import Settings
+from service.store.db import TRANSIENT_ERRORS, DatabaseUnavailableError
 from service.version import software_version
 from service.web import mount_page
 
@@ -96,8 +96,8 @@ def create_app(settings: Settings | None = None, *,
     app.state.settings = settings
     mount_page(app)
     app.include_router(health.router)
-    # registry before calibrations: /calibrations/active is not a calibration id
-    for module in (runs, stations, registry, calibrations, validations, devices, metrics):
+    # active before calibrations: /calibrations/active is not a calibration id
+    for module in (runs, stations, active, calibrations, validations, devices, metrics):
         app.include_router(module.router, dependencies=[Depends(require_api_key)])
     for exc_type in (ServiceError, DeviceError):
         app.add_exception_handler(exc_type, _domain_error)

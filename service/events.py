@@ -3,7 +3,7 @@
 that reconnects with ``Last-Event-ID`` misses none and sees none twice, and fanned out to the
 server-sent-event listeners; the ``state`` event built from the stored row.
 
-An event's id is its row id (``models.RunEvent``, ``models.JobEvent``): it increases along a
+An event's id is its row id (``RunEventRecord``, ``JobEventRecord``): it increases along a
 stream and never changes. A new listener first gets the topic's ``state`` as of the newest
 stored event (with that event's id); a returning one the stored events after its
 ``Last-Event-ID``. Live events follow, skipping any the listener already has, so a reconnect
@@ -21,15 +21,15 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
-from service import store
-from service.db import Database
-from service.event_relay import EventRelay, announce
-from service.models import FINAL_JOB_STATES, FINAL_RUN_STATES, Topic
+from service.store import queries
+from service.store.db import Database
+from service.store.event_relay import EventRelay, announce
+from service.store.records import FINAL_JOB_STATES, FINAL_RUN_STATES, Topic
 
 
 class EventBus:
     """Events, stored and fanned out to server-sent-event listeners; publish from any
-    thread. On PostgreSQL the other services' events arrive too (``service.event_relay``)."""
+    thread. On PostgreSQL the other services' events arrive too (``service.store.event_relay``)."""
 
     def __init__(self, db: Database, instance_id: str) -> None:
         self.db = db
@@ -78,7 +78,7 @@ class EventBus:
         publish at a time, so every listener receives the events in id order."""
         with self._lock:
             with self.db.session() as s:
-                event = {**event, "id": store.add_event(s, topic=topic, event=event)}
+                event = {**event, "id": queries.add_event(s, topic=topic, event=event)}
                 announce(s, topic=topic, event_id=event["id"], instance_id=self.instance_id)
             self._fan_out(topic, event)
 
@@ -94,7 +94,7 @@ class EventBus:
             if topic not in self._listeners:
                 return
         with self.db.session() as s:
-            found = store.events_after(s, topic=topic, after=event_id - 1)
+            found = queries.events_after(s, topic=topic, after=event_id - 1)
         with self._lock:
             for event in found:
                 if event["id"] == event_id:
@@ -117,10 +117,10 @@ class EventBus:
         gave), or the stored events after ``after``, followed by the state if the topic has
         ended without a stored final ``state`` event (404 for an unknown id)."""
         with self.db.session() as s:
-            state = {**state_event(s, topic), "id": store.last_event_id(s, topic=topic)}
+            state = {**state_event(s, topic), "id": queries.last_event_id(s, topic=topic)}
             if after is None or after > state["id"]:
                 return [state]
-            events = store.events_after(s, topic=topic, after=after)
+            events = queries.events_after(s, topic=topic, after=after)
         if ends_stream(state) and not any(ends_stream(e) for e in events):
             events.append(state)
         return events
@@ -146,17 +146,17 @@ def state_event(s: Session, topic: Topic) -> dict[str, Any]:
     station counts, a calibration's or a validation's with its error if it failed."""
     if topic.kind == "run":
         return run_state_event(s, run_id=topic.id)
-    row = (store.get_calibration(s, cal_id=topic.id) if topic.kind == "calibration"
-           else store.get_validation(s, val_id=topic.id))
+    row = (queries.get_calibration(s, cal_id=topic.id) if topic.kind == "calibration"
+           else queries.get_validation(s, val_id=topic.id))
     return {"type": "state", f"{topic.kind}_id": topic.id, "state": row.state,
             "error": row.error}
 
 
 def run_state_event(s: Session, *, run_id: str) -> dict[str, Any]:
     """The run's state and counts as a ``state`` event (404 for an unknown run)."""
-    run = store.get_run(s, run_id=run_id)
+    run = queries.get_run(s, run_id=run_id)
     return {"type": "state", "run_id": run_id, "state": run.state,
-            **store.run_counts(s, run=run),
+            **queries.run_counts(s, run=run),
             "error": None if run.error is None else {"code": run.error_code,
                                                      "detail": run.error},
             "stop_reason": None if run.cold_start is None else run.cold_start.get("stop_reason")}

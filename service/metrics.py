@@ -1,6 +1,6 @@
 """``GET /metrics``: the service's figures in the Prometheus text format.
 
-Every figure is read from the database at scrape time (``store.service_figures``), so the
+Every figure is read from the database at scrape time (``queries.service_figures``), so the
 numbers survive restarts and agree with what the REST calls answer; ``prometheus_client``
 writes the exposition format.
 
@@ -29,21 +29,21 @@ from prometheus_client.core import (
 )
 from prometheus_client.registry import Collector
 
-from service import store
-from service.db import Database
+from service.store import queries
+from service.store.db import Database
 
 __all__ = ["CONTENT_TYPE_LATEST", "exposition"]
 
 
 class _StoreCollector(Collector):
-    """Turns ``store.service_figures`` into metric families at each scrape."""
+    """Turns ``queries.service_figures`` into metric families at each scrape."""
 
     def __init__(self, db: Database) -> None:
         self.db = db
 
     def collect(self) -> Iterator[Metric]:
         with self.db.session() as s:
-            figures = store.service_figures(s)
+            figures = queries.service_figures(s)
         runs = GaugeMetricFamily("cellcal_runs", "Runs by state and mode.",
                                  labels=["state", "mode"])
         for (state, mode), n in sorted(figures.runs.items()):
@@ -63,7 +63,7 @@ class _StoreCollector(Collector):
         yield from _latest(figures.latest)
 
 
-def _latest(latest: list[store.LatestCalibration]) -> Iterator[Metric]:
+def _latest(latest: list[queries.LatestCalibration]) -> Iterator[Metric]:
     """The per-setup families of the newest finished calibration."""
     stamp = GaugeMetricFamily("cellcal_last_calibration_timestamp_seconds",
                               "When the newest finished calibration was stored (Unix time).",

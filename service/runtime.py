@@ -6,16 +6,16 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-from service.calibrations import Calibrations
-from service.db import Database
-from service.devices import DeviceOpener, Devices, settings_opener
+from service.cell.devices import DeviceOpener, Devices, settings_opener
+from service.cell.motion import Motion
 from service.events import EventBus
-from service.instances import InstanceLease
-from service.motion import Motion
-from service.outcomes import Outcomes
+from service.jobs.calibrations import Calibrations
+from service.jobs.outcomes import Outcomes
+from service.jobs.validations import Validations
 from service.runs import RunManager
 from service.settings import Settings
-from service.validations import Validations
+from service.store.db import Database
+from service.store.instances import InstanceLease
 
 log = logging.getLogger("cellcal.service")
 

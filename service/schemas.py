@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_serializer, model_valid
 
 from calib import METHODS, SETUPS, Detection, PipelineOptions, RobotNoise, Target
 from service.exports import FORMATS
-from service.result_schema import Result
+from service.results.schema import Result
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False, strict=True)]
 Pose = Annotated[list[FiniteFloat], Field(min_length=6, max_length=6,

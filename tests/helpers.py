@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from calib.geometry import make_transform, pose_error
 from mocks.posesim import Cell, default_cell, robot_poses, sample_camera_poses
-from service.parent_death import die_with_parent
+from service.serving.parent_death import die_with_parent
 
 T = TypeVar("T")
 

@@ -18,7 +18,7 @@ from calib.boards import TARGET_TYPES
 from drivers.base import CellHints
 from service.schemas import RunCreate
 from service.settings import Settings
-from service.stationset import StationSet
+from service.stationsets.format import StationSet
 
 ROOT = Path(__file__).resolve().parents[1]
 #: One configuration of each board type.

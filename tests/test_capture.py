@@ -22,7 +22,7 @@ from mocks.camera import MockCamera
 from mocks.devices import MockRobot
 from mocks.scene import default_scene, sample_station_poses
 from service.cli import main as cli
-from service.stationset import load_station_set, station_record, write_station_set
+from service.stationsets.format import load_station_set, station_record, write_station_set
 from tests.helpers import assert_pose_close
 
 SCENE = default_scene()

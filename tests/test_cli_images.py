@@ -11,7 +11,7 @@ import pytest
 
 from calib.geometry import pose_error
 from service.cli.main import main
-from service.result_schema import parse_result
+from service.results.schema import parse_result
 from tests.helpers import undeclared_fields
 from tests.test_pipeline import BOARD, SCENE, SQUARE, rendered_stations
 

@@ -1,6 +1,6 @@
 """``cellcal serve --fd``: the service serves on a listening socket its parent bound, so a
 port chosen by the parent cannot be taken by another process before the service listens
-(``service.local`` starts every test service this way)."""
+(``service.serving.local`` starts every test service this way)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import httpx
 import pytest
 
 from service.cli import main as cli
-from service.local import ServeOptions, listening_socket, local_service
+from service.serving.local import ServeOptions, listening_socket, local_service
 from tests.test_cli_devices import assert_one_line_error
 
 KEY = "serve-key-0123456789abcdef"

@@ -10,7 +10,7 @@ from calib.geometry import make_transform, matrix_from_ur_pose, ur_pose_from_mat
 from calib.handeye import HandEyeResult
 from mocks.scene import default_scene
 from service.exports import FORMATS, ExportNames, export
-from service.results import hand_eye_result_json
+from service.results.document import hand_eye_result_json
 
 SCENE = default_scene()
 

@@ -22,9 +22,9 @@ from sqlalchemy import Engine, MetaData, create_engine, select, text
 
 from service import migrations
 from service.cli.main import main
-from service.db import Database
 from service.migrations import SchemaOutdatedError
-from service.models import Base
+from service.store.db import Database
+from service.store.records import Base
 from tests.test_cli_devices import assert_one_line_error
 
 pytestmark = [pytest.mark.usefixtures("database"), pytest.mark.pg_fast]

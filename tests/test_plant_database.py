@@ -18,7 +18,14 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from service.app import create_app
-from service.models import Activation, ActiveCalibration, Calibration, Instance, Run, utcnow
+from service.store.records import (
+    ActivationRecord,
+    ActiveCalibrationRecord,
+    CalibrationRecord,
+    InstanceRecord,
+    RunRecord,
+    utcnow,
+)
 from tests.test_exports import full_result
 from tests.test_service_api import (
     AUTH,
@@ -70,11 +77,11 @@ def test_runs_in_different_cells_never_block_each_other(tmp_path: Path) -> None:
 def add_calibrations(client: TestClient, cell: str, n: int) -> list[str]:
     """``n`` finished calibrations of one run of ``cell``; their ids."""
     with client.app.state.db.session() as s:
-        run = Run(cell=cell, robot="mock://", state="done", setup="eye_in_hand",
+        run = RunRecord(cell=cell, robot="mock://", state="done", setup="eye_in_hand",
                   target=BOARD, poses=[])
         s.add(run)
         s.flush()
-        cals = [Calibration(cell=cell, run_id=run.id, state="done", options={},
+        cals = [CalibrationRecord(cell=cell, run_id=run.id, state="done", options={},
                             result=full_result()) for _ in range(n)]
         s.add_all(cals)
         s.commit()
@@ -98,8 +105,8 @@ def test_concurrent_activations_leave_one_current_and_no_duplicate_history(
             codes = list(pool.map(activate, range(120)))
         assert codes == [200] * 120
         with clients[0].app.state.db.session() as s:
-            current = s.scalars(select(ActiveCalibration)).all()
-            history = s.scalars(select(Activation).order_by(Activation.id)).all()
+            current = s.scalars(select(ActiveCalibrationRecord)).all()
+            history = s.scalars(select(ActivationRecord).order_by(ActivationRecord.id)).all()
     assert len(current) == 1
     assert current[0].calibration_id == history[-1].calibration_id
     assert current[0].activation_id == history[-1].id
@@ -116,7 +123,7 @@ def test_the_same_activation_from_many_requests_is_one_history_row(tmp_path: Pat
                 range(40)))
         assert codes == [200] * 40
         with clients[0].app.state.db.session() as s:
-            assert s.scalar(select(func.count()).select_from(Activation)) == 1
+            assert s.scalar(select(func.count()).select_from(ActivationRecord)) == 1
 
 
 def test_a_restart_recovers_only_its_cells_dead_work(tmp_path: Path) -> None:
@@ -124,11 +131,11 @@ def test_a_restart_recovers_only_its_cells_dead_work(tmp_path: Path) -> None:
     starts, not when one of cell B does; a live service's run is never touched."""
     with services(tmp_path, "press-a") as (a,):
         with a.app.state.db.session() as s:
-            dead = Instance(cell="press-a", host="elsewhere", port=8000, pid=1,
+            dead = InstanceRecord(cell="press-a", host="elsewhere", port=8000, pid=1,
                             heartbeat_at=utcnow() - dt.timedelta(minutes=5))
             s.add(dead)
             s.flush()
-            orphan = Run(cell="press-a", robot="mock://9", state="capturing", owner="x",
+            orphan = RunRecord(cell="press-a", robot="mock://9", state="capturing", owner="x",
                          instance_id=dead.id, setup="eye_in_hand", target=BOARD, poses=poses(2))
             s.add(orphan)
             s.commit()
@@ -139,7 +146,7 @@ def test_a_restart_recovers_only_its_cells_dead_work(tmp_path: Path) -> None:
             assert again.get(f"/runs/{orphan.id}").json()["state"] == "interrupted"
             assert again.get(f"/runs/{live}").json()["state"] == "capturing"
         with a.app.state.db.session() as s:
-            assert s.get(Instance, dead.id) is None
+            assert s.get(InstanceRecord, dead.id) is None
 
 
 def test_a_runs_events_can_be_followed_on_another_service(tmp_path: Path,

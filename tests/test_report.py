@@ -1,5 +1,5 @@
-"""The HTML report (``service.report``) of real results: ``cellcal report`` on a real UR set and
-``GET /calibrations/{id}/report`` after a capture run on the mock cell."""
+"""The HTML report (``service.results.report``) of real results: ``cellcal report`` on a real UR
+set and ``GET /calibrations/{id}/report`` after a capture run on the mock cell."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from service.cli.main import main
-from service.report import report_plots
+from service.results.report import report_plots
 from tests.helpers import SHARED, wait_for
 from tests.test_service_api import client, finished, start_run, wait_run  # noqa: F401
 
@@ -144,8 +144,8 @@ def test_intrinsics_only_and_pose_only_results_have_reports(ur_result, tmp_path)
     from calib.pipeline import calibrate_stations
     from calib.stations import StationInputs
     from mocks.posesim import default_cell, simulate
-    from service.report import render_report
-    from service.results import calibration_result_json
+    from service.results.document import calibration_result_json
+    from service.results.report import render_report
     from tests.test_cli_calibrate import write_station_set
 
     _, result = ur_result

@@ -20,8 +20,8 @@ from typing import Any
 import pytest
 
 from service.cli.main import main
-from service.report import render_report
-from service.result_schema import parse_result
+from service.results.report import render_report
+from service.results.schema import parse_result
 from tests.browser import Browser
 from tests.test_report import ur_result  # noqa: F401
 

@@ -18,7 +18,7 @@ from urllib.parse import urlsplit
 
 import pytest
 
-from service.local import LocalService, ServeOptions, local_service
+from service.serving.local import LocalService, ServeOptions, local_service
 
 KEY = "guard-key-0123456789abcdef"
 BODY_BYTES = 60_000_000

@@ -1,4 +1,4 @@
-"""The typed result document (``service.result_schema``): what cellcal writes validates and
+"""The typed result document (``service.results.schema``): what cellcal writes validates and
 has no field the schema does not declare, minimal and older documents validate, bad ones are
 refused in one line, and the OpenAPI document shows the result's fields."""
 
@@ -12,8 +12,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from service.result_schema import Result, parse_result
-from service.results import calibration_result_json
+from service.results.document import calibration_result_json
+from service.results.schema import Result, parse_result
 from tests.helpers import undeclared_fields
 from tests.test_export_consumers import intrinsics_only_result
 from tests.test_exports import full_result, pose_only_result

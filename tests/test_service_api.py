@@ -25,8 +25,8 @@ from drivers.base import Camera, Robot
 from drivers.errors import CameraError, RobotConnectionError
 from mocks.scene import default_scene, sample_station_poses
 from service.app import create_app
-from service.devices import DeviceOpener, settings_opener
-from service.result_schema import parse_result
+from service.cell.devices import DeviceOpener, settings_opener
+from service.results.schema import parse_result
 from service.settings import Settings
 from tests.helpers import undeclared_fields
 

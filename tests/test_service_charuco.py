@@ -24,7 +24,7 @@ from calib import Charuco, CheckerboardTarget, board_from_target, ur_pose_from_m
 from mocks.scene import StationSpread, charuco_scene, sample_station_poses
 from service.app import create_app
 from service.cli.main import main
-from service.local import ServeOptions, local_service
+from service.serving.local import ServeOptions, local_service
 from tests.test_service_api import AUTH, finished, settings
 from tests.test_service_external import wait_calibration
 from tests.test_service_stationset import assert_same_calibration

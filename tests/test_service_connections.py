@@ -18,7 +18,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from service.local import LocalService, ServeOptions, local_service
+from service.serving.local import LocalService, ServeOptions, local_service
 
 KEY = "connections-key-0123456789abcdef"
 AUTH = {"Authorization": f"Bearer {KEY}"}

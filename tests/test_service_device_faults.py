@@ -34,10 +34,10 @@ from drivers.stall import STALL_AFTER
 from mocks.camera import MockCamera
 from mocks.scene import default_scene, sample_station_poses
 from service.app import create_app
-from service.devices import settings_opener
-from service.local import LocalService, ServeOptions, listening_socket, local_service
-from service.models import Run, Station
+from service.cell.devices import settings_opener
+from service.serving.local import LocalService, ServeOptions, listening_socket, local_service
 from service.settings import Settings
+from service.store.records import RunRecord, StationRecord
 from tests.helpers import wait_for
 from tests.test_pipeline import rendered_stations
 from tests.test_service_api import CELL
@@ -240,14 +240,14 @@ def test_run_list_takes_a_fixed_number_of_queries(tmp_path):
 
         def queries_for_listing(total_runs: int) -> int:
             with db.session() as s:
-                for k in range(total_runs - s.query(Run).count()):
-                    run = Run(cell=CELL, robot=f"mock://{k}", state="done",
+                for k in range(total_runs - s.query(RunRecord).count()):
+                    run = RunRecord(cell=CELL, robot=f"mock://{k}", state="done",
                               setup="eye_in_hand",
                               target={"inner_corners": [11, 8], "square_size_m": 0.03},
                               poses=[[0.3, 0.0, 0.4, 3.14, 0.0, 0.0]] * 2)
                     s.add(run)
                     s.flush()
-                    s.add(Station(run_id=run.id, index=0, state="skipped", error="x",
+                    s.add(StationRecord(run_id=run.id, index=0, state="skipped", error="x",
                                   error_code="not_detected", commanded_tcp_pose=run.poses[0],
                                   attempts=2))
                 s.commit()

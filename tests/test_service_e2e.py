@@ -18,7 +18,7 @@ import pytest
 
 from calib.geometry import ur_pose_from_matrix
 from mocks.scene import default_scene, sample_station_poses
-from service.local import local_service
+from service.serving.local import local_service
 
 pytestmark = pytest.mark.usefixtures("database")
 

@@ -16,7 +16,7 @@ from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
 from service.metrics import CONTENT_TYPE_LATEST
-from service.models import Calibration, Run, Station
+from service.store.records import CalibrationRecord, RunRecord, StationRecord
 from tests.test_exports import full_result
 from tests.test_service_api import (
     CELL,
@@ -206,13 +206,13 @@ def evidence_result(setup: str, *, cv_rms_px: float, verdict: str) -> dict[str, 
 def add_rows(client: TestClient) -> None:
     """Two runs with stations and five calibrations with known durations and results."""
     with client.app.state.db.session() as s:
-        hand = Run(cell=CELL, robot="mock://", state="done", setup="eye_in_hand",
+        hand = RunRecord(cell=CELL, robot="mock://", state="done", setup="eye_in_hand",
                    mode="robot", target={}, poses=[])
-        fixed = Run(cell=CELL, robot="mock://", state="capturing", setup="eye_to_hand",
+        fixed = RunRecord(cell=CELL, robot="mock://", state="capturing", setup="eye_to_hand",
                     mode="external", target={}, poses=[])
         s.add_all([hand, fixed])
         s.flush()
-        s.add_all([Station(run_id=hand.id, index=k, state="captured" if k < 3 else "skipped",
+        s.add_all([StationRecord(run_id=hand.id, index=k, state="captured" if k < 3 else "skipped",
                            commanded_tcp_pose=[0.0] * 6, tcp_pose=None) for k in range(4)])
         for run, minutes, seconds, state, result in [
                 (hand, 0, 10.0, "done", evidence_result("eye_in_hand", cv_rms_px=0.31,
@@ -224,9 +224,10 @@ def add_rows(client: TestClient) -> None:
                 (hand, 9, 1.0, "failed", None),
                 (hand, 10, None, "running", None)]:
             start = T0 + dt.timedelta(minutes=minutes)
-            s.add(Calibration(cell=CELL, run_id=run.id, state=state, options={}, result=result,
-                              created_at=start, finished_at=None if seconds is None
-                              else start + dt.timedelta(seconds=seconds)))
+            s.add(CalibrationRecord(cell=CELL, run_id=run.id, state=state, options={},
+                                    result=result, created_at=start,
+                                    finished_at=None if seconds is None
+                                    else start + dt.timedelta(seconds=seconds)))
         s.commit()
 
 

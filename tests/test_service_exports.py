@@ -16,7 +16,7 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.exports import FORMATS, ExportNames, export
-from service.models import Calibration, Run
+from service.store.records import CalibrationRecord, RunRecord
 from tests.test_exports import full_result, pose_only_result
 from tests.test_service_api import AUTH, CELL, settings
 
@@ -37,12 +37,12 @@ def client(tmp_path: Path) -> Iterator[TestClient]:
 def add_calibration(client: TestClient, state: str = "done",
                     result: dict[str, Any] | None = None) -> str:
     """Store a run and a calibration of it in ``state``; the calibration id."""
-    run = Run(cell=CELL, robot="mock://", state="done", setup="eye_in_hand",
+    run = RunRecord(cell=CELL, robot="mock://", state="done", setup="eye_in_hand",
               target={"inner_corners": [11, 8], "square_size_m": 0.03}, poses=[])
     with client.app.state.db.session() as s:
         s.add(run)
         s.flush()
-        cal = Calibration(cell=CELL, run_id=run.id, state=state, options={}, result=result,
+        cal = CalibrationRecord(cell=CELL, run_id=run.id, state=state, options={}, result=result,
                           error="boom" if state == "failed" else None)
         s.add(cal)
         s.commit()

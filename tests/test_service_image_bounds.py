@@ -1,5 +1,5 @@
 """Posted images are bounded before they are decoded, and searched in a worker with a memory
-limit and a CPU budget (issue 22, row 3; ``service.image_worker``).
+limit and a CPU budget (issue 22, row 3; ``service.jobs.image_worker``).
 
 A striped 49-megapixel PNG is 155 kB on the wire; its board search took 105 CPU-s and 9.7 GB
 in the service. Now the header alone refuses it (413), and an image under the pixel cap that
@@ -24,7 +24,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from service.local import local_service
+from service.serving.local import local_service
 from tests.test_service_api import AUTH, settings
 from tests.test_service_external import external_run, post, robot_pose
 

@@ -3,7 +3,7 @@
 The job's last write used to fail once: the validation stayed ``running`` for good, every new
 run got 409 ``robot_busy``, the calibration's result was lost and its listeners hung. Here
 another connection holds the SQLite write lock from just after the job starts until its
-outcome has gone to the spool (``service.outcomes``), so the ends of both jobs meet a
+outcome has gone to the spool (``service.jobs.outcomes``), so the ends of both jobs meet a
 database that does not answer for longer than the service retries (``database_retry_s``,
 shortened by configuration, as in ``test_service_database_outage``). Meanwhile the job shows
 its outcome and holds no robot; once the lock is gone the outcome is stored, the listener gets

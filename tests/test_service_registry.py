@@ -16,7 +16,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from service.models import Calibration, Run
+from service.store.records import CalibrationRecord, RunRecord
 from tests.test_exports import full_result, pose_only_result
 from tests.test_service_api import AUTH, CELL, settings
 
@@ -34,7 +34,7 @@ def client(tmp_path: Path) -> Iterator[TestClient]:
 
 def add_run(client: TestClient, *, setup: str = "eye_in_hand", robot: str = "mock://",
             cell: str = CELL) -> str:
-    run = Run(cell=cell, robot=robot, state="done", setup=setup,
+    run = RunRecord(cell=cell, robot=robot, state="done", setup=setup,
               target={"inner_corners": [11, 8], "square_size_m": 0.03}, poses=[])
     with client.app.state.db.session() as s:
         s.add(run)
@@ -49,7 +49,7 @@ def add_calibration(client: TestClient, run_id: str, *, minute: int, state: str 
     values = {"cell": CELL, "options": {"method": "joint"},
               "error": "boom" if state == "failed" else None,
               "result": full_result() if state == "done" else None, **columns}
-    cal = Calibration(run_id=run_id, state=state,
+    cal = CalibrationRecord(run_id=run_id, state=state,
                       created_at=T0 + dt.timedelta(minutes=minute), **values)
     with client.app.state.db.session() as s:
         s.add(cal)

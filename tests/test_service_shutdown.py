@@ -16,7 +16,7 @@ import httpx
 import pytest
 
 from service.cli.client import Event, parse_events
-from service.local import LocalService, ServeOptions, local_service
+from service.serving.local import LocalService, ServeOptions, local_service
 
 KEY = "shutdown-key-0123456789abcdef"
 AUTH = {"Authorization": f"Bearer {KEY}"}

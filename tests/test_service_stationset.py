@@ -16,7 +16,7 @@ from fastapi.testclient import TestClient
 
 from calib import CheckerboardTarget, Station, Stations
 from service.cli.main import main
-from service.stationset import load_station_set, write_station_set
+from service.stationsets.format import load_station_set, write_station_set
 from tests.test_service_api import (  # noqa: F401 (client: the fixture)
     client,
     finished,

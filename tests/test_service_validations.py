@@ -25,8 +25,8 @@ from calib import make_transform
 from drivers.base import Camera, Robot
 from mocks.scene import default_scene
 from service.app import create_app
-from service.devices import settings_opener
-from service.models import Calibration, Run, Validation
+from service.cell.devices import settings_opener
+from service.store.records import CalibrationRecord, RunRecord, ValidationRecord
 from tests.test_exports import full_result
 from tests.test_service_api import AUTH, CELL, GatedCamera, finished, poses, settings, wait_run
 from tests.test_service_events import Event, read_events
@@ -168,7 +168,7 @@ def test_the_robot_does_one_motion_job_at_a_time(app_on: Client,
 
     client = app_on(open_devices=hanging)
     cal_id = calibrated[2]
-    interrupted = Run(cell=CELL, robot="mock://", state="interrupted", setup="eye_in_hand",
+    interrupted = RunRecord(cell=CELL, robot="mock://", state="interrupted", setup="eye_in_hand",
                       target={"inner_corners": [11, 8], "square_size_m": 0.03}, poses=poses(2))
     with client.app.state.db.session() as s:
         s.add(interrupted)
@@ -217,7 +217,7 @@ def test_two_services_never_move_one_robot_at_once(app_on: Client,
                 assert r.json()["code"] == "robot_busy"
     with services[0].app.state.db.session() as s:
         spans = sorted((v.created_at, v.finished_at) for v in s.scalars(
-            select(Validation).where(Validation.id.in_(accepted))))
+            select(ValidationRecord).where(ValidationRecord.id.in_(accepted))))
     assert len(spans) == len(accepted) >= 20
     assert all(end <= next_start for (_, end), (next_start, _) in pairwise(spans))
 
@@ -287,7 +287,7 @@ def test_a_validation_cut_by_a_restart_is_failed(app_on: Client,
                                                  calibrated: tuple[Path, str, str]) -> None:
     client = app_on()
     with client.app.state.db.session() as s:  # a validation of a service that died
-        val = Validation(cell=CELL, robot="mock://", calibration_id=calibrated[2],
+        val = ValidationRecord(cell=CELL, robot="mock://", calibration_id=calibrated[2],
                          kind="dot_hit", state="running")
         s.add(val)
         s.commit()
@@ -299,7 +299,7 @@ def test_a_validation_cut_by_a_restart_is_failed(app_on: Client,
 def add_calibration(client: TestClient, run_id: str, state: str = "done",
                     result: dict[str, Any] | None = None) -> str:
     with client.app.state.db.session() as s:
-        cal = Calibration(cell=CELL, run_id=run_id, state=state, options={}, result=result)
+        cal = CalibrationRecord(cell=CELL, run_id=run_id, state=state, options={}, result=result)
         s.add(cal)
         s.commit()
     return cal.id

@@ -14,7 +14,7 @@ from calib.validation import dot_hit
 from drivers.base import Robot, RobotStatus
 from drivers.errors import WorkspaceError
 from mocks.scene import camera_pose_for_tcp, default_scene
-from service.validation_run import (
+from service.jobs.validation_run import (
     BoardEstimate,
     CellChecks,
     GroundTruth,

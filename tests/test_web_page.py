@@ -20,7 +20,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from service.local import LocalService, local_service
+from service.serving.local import LocalService, local_service
 from service.web import STATIC_DIR
 from tests.browser import Browser
 from tests.test_service_api import AUTH, KEY, settings

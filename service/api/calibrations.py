@@ -8,15 +8,15 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Response, status
 from fastapi.responses import HTMLResponse, StreamingResponse
 
-from service import store
 from service.api.deps import CalibrationsDep, EventsDep, SessionDep
 from service.api.reads import Read, add_reads
 from service.api.streams import LastEventId, event_stream, stream_doc
 from service.errors import ConflictError, UnprocessableError
 from service.exports import ExportNames, export
-from service.models import Topic
-from service.result_schema import parse_result
+from service.results.schema import parse_result
 from service.schemas import CalibrationCreate, CalibrationPublic, Created, ExportQuery
+from service.store import queries
+from service.store.records import Topic
 
 router = APIRouter(tags=["calibrations"])
 
@@ -33,9 +33,9 @@ def create_calibration(run_id: str, calibrations: CalibrationsDep,
 
 
 add_reads(router, CalibrationPublic,
-          listing=Read("/runs/{run_id}/calibrations", store.list_calibrations,
+          listing=Read("/runs/{run_id}/calibrations", queries.list_calibrations,
                        "list_calibrations", "The run's calibrations, oldest first."),
-          item=Read("/calibrations/{cal_id}", store.get_calibration, "get_calibration",
+          item=Read("/calibrations/{cal_id}", queries.get_calibration, "get_calibration",
                     "State (``running``, ``done``, ``failed``) and the ``cellcal/result@1`` "
                     "document."))
 
@@ -61,7 +61,7 @@ def export_calibration(cal_id: str, session: SessionDep,
                        query: Annotated[ExportQuery, Query()]) -> Response:
     """The result as a file for OpenCV, ROS (camera_info, ROS 2 static transform launch file),
     a URDF or a UR robot program."""
-    cal = store.get_calibration(session, cal_id=cal_id)
+    cal = queries.get_calibration(session, cal_id=cal_id)
     if cal.state != "done" or cal.result is None:
         raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished calibration "
                             "can be exported.", code="invalid_state")
@@ -81,9 +81,9 @@ def export_calibration(cal_id: str, session: SessionDep,
     409: {"description": "the calibration is running or failed"}})
 def calibration_report(cal_id: str, session: SessionDep) -> HTMLResponse:
     """The report a person reads, prints and files: verdict, findings, plots, stations."""
-    from service.report import render_report  # matplotlib: loaded on the first report only
+    from service.results.report import render_report  # matplotlib: loaded on the first report only
 
-    cal = store.get_calibration(session, cal_id=cal_id)
+    cal = queries.get_calibration(session, cal_id=cal_id)
     if cal.state != "done" or cal.result is None:
         raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished calibration "
                             "has a report.", code="invalid_state")

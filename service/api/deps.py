@@ -10,13 +10,13 @@ from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
-from service.calibrations import Calibrations
-from service.devices import Devices
+from service.api.guard import check_api_key
+from service.cell.devices import Devices
 from service.events import EventBus
-from service.guard import check_api_key
+from service.jobs.calibrations import Calibrations
+from service.jobs.validations import Validations
 from service.runs import RunManager
 from service.settings import Settings
-from service.validations import Validations
 
 _bearer = HTTPBearer(auto_error=False, description="CELLCAL_API_KEY")
 
@@ -64,7 +64,7 @@ def require_api_key(settings: SettingsDep,
                                            Depends(_bearer)]) -> None:
     """Accept only ``Authorization: Bearer <CELLCAL_API_KEY>`` (401 otherwise).
 
-    ``service.guard.RequestGuard`` already checked it before the body was read; this
+    ``service.api.guard.RequestGuard`` already checked it before the body was read; this
     dependency declares the scheme in the OpenAPI document and guards apps built without it.
     """
     check_api_key(settings.api_key, None if credentials is None else credentials.credentials)

@@ -2,7 +2,7 @@
 parent (a run's calibrations, a calibration's validations) and one item by its id.
 
 Each path has one id parameter, and the ``store`` function it calls takes that id under the same
-keyword (``/runs/{run_id}/calibrations`` -> ``store.list_calibrations(s, run_id=...)``); unknown
+keyword (``/runs/{run_id}/calibrations`` -> ``queries.list_calibrations(s, run_id=...)``); unknown
 ids are the store's 404. The public schema is validated from the stored row.
 """
 

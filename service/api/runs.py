@@ -11,12 +11,9 @@ from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import FileResponse, StreamingResponse
 from starlette.background import BackgroundTask
 
-from service import store
 from service.api.deps import EventsDep, RunsDep, SessionDep, SettingsDep
 from service.api.streams import LastEventId, event_stream, stream_doc
 from service.errors import ConflictError, NotFoundError
-from service.models import Run, Topic
-from service.pages import Cursor
 from service.schemas import (
     ColdStartPublic,
     Created,
@@ -25,21 +22,24 @@ from service.schemas import (
     RunPublic,
     StationError,
 )
-from service.station_rows import captured_station_set, run_target
-from service.stationset import zip_station_set
+from service.stationsets.format import zip_station_set
+from service.store import queries
+from service.store.pages import Cursor
+from service.store.records import RunRecord, Topic
+from service.store.stations import captured_station_set, run_target
 
 router = APIRouter(prefix="/runs", tags=["runs"])
 
-def run_public(session: SessionDep, run: Run) -> RunPublic:
+def run_public(session: SessionDep, run: RunRecord) -> RunPublic:
     """The public view of a run; station counts and errors come from small SQL queries, never
     from loading every station (with its corners), so polling stays fast on long runs."""
     return runs_public(session, [run])[0]
 
 
-def runs_public(session: SessionDep, runs: list[Run]) -> list[RunPublic]:
+def runs_public(session: SessionDep, runs: list[RunRecord]) -> list[RunPublic]:
     """``run_public`` of many runs with two queries in all, whatever their number."""
-    counts = store.runs_counts(session, runs=runs)
-    errors = store.runs_station_errors(session, run_ids=[run.id for run in runs])
+    counts = queries.runs_counts(session, runs=runs)
+    errors = queries.runs_station_errors(session, run_ids=[run.id for run in runs])
     return [RunPublic(
         id=run.id, state=run.state, mode=run.mode, cell=run.cell, robot=run.robot,
         setup=run.setup,
@@ -69,7 +69,7 @@ def list_runs(session: SessionDep, request: Request, response: Response,
                                               "rel=\"next\"` header of the page before")] = None
               ) -> list[RunPublic]:
     """Runs, newest first; a full page's ``Link`` header names the next page (keyset)."""
-    runs = store.list_runs(session, limit=limit,
+    runs = queries.list_runs(session, limit=limit,
                            cursor=None if cursor is None else Cursor.decode(cursor))
     if len(runs) == limit:
         after = request.url.include_query_params(cursor=Cursor.of(runs[-1]).encode())
@@ -80,28 +80,28 @@ def list_runs(session: SessionDep, request: Request, response: Response,
 @router.get("/{run_id}")
 def get_run(run_id: str, session: SessionDep) -> RunPublic:
     """State, stations captured / skipped / planned, and errors."""
-    return run_public(session, store.get_run(session, run_id=run_id))
+    return run_public(session, queries.get_run(session, run_id=run_id))
 
 
 @router.post("/{run_id}/pause")
 def pause_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
     """Stop after the station in progress (idempotent)."""
     runs.pause(run_id)
-    return run_public(session, store.get_run(session, run_id=run_id))
+    return run_public(session, queries.get_run(session, run_id=run_id))
 
 
 @router.post("/{run_id}/resume")
 def resume_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
     """Continue a paused, interrupted or failed run at its next missing station."""
     runs.resume(run_id)
-    return run_public(session, store.get_run(session, run_id=run_id))
+    return run_public(session, queries.get_run(session, run_id=run_id))
 
 
 @router.post("/{run_id}/cancel")
 def cancel_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
     """Stop for good (idempotent); stored stations stay available."""
     runs.cancel(run_id)
-    return run_public(session, store.get_run(session, run_id=run_id))
+    return run_public(session, queries.get_run(session, run_id=run_id))
 
 
 @router.post("/{run_id}/finish", responses={
@@ -109,7 +109,7 @@ def cancel_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
 def finish_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
     """End an external run (idempotent): no more stations; calibrate it next."""
     runs.finish(run_id)
-    return run_public(session, store.get_run(session, run_id=run_id))
+    return run_public(session, queries.get_run(session, run_id=run_id))
 
 
 @router.get("/{run_id}/events", response_class=StreamingResponse, responses=stream_doc(
@@ -129,7 +129,7 @@ async def run_events(run_id: str, events: EventsDep,
 def get_station_set(run_id: str, session: SessionDep, settings: SettingsDep) -> FileResponse:
     """The run's captured stations as a station set (``cellcal/stations@1``, images included,
     zipped): ``cellcal calibrate`` on it solves what ``POST /runs/{id}/calibrations`` solves."""
-    if store.get_run(session, run_id=run_id).state == "capturing":
+    if queries.get_run(session, run_id=run_id).state == "capturing":
         raise ConflictError(f"Run {run_id} is still capturing; pause it or wait until it is "
                             "done.", code="invalid_state")
     stations = captured_station_set(session, run_id=run_id)

@@ -10,10 +10,8 @@ from fastapi import APIRouter, File, Form, UploadFile, status
 from fastapi.responses import FileResponse
 from pydantic import TypeAdapter, ValidationError
 
-from service import store
 from service.api.deps import RunsDep, SessionDep, SettingsDep
 from service.errors import NotFoundError, UnprocessableError
-from service.models import Station
 from service.runs.external import PostedStation
 from service.schemas import (
     DetectionPublic,
@@ -22,14 +20,16 @@ from service.schemas import (
     StationIndex,
     StationPublic,
 )
-from service.station_rows import station_of
+from service.store import queries
+from service.store.records import StationRecord
+from service.store.stations import station_of
 
 router = APIRouter(prefix="/runs/{run_id}/stations", tags=["stations"])
 
 
-def station_public(row: Station, *, corners: bool) -> StationPublic:
+def station_public(row: StationRecord, *, corners: bool) -> StationPublic:
     """The public view of a stored station: the one station model (``calib.Station``, read
-    by ``station_rows.station_of``) with the row's capture bookkeeping (index, commanded pose,
+    by ``store.stations.station_of``) with the row's capture bookkeeping (index, commanded pose,
     joints, attempts, error code, time); ``corners`` adds the detected corners and ids."""
     station = station_of(row)
     return StationPublic(
@@ -50,7 +50,7 @@ def station_public(row: Station, *, corners: bool) -> StationPublic:
 @router.get("")
 def list_stations(run_id: str, session: SessionDep) -> list[StationPublic]:
     """Stored stations in index order (corner lists left out)."""
-    return [station_public(s, corners=False) for s in store.list_stations(session, run_id=run_id)]
+    return [station_public(s, corners=False) for s in queries.list_stations(session, run_id=run_id)]
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, responses={
@@ -99,7 +99,7 @@ def _vector(text: str | None, name: str) -> list[float] | None:
 @router.get("/{index}")
 def get_station(run_id: str, index: StationIndex, session: SessionDep) -> StationPublic:
     """One station with its detected corners."""
-    return station_public(store.get_station(session, run_id=run_id, index=index), corners=True)
+    return station_public(queries.get_station(session, run_id=run_id, index=index), corners=True)
 
 
 @router.get("/{index}/image", response_class=FileResponse,
@@ -107,7 +107,7 @@ def get_station(run_id: str, index: StationIndex, session: SessionDep) -> Statio
 def get_station_image(run_id: str, index: StationIndex, session: SessionDep,
                       settings: SettingsDep) -> FileResponse:
     """The captured image as PNG."""
-    station = store.get_station(session, run_id=run_id, index=index)
+    station = queries.get_station(session, run_id=run_id, index=index)
     path = None if station.image_path is None else settings.data_dir / station.image_path
     if path is None or not path.is_file():
         raise NotFoundError(f"Station {index} of run {run_id} has no image.")

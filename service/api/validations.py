@@ -9,12 +9,12 @@ from typing import TypeVar
 from fastapi import APIRouter, status
 from fastapi.responses import StreamingResponse
 
-from service import store
 from service.api.deps import EventsDep, ValidationsDep
 from service.api.reads import Read, add_reads
 from service.api.streams import LastEventId, event_stream, stream_doc
-from service.models import Topic
 from service.schemas import CheckCreate, Created, ValidationCreate, ValidationPublic
+from service.store import queries
+from service.store.records import Topic
 
 router = APIRouter(tags=["validations"])
 F = TypeVar("F", bound=Callable[..., Created])
@@ -62,9 +62,9 @@ def create_check(cal_id: str, validations: ValidationsDep,
 
 
 add_reads(router, ValidationPublic,
-          listing=Read("/calibrations/{cal_id}/validations", store.list_validations,
+          listing=Read("/calibrations/{cal_id}/validations", queries.list_validations,
                        "list_validations", "The calibration's validations, oldest first."),
-          item=Read("/validations/{val_id}", store.get_validation, "get_validation",
+          item=Read("/validations/{val_id}", queries.get_validation, "get_validation",
                     "State (``running``, ``done``, ``failed``) and the report."))
 
 

@@ -39,9 +39,9 @@ from calib import (
     choose_pose_only,
 )
 from service.cli.exit_codes import EXIT_VERDICT_FAIL
-from service.image_files import DEFAULT_MAX_PIXELS, read_station_image
-from service.results import cv_dropped_clause
-from service.stationset import DEFAULT_MAX_STATIONS, load_station_set
+from service.results.document import cv_dropped_clause
+from service.stationsets.format import DEFAULT_MAX_STATIONS, load_station_set
+from service.stationsets.images import DEFAULT_MAX_PIXELS, read_station_image
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     stations = load_station_set(args.station_dir, max_stations=args.max_stations).model()
     command = " ".join(["cellcal", *sys.argv[1:]])
     if stations.pose_only:
-        from service.results import hand_eye_result_json
+        from service.results.document import hand_eye_result_json
 
         P, C = stations.pose_arrays()
         method = args.method or "refine"
@@ -148,7 +148,7 @@ def _calibrate_images(args: argparse.Namespace, stations: Stations,
     """Result document of a station set with images (``calib.pipeline``)."""
     from tqdm import tqdm
 
-    from service.results import calibration_result_json
+    from service.results.document import calibration_result_json
 
     posed = [s.id for s in stations.stations if s.T_cam_target is not None]
     if posed:

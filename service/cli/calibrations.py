@@ -6,7 +6,7 @@ its history, and export one for OpenCV, ROS, a URDF or a UR program. The service
 """
 
 # ``cellcal calibrations``: the REST calls of ``service.api.calibrations`` and
-# ``service.api.registry`` from the command line (``service.cli.client``).
+# ``service.api.active`` from the command line (``service.cli.client``).
 
 from __future__ import annotations
 

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 from service.exports import FORMATS, ExportNames, export
-from service.result_schema import Result, parse_result
+from service.results.schema import Result, parse_result
 
 #: Larger files are not result documents (a result with 10,000 stations is about 30 MB).
 MAX_RESULT_BYTES = 256 * 1024 * 1024

@@ -4,7 +4,7 @@ cross-validated errors, residuals over the image, corner coverage, model selecti
 rejected station with the reason.
 """
 
-# ``cellcal report``: the self-contained HTML report of a result file (``service.report``).
+# ``cellcal report``: the self-contained HTML report of a result file (``service.results.report``).
 
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Write the report of ``args.result``."""
-    from service.report import render_report
+    from service.results.report import render_report
 
     try:
         doc = json.loads(args.result.read_text())

@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from service.app import create_app
-    from service.connections import (
+    from service.serving.connections import (
         ACCEPT_BURST,
         ConnectionLimits,
         connection_cap,
@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
         limit_connection_logs,
         raise_fd_limit,
     )
-    from service.server import GRACEFUL_TIMEOUT_S, CellServer
+    from service.serving.server import GRACEFUL_TIMEOUT_S, CellServer
     from service.settings import Settings, is_loopback
 
     overrides: dict[str, Any] = {k: v for k, v in (("host", args.host), ("port", args.port),
@@ -102,7 +102,7 @@ def _check_database(settings: Any) -> None:
     not answer or needs ``cellcal db upgrade``, instead of a failed start-up in uvicorn."""
     from sqlalchemy.exc import SQLAlchemyError
 
-    from service.db import Database
+    from service.store.db import Database
 
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     try:

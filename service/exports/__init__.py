@@ -22,7 +22,7 @@ from typing import Any
 
 from service.exports import camera, transforms
 from service.exports.common import ExportNames
-from service.result_schema import Result, parse_result
+from service.results.schema import Result, parse_result
 
 __all__ = ["CAMERA_FORMATS", "FORMATS", "TRANSFORM_FORMATS", "ExportNames", "export"]
 
@@ -37,7 +37,7 @@ def export(result: Result | Mapping[str, Any], fmt: str,
 
     Parameters
     ----------
-    result : the result (``service.result_schema.Result``), or its JSON document, which is
+    result : the result (``service.results.schema.Result``), or its JSON document, which is
         validated first (ValueError naming the first problem).
     fmt : one of ``FORMATS``.
     names : camera and frame names (default ``ExportNames()``).

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from service.exports.common import FRAMES, matrix, num
-from service.result_schema import CameraModel, Result
+from service.results.schema import CameraModel, Result
 
 
 def _camera(cam: CameraModel) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:

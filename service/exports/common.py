@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib import check_transforms
-from service.result_schema import Transform
+from service.results.schema import Transform
 
 #: What ``hand_eye`` / ``target_pose`` mean in each setup (``docs/conventions.md``).
 FRAMES = {"eye_in_hand": ("tcp_T_cam", "base_T_target"),

@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from calib import ur_pose_from_matrix
 from service.exports.common import FRAMES, ExportNames, matrix, num
-from service.result_schema import Result, Transform
+from service.results.schema import Result, Transform
 
 #: What the default parent frame must stand for, per setup.
 _PARENT_NOTE = {

@@ -18,7 +18,7 @@ from alembic.runtime.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from sqlalchemy import Connection, Engine, inspect, text
 
-from service.models import Base
+from service.store.records import Base
 
 #: The table where Alembic records the revision.
 VERSION_TABLE = "alembic_version"

@@ -9,7 +9,7 @@ import os
 from alembic import context
 from sqlalchemy import Connection, create_engine
 
-from service.models import Base
+from service.store.records import Base
 
 
 def run() -> None:

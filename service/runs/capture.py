@@ -15,7 +15,7 @@ order, so a crash loses at most those two. Restart safety rests on the database:
 
 Every exception that ends a capture thread passes through ``Capture.run``, which turns it into
 the run's final state, always one ``resume`` continues from: the one place for the capture
-loop's error handling. Database work is retried with backoff (``service.db.retry_transient``)
+loop's error handling. Database work is retried with backoff (``service.store.db.retry_transient``)
 for ``Settings.database_retry_s``; then the run becomes ``interrupted`` with the reason (that
 last write waits for the database as long as the service runs). After a device fault the devices
 are closed, so the next run or ``resume`` opens them afresh. A run that ends without a single
@@ -50,13 +50,12 @@ from drivers.errors import (
     RobotConnectionError,
 )
 from drivers.stall import STALL_AFTER
-from service import store
-from service.db import DatabaseUnavailableError, retry_transient
+from service.cell.motion import Motion
 from service.events import EventBus, run_state_event
-from service.models import Run, Topic
-from service.models import Station as StationRow
-from service.motion import Motion
-from service.station_rows import row_values, run_target
+from service.store import queries
+from service.store.db import DatabaseUnavailableError, retry_transient
+from service.store.records import RunRecord, StationRecord, Topic
+from service.store.stations import row_values, run_target
 
 log = logging.getLogger("cellcal.service")
 T = TypeVar("T")
@@ -162,7 +161,7 @@ class Capture:
         thread (if the service stops first, its next start marks the run ``interrupted``).
         """
         try:
-            changed = self._in_session(lambda s: store.finish_run(
+            changed = self._in_session(lambda s: queries.finish_run(
                 s, run_id=self.run_id, token=self.token, state=state, error=error,
                 error_code=code),
                 f"ending run {self.run_id} as {state}", budget_s=math.inf)
@@ -219,10 +218,10 @@ class Capture:
             self._worker = pool
             complete = self._visit(todo, poses)
         if self.motion.stopping.is_set():
-            self.finish("interrupted", store.INTERRUPTED, "interrupted")
+            self.finish("interrupted", queries.INTERRUPTED, "interrupted")
         elif complete:
-            counts = self._in_session(lambda s: store.run_counts(
-                s, run=store.get_run(s, run_id=self.run_id)), "counting stations")
+            counts = self._in_session(lambda s: queries.run_counts(
+                s, run=queries.get_run(s, run_id=self.run_id)), "counting stations")
             if counts["stations_captured"] == 0:
                 self.finish("failed", f"No station was captured ({counts['stations_skipped']} "
                             "skipped): see the station errors.", "nothing_captured")
@@ -231,10 +230,10 @@ class Capture:
 
     def _plan(self, s: Session) -> tuple[list[int], list[list[float]]] | None:
         """The missing station indices and all poses, or None if the run is not ours."""
-        run = s.get(Run, self.run_id)
+        run = s.get(RunRecord, self.run_id)
         if run is None or run.owner != self.token or run.state != "capturing":
             return None
-        stored = store.stored_indices(s, run_id=self.run_id)
+        stored = queries.stored_indices(s, run_id=self.run_id)
         self.board = board_from_target(run_target(run))
         return [k for k in range(len(run.poses)) if k not in stored], run.poses
 
@@ -319,10 +318,10 @@ class Capture:
         """Detect and store a posted station as station ``index`` exactly as the worker does
         a captured one (``_develop``), without the retry: the controller took the image.
         ``taken`` holds the image (and the board found in it already, by
-        ``service.image_worker``); ``problem`` (detail, code) says why there is none. True if
+        ``service.jobs.image_worker``); ``problem`` (detail, code) says why there is none. True if
         stored."""
         with self.db.session() as s:
-            self.board = board_from_target(run_target(store.get_run(s, run_id=self.run_id)))
+            self.board = board_from_target(run_target(queries.get_run(s, run_id=self.run_id)))
         detail, code = problem or (None, None)
         return self._develop(_Shot(index, pose, 1, taken, detail, code, joints,
                                    final=True)) == STORED
@@ -368,14 +367,14 @@ class Capture:
 
     def _owns(self) -> bool:
         return self._in_session(
-            lambda s: store.owns_run(s, run_id=self.run_id, token=self.token),
+            lambda s: queries.owns_run(s, run_id=self.run_id, token=self.token),
             f"checking run {self.run_id}")
 
     def _store(self, shot: _Shot, station: Station, code: str | None) -> bool:
         """Commit one station (image file first) unless the run is no longer ours; True if
         it was stored. ``code`` names the reason of a rejected station.
 
-        Ownership is claimed in the same transaction as the insert (``store.claim_run`` locks
+        Ownership is claimed in the same transaction as the insert (``queries.claim_run`` locks
         the run row), so a station is never committed after a cancel, a pause or a takeover
         has been committed.
         """
@@ -386,9 +385,9 @@ class Capture:
         row = row_values(station)
 
         def commit(s: Session) -> bool:
-            if not store.claim_run(s, run_id=self.run_id, token=self.token):
+            if not queries.claim_run(s, run_id=self.run_id, token=self.token):
                 return False
-            s.add(StationRow(run_id=self.run_id, index=shot.index,
+            s.add(StationRecord(run_id=self.run_id, index=shot.index,
                              commanded_tcp_pose=shot.pose,
                              joint_positions=shot.joints,
                              image_path=None if rel is None else rel.as_posix(),

@@ -42,10 +42,10 @@ from calib import (
     ur_pose_from_matrix,
 )
 from drivers.errors import WorkspaceError
-from service import store
-from service.models import Run
 from service.runs.capture import ATTEMPTS, STORED, Capture
-from service.station_rows import run_target, station_of
+from service.store import queries
+from service.store.records import RunRecord
+from service.store.stations import run_target, station_of
 
 log = logging.getLogger("cellcal.service")
 
@@ -71,7 +71,7 @@ class ColdStartCapture(Capture):
         good = self._replay(planner, stored)
         reason = self._loop(planner, plan, good, next_index=len(stored))
         if self.motion.stopping.is_set():
-            self.finish("interrupted", store.INTERRUPTED, "interrupted")
+            self.finish("interrupted", queries.INTERRUPTED, "interrupted")
         elif reason is not None:
             self._update(stop_reason=reason)
             if not good:
@@ -84,20 +84,20 @@ class ColdStartCapture(Capture):
 
     def _read(self, s: Session) -> tuple[dict[str, Any], list[tuple[Any, Station]]] | None:
         """The plan and the stored stations (index order), or None if the run is not ours."""
-        run = s.get(Run, self.run_id)
+        run = s.get(RunRecord, self.run_id)
         if run is None or run.owner != self.token or run.state != "capturing":
             return None
         self.board = board_from_target(run_target(run))
         self.setup = run.setup
-        rows = store.list_stations(s, run_id=self.run_id)
+        rows = queries.list_stations(s, run_id=self.run_id)
         return dict(run.cold_start or {}), [(row.target_pose, station_of(row)) for row in rows]
 
     def _update(self, **values: Any) -> None:
         """Merge ``values`` into the run's ``cold_start`` record (while the run is ours)."""
         def write(s: Session) -> None:
-            if not store.claim_run(s, run_id=self.run_id, token=self.token):
+            if not queries.claim_run(s, run_id=self.run_id, token=self.token):
                 return
-            run = s.get(Run, self.run_id)
+            run = s.get(RunRecord, self.run_id)
             assert run is not None
             run.cold_start = {**(run.cold_start or {}), **values}
             s.commit()
@@ -107,8 +107,8 @@ class ColdStartCapture(Capture):
     def _append_pose(self, pose: list[float]) -> None:
         """Record a commanded pose in the run's poses before the robot goes there."""
         def write(s: Session) -> None:
-            if store.claim_run(s, run_id=self.run_id, token=self.token):
-                run = s.get(Run, self.run_id)
+            if queries.claim_run(s, run_id=self.run_id, token=self.token):
+                run = s.get(RunRecord, self.run_id)
                 assert run is not None
                 run.poses = [*run.poses, pose]
                 s.commit()
@@ -230,7 +230,7 @@ class ColdStartCapture(Capture):
 
     def _history(self) -> list[dict[str, Any]]:
         return self._in_session(
-            lambda s: list((store.get_run(s, run_id=self.run_id).cold_start or {})
+            lambda s: list((queries.get_run(s, run_id=self.run_id).cold_start or {})
                            .get("sigma_history", [])), "reading the σ history")
 
     def _honest_sigma(self, good: list[Station]) -> dict[str, Any] | None:

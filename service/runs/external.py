@@ -9,7 +9,7 @@ and grabs. The board is detected and the station stored by the capture loop's ow
 like captured ones; the answer says at once whether the board was found and why not.
 
 An image is bounded before it is decoded, and decoded and searched in a memory-limited
-worker process (``service.image_worker``): more pixels than allowed is 413
+worker process (``service.jobs.image_worker``): more pixels than allowed is 413
 ``image_too_large`` at once, and nothing is stored. An image that cannot be used otherwise
 (not PNG or JPEG, corrupt, truncated) becomes a skipped station with the reason, like a failed
 grab in the capture loop. Stations take the next free index; posts to one run are developed
@@ -31,14 +31,14 @@ from calib import Target, check_joint_positions, check_ur_pose
 from drivers.base import ReportsFreshness, Robot
 from drivers.capture import grab_at_rest
 from drivers.errors import RobotError
-from service import store
+from service.cell.motion import Motion
 from service.errors import ConflictError, UnprocessableError
 from service.events import EventBus
-from service.image_worker import ImageWorkers, check_pixels
-from service.models import Run, Station
-from service.motion import Motion
+from service.jobs.image_worker import ImageWorkers, check_pixels
 from service.runs.capture import Capture
-from service.station_rows import run_target
+from service.store import queries
+from service.store.records import RunRecord, StationRecord
+from service.store.stations import run_target
 
 log = logging.getLogger("cellcal.service")
 
@@ -68,13 +68,13 @@ class ExternalStations:
         self._locks: dict[str, threading.Lock] = {}  # run id -> its posts' lock
         self._locks_lock = threading.Lock()
 
-    def add(self, run_id: str, posted: PostedStation) -> Station:
+    def add(self, run_id: str, posted: PostedStation) -> StationRecord:
         """Store one posted station of an external run that accepts stations; the row."""
         pose, joints = _checked(posted)
         if posted.image is not None:  # before anything else: a refusal costs nothing
             check_pixels(posted.image, self.motion.settings.max_image_pixels)
         with self.motion.db.session() as s:
-            run = store.get_run(s, run_id=run_id)
+            run = queries.get_run(s, run_id=run_id)
             _check_accepts(run)
             _check_room(s, run_id, self.motion.settings.max_stations)  # before the image
             token, target = run.owner, run_target(run)
@@ -87,7 +87,7 @@ class ExternalStations:
             return self._locks.setdefault(run_id, threading.Lock())
 
     def _add(self, run_id: str, token: str | None, target: Target,
-             posted: PostedStation) -> Station:
+             posted: PostedStation) -> StationRecord:
         """Develop and store one station of ``run_id`` (``posted``: pose and joints checked;
         the caller holds the run's lock)."""
         pose, joints = posted.pose, posted.joints
@@ -123,7 +123,7 @@ class ExternalStations:
             raise ConflictError(f"Run {run_id} stopped accepting stations meanwhile; the "
                                 "station was not stored.", code="invalid_state")
         with self.motion.db.session() as s:  # a new session sees the new row
-            return store.get_station(s, run_id=run_id, index=index)
+            return queries.get_station(s, run_id=run_id, index=index)
 
 
 def _joints(robot: Robot) -> list[float] | None:
@@ -157,7 +157,7 @@ def _checked(posted: PostedStation) -> tuple[list[float] | None, list[float] | N
 def _check_room(s: Session, run_id: str, limit: int) -> int:
     """The index of the run's next station; 409 ``too_many_stations`` if the run already has
     ``limit`` (``max_stations``), as a robot run may not plan more."""
-    index = store.next_station_index(s, run_id=run_id)
+    index = queries.next_station_index(s, run_id=run_id)
     if index >= limit:
         raise ConflictError(f"Run {run_id} has {index} stations, the most a run may have "
                             f"(CELLCAL_MAX_STATIONS={limit}); finish it and calibrate, or "
@@ -165,7 +165,7 @@ def _check_room(s: Session, run_id: str, limit: int) -> int:
     return index
 
 
-def _check_accepts(run: Run) -> None:
+def _check_accepts(run: RunRecord) -> None:
     """409 unless ``run`` is an external run that accepts stations."""
     if run.mode != "external":
         raise ConflictError(f"Run {run.id} is driven by the service ('robot' mode); only runs "

@@ -6,17 +6,17 @@ from __future__ import annotations
 
 from sqlalchemy.exc import IntegrityError
 
-from service import store
+from service.cell.motion import Motion, MotionJobs
 from service.errors import ConflictError
 from service.events import EventBus
-from service.models import Run, Topic, new_id
-from service.motion import Motion, MotionJobs
 from service.runs.capture import Capture
 from service.runs.coldstart import ColdStartCapture
 from service.runs.external import ExternalStations
 from service.runs.planning import check_poses, cold_start_plan, informed_backend, plan_poses
 from service.schemas import RunCreate
-from service.station_rows import target_json
+from service.store import queries
+from service.store.records import RunRecord, Topic, new_id
+from service.store.stations import target_json
 
 
 class RunManager(MotionJobs):
@@ -27,7 +27,7 @@ class RunManager(MotionJobs):
         #: Stations posted to external runs.
         self.external = ExternalStations(motion, events)
 
-    def create(self, body: RunCreate) -> Run:
+    def create(self, body: RunCreate) -> RunRecord:
         """Validate the plan, store the run and start capturing; 409 if the robot is busy."""
         target = body.target or self.settings.run_target()
         setup = self.settings.calibration_setup()
@@ -47,7 +47,7 @@ class RunManager(MotionJobs):
                     self.motion, target=target, stations=body.stations,
                     stop_rule=None if rule is None else rule.model_dump())
         token = new_id()
-        run = Run(id=new_id(), cell=self.settings.cell, robot=self.settings.robot,
+        run = RunRecord(id=new_id(), cell=self.settings.cell, robot=self.settings.robot,
                   state="capturing", owner=token, instance_id=self.motion.instance_id,
                   setup=setup,
                   target=target_json(target), poses=poses, mode=body.mode,
@@ -78,7 +78,7 @@ class RunManager(MotionJobs):
         """Continue a paused, interrupted or failed run at its first missing station."""
         token = new_id()
         with self.motion.claim(f"run {run_id}", check=False) as s:
-            run = store.get_run(s, run_id=run_id)
+            run = queries.get_run(s, run_id=run_id)
             if run.state == "capturing":
                 return
             if run.state not in ("paused", "interrupted", "failed"):
@@ -88,10 +88,10 @@ class RunManager(MotionJobs):
                 raise ConflictError(f"Run {run_id} belongs to robot {run.robot} of cell "
                                     f"{run.cell}; resume it on that cell's service.",
                                     code="other_cell")
-            if store.running_validation(s, cell=run.cell, robot=run.robot) is not None:
+            if queries.running_validation(s, cell=run.cell, robot=run.robot) is not None:
                 raise self.motion.busy(s)
             try:
-                changed = store.move_run(s, run_id=run_id, from_state=run.state,
+                changed = queries.move_run(s, run_id=run_id, from_state=run.state,
                                          state="capturing", owner=token, error=None,
                                          error_code=None, instance_id=self.motion.instance_id)
             except IntegrityError:
@@ -108,7 +108,7 @@ class RunManager(MotionJobs):
         """End an external run: it takes no more stations and can be calibrated; idempotent
         on a finished run. A robot run finishes by itself after its last station."""
         with self.db.session() as s:
-            if store.get_run(s, run_id=run_id).mode != "external":
+            if queries.get_run(s, run_id=run_id).mode != "external":
                 raise ConflictError(f"Run {run_id} is driven by the service; it is done after "
                                     "its last station (pause or cancel it to stop it).",
                                     code="invalid_mode")
@@ -119,14 +119,14 @@ class RunManager(MotionJobs):
                     same_ok: str) -> str | None:
         """Move a run from one of ``sources`` to ``target``; the old owner token."""
         with self.db.session() as s:
-            run = store.get_run(s, run_id=run_id)
+            run = queries.get_run(s, run_id=run_id)
             if run.state == same_ok:
                 return None
             if run.state not in sources:
                 raise ConflictError(f"Run {run_id} is {run.state}; it cannot become {target}.",
                                     code="invalid_state")
             owner = run.owner
-            changed = store.move_run(s, run_id=run_id, from_state=run.state, state=target,
+            changed = queries.move_run(s, run_id=run_id, from_state=run.state, state=target,
                                      owner=None)
         if not changed:
             raise ConflictError(f"Run {run_id} changed state meanwhile; read it and retry.",

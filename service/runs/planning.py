@@ -22,8 +22,8 @@ from calib import (
     ur_pose_from_matrix,
 )
 from drivers import registry
+from service.cell.motion import Motion
 from service.errors import UnprocessableError
-from service.motion import Motion
 
 
 def plan_poses(motion: Motion, *, n: int, target: Target,

@@ -4,8 +4,9 @@
 bin``) in a fresh directory under /tmp, listening only on a unix socket in that directory, with
 durability off (fsync, synchronous commit: nothing here outlives the run). As root it runs the
 server as ``nobody``, since ``initdb`` refuses root. The server is the caller's child and gets
-SIGQUIT (immediate shutdown) when the caller dies, even by SIGKILL (``service.parent_death``); a
-directory left by a killed run is removed by the next ``start()``.
+SIGQUIT (immediate shutdown) when the caller dies, even by SIGKILL
+(``service.serving.parent_death``); a directory left by a killed run is removed by the next
+``start()``.
 """
 
 from __future__ import annotations
@@ -23,8 +24,8 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 
-from service.instances import process_alive
-from service.parent_death import die_with_parent
+from service.serving.parent_death import die_with_parent
+from service.store.instances import process_alive
 
 #: Directories of servers made here: /tmp/cellcal-pg-<random>, with the creator's pid inside.
 _PREFIX = "cellcal-pg-"

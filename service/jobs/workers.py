@@ -1,5 +1,5 @@
 """Worker processes that never outlive the service, however it dies: calibration solves
-(``service.calibrations``) and posted images (``service.image_worker``).
+(``service.jobs.calibrations``) and posted images (``service.jobs.image_worker``).
 
 Solves are CPU-bound, so they run in a ``ProcessPoolExecutor`` of spawned workers. After a
 ``kill -9`` of the service nothing told those workers to stop: each (~190 MB) waited on its
@@ -37,7 +37,7 @@ from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any
 
-from service.parent_death import die_with_parent
+from service.serving.parent_death import die_with_parent
 
 #: How often a worker checks that its parent is still there, seconds.
 PARENT_WATCH_INTERVAL_S = 0.5

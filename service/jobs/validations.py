@@ -1,10 +1,10 @@
 """Validations of a calibration, checked, started and recorded: the dot-hit run (SM eq. 24)
-and the re-check (``service.checks``: has the camera mount moved?).
+and the re-check (``service.jobs.checks``: has the camera mount moved?).
 
 A request is checked against the calibration's result document (``dot_hit_plan``,
-``check_plan``), the robot is claimed (``service.motion``), and a thread does the work and
+``check_plan``), the robot is claimed (``service.cell.motion``), and a thread does the work and
 stores the report: the dot-hit run observes the board from where the robot stands and touches
-the requested points (``service.validation_run``); the re-check revisits stations.
+the requested points (``service.jobs.validation_run``); the re-check revisits stations.
 """
 
 from __future__ import annotations
@@ -27,18 +27,12 @@ from calib import (
 from drivers.base import GroundTruthSource, Robot
 from drivers.capture import CaptureOptions
 from drivers.errors import DeviceError, RobotConnectionError
-from service import store
-from service.checks import CheckPlan, check_plan, run_check
-from service.db import TRANSIENT_ERRORS
+from service.cell.motion import Motion, MotionJobs
 from service.errors import ConflictError, ServiceError, UnprocessableError
 from service.events import EventBus
-from service.models import Topic, Validation, new_id
-from service.motion import Motion, MotionJobs
-from service.outcomes import Outcomes
-from service.results import stored_cell
-from service.schemas import CheckCreate, ValidationCreate
-from service.station_rows import run_target
-from service.validation_run import (
+from service.jobs.checks import CheckPlan, check_plan, run_check
+from service.jobs.outcomes import Outcomes
+from service.jobs.validation_run import (
     BoardEstimate,
     CellChecks,
     GroundTruth,
@@ -46,6 +40,12 @@ from service.validation_run import (
     probe_points,
     run_dot_hit,
 )
+from service.results.document import stored_cell
+from service.schemas import CheckCreate, ValidationCreate
+from service.store import queries
+from service.store.db import TRANSIENT_ERRORS
+from service.store.records import Topic, ValidationRecord, new_id
+from service.store.stations import run_target
 
 log = logging.getLogger("cellcal.service")
 #: Where a validation sends its progress events.
@@ -61,13 +61,13 @@ class Validations(MotionJobs):
         super().__init__(motion, events)
         self.outcomes = outcomes
 
-    def start(self, cal_id: str, body: ValidationCreate) -> Validation:
+    def start(self, cal_id: str, body: ValidationCreate) -> ValidationRecord:
         """Check a dot-hit request, claim the robot and start the run in a thread."""
         target, result, _ = self._calibration(cal_id)
         plan = dot_hit_plan(result or {}, target, body)
         return self._launch(cal_id, "dot_hit", lambda report: self._dot_hit(plan))
 
-    def start_check(self, cal_id: str, body: CheckCreate) -> Validation:
+    def start_check(self, cal_id: str, body: CheckCreate) -> ValidationRecord:
         """Check a re-check request, claim the robot and start the check in a thread."""
         target, result, stations = self._calibration(cal_id)
         plan = check_plan(result or {}, target, stations, body)
@@ -82,13 +82,13 @@ class Validations(MotionJobs):
         """The finished calibration's board, result and captured stations (index, commanded
         pose); 409 if it is not finished, 422 if this service drives another robot."""
         with self.db.session() as s:
-            cal = store.get_calibration(s, cal_id=cal_id)
+            cal = queries.get_calibration(s, cal_id=cal_id)
             if cal.state != "done":
                 raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished "
                                     "calibration can be validated.", code="invalid_state")
-            run = store.get_run(s, run_id=cal.run_id)
+            run = queries.get_run(s, run_id=cal.run_id)
             stations = [(st.index, st.commanded_tcp_pose)
-                        for st in store.captured_stations(s, run_id=run.id)]
+                        for st in queries.captured_stations(s, run_id=run.id)]
             robot_url, target, result = run.robot, run_target(run), cal.result
         if (run.cell, robot_url) != (self.settings.cell, self.settings.robot):
             raise UnprocessableError(f"Calibration {cal_id} was captured with robot "
@@ -97,11 +97,11 @@ class Validations(MotionJobs):
                                      code="other_robot")
         return target, result, stations
 
-    def _launch(self, cal_id: str, kind: str, work: Work) -> Validation:
+    def _launch(self, cal_id: str, kind: str, work: Work) -> ValidationRecord:
         """Store a running validation of ``kind`` and run ``work`` (its report) in a thread."""
         val_id = new_id()
         with self.motion.claim(f"validation {val_id}") as s:
-            val = Validation(id=val_id, cell=self.settings.cell, robot=self.settings.robot,
+            val = ValidationRecord(id=val_id, cell=self.settings.cell, robot=self.settings.robot,
                              instance_id=self.motion.instance_id, calibration_id=cal_id,
                              kind=kind, state="running")
             s.add(val)

@@ -17,10 +17,10 @@ import os
 import socket
 import threading
 
-from service import store
-from service.db import Database
-from service.models import Instance, utcnow
 from service.settings import Settings
+from service.store import queries
+from service.store.db import Database
+from service.store.records import InstanceRecord, utcnow
 
 log = logging.getLogger("cellcal.service")
 
@@ -33,7 +33,7 @@ class InstanceLease:
         self.cell = settings.cell
         self.lease = dt.timedelta(seconds=settings.lease_s)
         self.host = socket.gethostname()
-        self.row = Instance(cell=settings.cell, host=self.host, port=settings.port,
+        self.row = InstanceRecord(cell=settings.cell, host=self.host, port=settings.port,
                             pid=os.getpid())
         with db.session() as s:
             s.add(self.row)
@@ -52,23 +52,23 @@ class InstanceLease:
         self._thread.start()
 
     def recover(self) -> tuple[int, int, int]:
-        """Fail or interrupt the work of this cell's dead instances (``store.recover``);
+        """Fail or interrupt the work of this cell's dead instances (``queries.recover``);
         forget those instances. How many runs, calibrations and validations."""
         with self.db.session() as s:
             live = self.live_instances(s)
-            counts = store.recover(s, cell=self.cell, live=live)
-            store.forget_instances(s, cell=self.cell, live=live)
+            counts = queries.recover(s, cell=self.cell, live=live)
+            queries.forget_instances(s, cell=self.cell, live=live)
         if any(counts):
             log.warning("recovered the work of stopped services of cell %s: %d run(s) "
                         "interrupted, %d calibration(s) and %d validation(s) failed",
                         self.cell, *counts)
         return counts
 
-    def live_instances(self, s: store.Session) -> set[str]:
+    def live_instances(self, s: queries.Session) -> set[str]:
         """Ids of this cell's instances that hold their lease (this one always)."""
         now = utcnow()
         live = {self.id}
-        for row in store.instances(s, cell=self.cell):
+        for row in queries.instances(s, cell=self.cell):
             on_this_host_and_gone = row.host == self.host and not process_alive(row.pid)
             if row.heartbeat_at + self.lease > now and not on_this_host_and_gone:
                 live.add(row.id)
@@ -78,7 +78,7 @@ class InstanceLease:
         while not self._stop.wait(self.lease.total_seconds() / 3):
             try:
                 with self.db.session() as s:
-                    if not store.renew_instance(s, instance_id=self.id):
+                    if not queries.renew_instance(s, instance_id=self.id):
                         log.error("this service's instance %s was taken for dead by another "
                                   "(no heartbeat for %s); registering again", self.id,
                                   self.lease)
@@ -94,10 +94,10 @@ class InstanceLease:
         if self._thread.is_alive():
             self._thread.join(10.0)
         with self.db.session() as s:
-            store.forget_instances(s, cell=self.cell, live=set(), only={self.id})
+            queries.forget_instances(s, cell=self.cell, live=set(), only={self.id})
 
 
-def describe(row: Instance) -> str:
+def describe(row: InstanceRecord) -> str:
     """``instance <id> (<host>:<port>, pid <pid>)``."""
     return f"instance {row.id} ({row.host}:{row.port}, pid {row.pid})"
 

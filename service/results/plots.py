@@ -1,4 +1,5 @@
-"""The plots of the calibration report (``service.report``): matplotlib figures as PNG bytes.
+"""The plots of the calibration report (``service.results.report``): matplotlib figures as PNG
+bytes.
 
 Per-station errors, residual vectors over the image, corner coverage, hand-eye and κ / ν
 uncertainty, and the model selection, each from a result document (``cellcal/result@1``) and

@@ -4,7 +4,7 @@ A check revisits stations of the calibration's run (or poses the caller gives), 
 detects the board at each, and compares what the camera sees with the prediction of the stored
 calibration from the robot pose read after the grab (``calib.recheck``). The limits come from
 the calibration's own cross-validated errors, so a result without cross-validation cannot be
-checked (422). ``service.validations`` claims the robot and stores the report.
+checked (422). ``service.jobs.validations`` claims the robot and stores the report.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from calib import (
 from drivers.base import Camera, Robot
 from drivers.capture import CaptureOptions, capture_station
 from service.errors import UnprocessableError
-from service.results import stored_cell
+from service.results.document import stored_cell
 from service.schemas import CheckCreate
 
 #: Stations revisited when the request names neither a number nor poses.

@@ -1,4 +1,4 @@
-"""The stored station (``models.Station`` row, its ``detection`` JSON) and the one station model
+"""The stored station (``StationRecord`` row, its ``detection`` JSON) and the one station model
 (``calib.Station``), and a run's stored ``target`` and the one target type
 (``calib.boards``): the service's converters at its storage boundary, written once.
 
@@ -15,9 +15,8 @@ import numpy as np
 from sqlalchemy.orm import Session
 
 from calib import Detection, Station, Stations, Target, TargetAdapter
-from service import store
-from service.models import Run
-from service.models import Station as StationRow
+from service.store import queries
+from service.store.records import RunRecord, StationRecord
 
 
 def detection_json(det: Detection) -> dict[str, Any]:
@@ -41,7 +40,7 @@ def detection_of(doc: dict[str, Any]) -> Detection:
                      ambiguous=bool(doc.get("ambiguous", False)))
 
 
-def station_of(row: StationRow) -> Station:
+def station_of(row: StationRecord) -> Station:
     """A stored station as the one station model; its id is the index, ``000``, ``001``, ...;
     ``image`` is relative to the data directory."""
     return Station(
@@ -67,7 +66,7 @@ def row_values(station: Station) -> dict[str, Any]:
             "error": station.rejected, "freshness": station.freshness}
 
 
-def run_target(run: Run) -> Target:
+def run_target(run: RunRecord) -> Target:
     """The run's stored ``target`` column as the one target type (a configuration stored
     without ``type`` is a checkerboard)."""
     return TargetAdapter.validate_python(run.target)
@@ -78,7 +77,7 @@ def target_json(target: Target) -> dict[str, Any]:
     return TargetAdapter.dump_python(target, mode="json")
 
 
-def stations_of(run: Run, rows: Sequence[StationRow]) -> Stations:
+def stations_of(run: RunRecord, rows: Sequence[StationRecord]) -> Stations:
     """A run's stations ``rows`` as a station set of the run's setup and target."""
     return Stations(setup=run.setup, target=run_target(run),
                     stations=tuple(station_of(r) for r in rows))
@@ -87,5 +86,5 @@ def stations_of(run: Run, rows: Sequence[StationRow]) -> Stations:
 def captured_station_set(s: Session, *, run_id: str) -> Stations:
     """The run's captured stations, the ones a calibration of the run solves with (404 for an
     unknown run)."""
-    return stations_of(store.get_run(s, run_id=run_id),
-                       store.captured_stations(s, run_id=run_id))
+    return stations_of(queries.get_run(s, run_id=run_id),
+                       queries.captured_stations(s, run_id=run_id))

@@ -5,7 +5,7 @@ which ends its stream). When that write failed (a lock held for 40 s, a full dis
 stayed ``running`` for good, a validation held the robot (409 ``robot_busy`` for every new
 run), the result was lost and listeners hung (issue 22). Now :meth:`Outcomes.finish`
 
-* retries the write like a capture's (``service.db.retry_transient``, for
+* retries the write like a capture's (``service.store.db.retry_transient``, for
   ``Settings.database_retry_s``);
 * if the database still fails, spools the outcome to ``<data_dir>/spool/`` (one JSON file per
   job, written atomically) and a drain thread stores it, then publishes the final state, as
@@ -29,18 +29,18 @@ from typing import Any
 from sqlalchemy import event
 from sqlalchemy.orm.attributes import set_committed_value
 
-from service import store
-from service.db import Database, DatabaseUnavailableError, retry_transient
 from service.events import EventBus
-from service.models import Calibration, Topic, Validation, utcnow
 from service.settings import Settings
+from service.store import queries
+from service.store.db import Database, DatabaseUnavailableError, retry_transient
+from service.store.records import CalibrationRecord, Topic, ValidationRecord, utcnow
 
 log = logging.getLogger("cellcal.service")
 
 #: Pause between two attempts of the drain thread, seconds.
 DRAIN_INTERVAL_S = 1.0
-_ROWS: dict[str, type[Calibration] | type[Validation]] = {"calibration": Calibration,
-                                                          "validation": Validation}
+_ROWS: dict[str, type[CalibrationRecord] | type[ValidationRecord]] = {
+    "calibration": CalibrationRecord, "validation": ValidationRecord}
 
 
 class Outcomes:
@@ -83,9 +83,9 @@ class Outcomes:
     def _store(self, topic: Topic, values: dict[str, Any]) -> None:
         with self.db.session() as s:
             if topic.kind == "calibration":
-                store.finish_calibration(s, cal_id=topic.id, **values)
+                queries.finish_calibration(s, cal_id=topic.id, **values)
             else:
-                store.finish_validation(s, val_id=topic.id, **values)
+                queries.finish_validation(s, val_id=topic.id, **values)
 
     def _publish(self, topic: Topic) -> None:
         """The final ``state`` event; retried, and left to the drain thread if it fails."""
@@ -141,9 +141,9 @@ class Outcomes:
                 self._file(topic).unlink(missing_ok=True)
                 log.warning("%s %s: the spooled outcome is stored", topic.kind, topic.id)
 
-    def _overlay(self, row: Calibration | Validation, _context: Any) -> None:
+    def _overlay(self, row: CalibrationRecord | ValidationRecord, _context: Any) -> None:
         """A job row just read shows its spooled outcome."""
-        kind = "calibration" if isinstance(row, Calibration) else "validation"
+        kind = "calibration" if isinstance(row, CalibrationRecord) else "validation"
         values = self._pending.get(Topic(kind, row.id))
         for key, value in (values or {}).items():
             set_committed_value(row, key, value)

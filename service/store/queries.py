@@ -18,23 +18,23 @@ from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 from sqlalchemy.orm import Session, defer
 
 from service.errors import NotFoundError
-from service.models import (
+from service.store.pages import Cursor, newest_first
+from service.store.records import (
     ACTIVE_RUN_STATES,
-    Activation,
-    ActiveCalibration,
+    ActivationRecord,
+    ActiveCalibrationRecord,
     Base,
-    Calibration,
-    Instance,
-    JobEvent,
-    MotionClaim,
-    Run,
-    RunEvent,
-    Station,
+    CalibrationRecord,
+    InstanceRecord,
+    JobEventRecord,
+    MotionClaimRecord,
+    RunEventRecord,
+    RunRecord,
+    StationRecord,
     Topic,
-    Validation,
+    ValidationRecord,
     utcnow,
 )
-from service.pages import Cursor, newest_first
 
 #: Why a run stopped when the service did (at shutdown, or found so at the next start).
 INTERRUPTED = ("The service stopped while this run was capturing; resume it to continue from "
@@ -44,31 +44,31 @@ INTERRUPTED = ("The service stopped while this run was capturing; resume it to c
 # ---- lookups (404 for unknown ids) ---------------------------------------------------------
 
 
-def get_run(s: Session, *, run_id: str) -> Run:
-    run = s.get(Run, run_id)
+def get_run(s: Session, *, run_id: str) -> RunRecord:
+    run = s.get(RunRecord, run_id)
     if run is None:
         raise NotFoundError(f"No run {run_id}.")
     return run
 
 
-def get_calibration(s: Session, *, cal_id: str) -> Calibration:
-    cal = s.get(Calibration, cal_id)
+def get_calibration(s: Session, *, cal_id: str) -> CalibrationRecord:
+    cal = s.get(CalibrationRecord, cal_id)
     if cal is None:
         raise NotFoundError(f"No calibration {cal_id}.")
     return cal
 
 
-def get_validation(s: Session, *, val_id: str) -> Validation:
-    val = s.get(Validation, val_id)
+def get_validation(s: Session, *, val_id: str) -> ValidationRecord:
+    val = s.get(ValidationRecord, val_id)
     if val is None:
         raise NotFoundError(f"No validation {val_id}.")
     return val
 
 
-def get_station(s: Session, *, run_id: str, index: int) -> Station:
+def get_station(s: Session, *, run_id: str, index: int) -> StationRecord:
     get_run(s, run_id=run_id)
-    station = s.scalars(select(Station).where(Station.run_id == run_id,
-                                              Station.index == index)).first()
+    station = s.scalars(select(StationRecord).where(StationRecord.run_id == run_id,
+                                              StationRecord.index == index)).first()
     if station is None:
         raise NotFoundError(f"Run {run_id} has no station {index}.")
     return station
@@ -77,44 +77,44 @@ def get_station(s: Session, *, run_id: str, index: int) -> Station:
 # ---- listings ------------------------------------------------------------------------------
 
 
-def list_runs(s: Session, *, limit: int, cursor: Cursor | None = None) -> list[Run]:
+def list_runs(s: Session, *, limit: int, cursor: Cursor | None = None) -> list[RunRecord]:
     """Runs, newest first, after ``cursor`` (the previous page's last)."""
-    return list(s.scalars(newest_first(select(Run), Run, cursor=cursor, limit=limit)))
+    return list(s.scalars(newest_first(select(RunRecord), RunRecord, cursor=cursor, limit=limit)))
 
 
-def list_stations(s: Session, *, run_id: str) -> list[Station]:
+def list_stations(s: Session, *, run_id: str) -> list[StationRecord]:
     """The run's stored stations in index order (404 for an unknown run)."""
     return list(get_run(s, run_id=run_id).stations)
 
 
-def captured_stations(s: Session, *, run_id: str) -> list[Station]:
+def captured_stations(s: Session, *, run_id: str) -> list[StationRecord]:
     """The run's stations with a usable detection, in index order."""
     return [st for st in list_stations(s, run_id=run_id) if st.state == "captured"]
 
 
 def next_station_index(s: Session, *, run_id: str) -> int:
     """The index after the run's highest stored one (0 for none)."""
-    return s.scalar(select(func.coalesce(func.max(Station.index) + 1, 0))
-                    .where(Station.run_id == run_id)) or 0
+    return s.scalar(select(func.coalesce(func.max(StationRecord.index) + 1, 0))
+                    .where(StationRecord.run_id == run_id)) or 0
 
 
 def stored_indices(s: Session, *, run_id: str) -> set[int]:
     """Indices of the run's stored stations (captured or skipped)."""
-    return set(s.scalars(select(Station.index).where(Station.run_id == run_id)))
+    return set(s.scalars(select(StationRecord.index).where(StationRecord.run_id == run_id)))
 
 
-def list_calibrations(s: Session, *, run_id: str) -> list[Calibration]:
+def list_calibrations(s: Session, *, run_id: str) -> list[CalibrationRecord]:
     """The run's calibrations, oldest first (404 for an unknown run)."""
     get_run(s, run_id=run_id)
-    return list(s.scalars(select(Calibration).where(Calibration.run_id == run_id)
-                          .order_by(Calibration.created_at)))
+    return list(s.scalars(select(CalibrationRecord).where(CalibrationRecord.run_id == run_id)
+                          .order_by(CalibrationRecord.created_at)))
 
 
-def list_validations(s: Session, *, cal_id: str) -> list[Validation]:
+def list_validations(s: Session, *, cal_id: str) -> list[ValidationRecord]:
     """The calibration's validations, oldest first (404 for an unknown calibration)."""
     get_calibration(s, cal_id=cal_id)
-    return list(s.scalars(select(Validation).where(Validation.calibration_id == cal_id)
-                          .order_by(Validation.created_at)))
+    return list(s.scalars(select(ValidationRecord).where(ValidationRecord.calibration_id == cal_id)
+                          .order_by(ValidationRecord.created_at)))
 
 
 @dataclass(frozen=True)
@@ -131,7 +131,7 @@ class CalibrationFilter:
 
 #: A listed calibration: the row without its result document, its run's setup and robot, the
 #: calibration's RMS reprojection error (px; None for pose-only results) and its verdict.
-CalibrationRow = tuple[Calibration, str, str, float | None, str | None]
+CalibrationRow = tuple[CalibrationRecord, str, str, float | None, str | None]
 
 
 def page_calibrations(s: Session, *, where: CalibrationFilter, limit: int, offset: int,
@@ -139,20 +139,23 @@ def page_calibrations(s: Session, *, where: CalibrationFilter, limit: int, offse
     """One page of calibrations, newest first (after ``cursor``, the previous page's last,
     or skipping ``offset``), and how many match in all. The result documents stay in the
     database (only their RMS error and verdict are read), so pages stay small."""
-    query = select(Calibration, Run.setup, Run.robot,
-                   Calibration.result[("camera", "rms_px")].as_float(),
-                   Calibration.result[("quality", "verdict")].as_string()) \
-        .join(Run, Run.id == Calibration.run_id).options(defer(Calibration.result))
-    for column, value in ((Calibration.run_id, where.run_id), (Calibration.cell, where.cell),
-                          (Calibration.state, where.state), (Run.setup, where.setup)):
+    query = select(CalibrationRecord, RunRecord.setup, RunRecord.robot,
+                   CalibrationRecord.result[("camera", "rms_px")].as_float(),
+                   CalibrationRecord.result[("quality", "verdict")].as_string()) \
+        .join(RunRecord, RunRecord.id == CalibrationRecord.run_id) \
+        .options(defer(CalibrationRecord.result))
+    for column, value in ((CalibrationRecord.run_id, where.run_id),
+                          (CalibrationRecord.cell, where.cell),
+                          (CalibrationRecord.state, where.state),
+                          (RunRecord.setup, where.setup)):
         if value is not None:
             query = query.where(column == value)
     if where.active is not None:
-        current = select(ActiveCalibration.calibration_id)
-        query = query.where(Calibration.id.in_(current) if where.active
-                            else Calibration.id.not_in(current))
+        current = select(ActiveCalibrationRecord.calibration_id)
+        query = query.where(CalibrationRecord.id.in_(current) if where.active
+                            else CalibrationRecord.id.not_in(current))
     total = s.scalar(select(func.count()).select_from(query.subquery())) or 0
-    rows = s.execute(newest_first(query, Calibration, cursor=cursor, limit=limit)
+    rows = s.execute(newest_first(query, CalibrationRecord, cursor=cursor, limit=limit)
                      .offset(offset)).all()
     return [(cal, setup, robot, rms, verdict) for cal, setup, robot, rms, verdict in rows], total
 
@@ -171,12 +174,12 @@ def activate(s: Session, *, cal_id: str, cell: str, setup: str, robot: str) -> b
     exactly one current calibration, and no history row for an activation that changed
     nothing.
     """
-    created = _insert_if_absent(s, ActiveCalibration, cell=cell, setup=setup,
+    created = _insert_if_absent(s, ActiveCalibrationRecord, cell=cell, setup=setup,
                                 calibration_id=cal_id, activation_id=0)
     if not created and not s.execute(
-            update(ActiveCalibration)
-            .where(ActiveCalibration.cell == cell, ActiveCalibration.setup == setup,
-                   ActiveCalibration.calibration_id != cal_id)
+            update(ActiveCalibrationRecord)
+            .where(ActiveCalibrationRecord.cell == cell, ActiveCalibrationRecord.setup == setup,
+                   ActiveCalibrationRecord.calibration_id != cal_id)
             .values(calibration_id=cal_id)).rowcount:
         s.commit()
         return False
@@ -195,41 +198,42 @@ def _insert_if_absent(s: Session, model: type[Base], **values: Any) -> bool:
 
 def _record_activation(s: Session, *, cal_id: str, cell: str, setup: str, robot: str) -> bool:
     """The history row of an activation the caller's transaction made; commits."""
-    row = Activation(cell=cell, setup=setup, robot=robot, calibration_id=cal_id)
+    row = ActivationRecord(cell=cell, setup=setup, robot=robot, calibration_id=cal_id)
     s.add(row)
     s.flush()
-    s.execute(update(ActiveCalibration).where(ActiveCalibration.cell == cell,
-                                              ActiveCalibration.setup == setup)
+    s.execute(update(ActiveCalibrationRecord).where(ActiveCalibrationRecord.cell == cell,
+                                              ActiveCalibrationRecord.setup == setup)
               .values(activation_id=row.id))
     s.commit()
     return True
 
 
 def activations(s: Session, *, cell: str, setup: str,
-                limit: int | None = None) -> list[Activation]:
+                limit: int | None = None) -> list[ActivationRecord]:
     """The cell's activations for ``setup``, newest first (the first one is the current
     one)."""
-    query = select(Activation).where(Activation.cell == cell, Activation.setup == setup) \
-        .order_by(Activation.id.desc())
+    query = select(ActivationRecord) \
+        .where(ActivationRecord.cell == cell, ActivationRecord.setup == setup) \
+        .order_by(ActivationRecord.id.desc())
     return list(s.scalars(query if limit is None else query.limit(limit)))
 
 
 def active_calibration_ids(s: Session, *, cal_ids: list[str]) -> set[str]:
     """Those of ``cal_ids`` that are some cell's current calibration."""
-    return set(s.scalars(select(ActiveCalibration.calibration_id)
-                         .where(ActiveCalibration.calibration_id.in_(cal_ids))))
+    return set(s.scalars(select(ActiveCalibrationRecord.calibration_id)
+                         .where(ActiveCalibrationRecord.calibration_id.in_(cal_ids))))
 
 
 # ---- counts --------------------------------------------------------------------------------
 
 
-def run_counts(s: Session, *, run: Run) -> dict[str, int]:
+def run_counts(s: Session, *, run: RunRecord) -> dict[str, int]:
     """Stations planned, captured and skipped, counted in SQL (never loading the stations with
     their corners, so polling stays fast on long runs)."""
     return runs_counts(s, runs=[run])[run.id]
 
 
-def planned_stations(run: Run) -> int:
+def planned_stations(run: RunRecord) -> int:
     """The stations a run plans: its poses, or a cold-start run's count or station limit."""
     plan = run.cold_start
     if plan is None:
@@ -237,12 +241,13 @@ def planned_stations(run: Run) -> int:
     return int(plan["stations"] or plan["stop_rule"]["max_stations"])
 
 
-def runs_counts(s: Session, *, runs: list[Run]) -> dict[str, dict[str, int]]:
+def runs_counts(s: Session, *, runs: list[RunRecord]) -> dict[str, dict[str, int]]:
     """``run_counts`` of many runs in one query (a page of ``GET /runs``), by run id."""
     by_state: dict[str, dict[str, int]] = {run.id: {} for run in runs}
     for run_id, state, n in s.execute(
-            select(Station.run_id, Station.state, func.count())
-            .where(Station.run_id.in_(list(by_state))).group_by(Station.run_id, Station.state)):
+            select(StationRecord.run_id, StationRecord.state, func.count())
+            .where(StationRecord.run_id.in_(list(by_state)))
+            .group_by(StationRecord.run_id, StationRecord.state)):
         by_state[run_id][state] = n
     return {run.id: {"stations_planned": planned_stations(run),
                      "stations_captured": by_state[run.id].get("captured", 0),
@@ -260,9 +265,10 @@ def runs_station_errors(s: Session, *, run_ids: list[str]
     """``station_errors`` of many runs in one query, by run id."""
     errors: dict[str, list[tuple[int, str | None, str]]] = {run_id: [] for run_id in run_ids}
     for run_id, index, code, detail in s.execute(
-            select(Station.run_id, Station.index, Station.error_code, Station.error)
-            .where(Station.run_id.in_(run_ids), Station.error.is_not(None))
-            .order_by(Station.run_id, Station.index)):
+            select(StationRecord.run_id, StationRecord.index, StationRecord.error_code,
+                   StationRecord.error)
+            .where(StationRecord.run_id.in_(run_ids), StationRecord.error.is_not(None))
+            .order_by(StationRecord.run_id, StationRecord.index)):
         errors[run_id].append((index, code, detail))
     return errors
 
@@ -275,29 +281,29 @@ def claim_robot(s: Session, *, cell: str, robot: str, job: str, instance_id: str
     write lock keeps every other service's claim of that robot waiting until the caller
     commits, so the checks that follow and the claiming row are one step. Does not commit."""
     values = {"job": job, "instance_id": instance_id, "claimed_at": utcnow()}
-    if not _insert_if_absent(s, MotionClaim, cell=cell, robot=robot, **values):
-        s.execute(update(MotionClaim).where(MotionClaim.cell == cell,
-                                            MotionClaim.robot == robot).values(**values))
+    if not _insert_if_absent(s, MotionClaimRecord, cell=cell, robot=robot, **values):
+        s.execute(update(MotionClaimRecord).where(MotionClaimRecord.cell == cell,
+                                            MotionClaimRecord.robot == robot).values(**values))
 
 
-def running_validation(s: Session, *, cell: str, robot: str) -> Validation | None:
+def running_validation(s: Session, *, cell: str, robot: str) -> ValidationRecord | None:
     """The validation moving the cell's robot, if any (one whose worker has ended shows its
-    outcome, ``service.outcomes``, even before the database has it, and holds nothing)."""
-    return next((v for v in s.scalars(select(Validation).where(
-        Validation.cell == cell, Validation.robot == robot,
-        Validation.state == "running")) if v.state == "running"), None)
+    outcome, ``service.jobs.outcomes``, even before the database has it, and holds nothing)."""
+    return next((v for v in s.scalars(select(ValidationRecord).where(
+        ValidationRecord.cell == cell, ValidationRecord.robot == robot,
+        ValidationRecord.state == "running")) if v.state == "running"), None)
 
 
-def active_run(s: Session, *, cell: str, robot: str) -> Run | None:
+def active_run(s: Session, *, cell: str, robot: str) -> RunRecord | None:
     """The cell's robot's capturing or paused run, if any."""
-    return s.scalars(select(Run).where(Run.cell == cell, Run.robot == robot,
-                                       Run.state.in_(ACTIVE_RUN_STATES))).first()
+    return s.scalars(select(RunRecord).where(RunRecord.cell == cell, RunRecord.robot == robot,
+                                       RunRecord.state.in_(ACTIVE_RUN_STATES))).first()
 
 
 def owns_run(s: Session, *, run_id: str, token: str) -> bool:
     """True while the capture thread ``token`` owns the run and it is capturing."""
-    return s.scalar(select(func.count()).select_from(Run).where(
-        Run.id == run_id, Run.owner == token, Run.state == "capturing")) == 1
+    return s.scalar(select(func.count()).select_from(RunRecord).where(
+        RunRecord.id == run_id, RunRecord.owner == token, RunRecord.state == "capturing")) == 1
 
 
 # ---- conditional updates -------------------------------------------------------------------
@@ -311,13 +317,15 @@ def claim_run(s: Session, *, run_id: str, token: str) -> bool:
     the caller's transaction has committed. Does not commit.
     """
     return bool(s.execute(
-        update(Run).where(Run.id == run_id, Run.owner == token, Run.state == "capturing")
+        update(RunRecord).where(RunRecord.id == run_id, RunRecord.owner == token,
+                                RunRecord.state == "capturing")
         .values(owner=token)).rowcount)
 
 
 def move_run(s: Session, *, run_id: str, from_state: str, **values: Any) -> bool:
     """Set ``values`` on the run if it is still in ``from_state``; True if it changed."""
-    changed = s.execute(update(Run).where(Run.id == run_id, Run.state == from_state)
+    changed = s.execute(update(RunRecord)
+                        .where(RunRecord.id == run_id, RunRecord.state == from_state)
                         .values(**values)).rowcount
     s.commit()
     return bool(changed)
@@ -327,7 +335,8 @@ def finish_run(s: Session, *, run_id: str, token: str, **values: Any) -> bool:
     """End the run (``state``, ``error``, ``error_code``) if thread ``token`` still owns it;
     True if it did."""
     changed = s.execute(
-        update(Run).where(Run.id == run_id, Run.owner == token, Run.state == "capturing")
+        update(RunRecord).where(RunRecord.id == run_id, RunRecord.owner == token,
+                                RunRecord.state == "capturing")
         .values(owner=None, **values)).rowcount
     s.commit()
     return bool(changed)
@@ -336,8 +345,8 @@ def finish_run(s: Session, *, run_id: str, token: str, **values: Any) -> bool:
 def finish_calibration(s: Session, *, cal_id: str, **values: Any) -> None:
     """Store a calibration's outcome (``state``, ``result`` or ``error``; ``finished_at``
     defaults to now) if it is still running: one that a restart found failed stays failed."""
-    s.execute(update(Calibration).where(Calibration.id == cal_id,
-                                        Calibration.state == "running")
+    s.execute(update(CalibrationRecord).where(CalibrationRecord.id == cal_id,
+                                        CalibrationRecord.state == "running")
               .values(**{"finished_at": utcnow(), **values}))
     s.commit()
 
@@ -345,7 +354,8 @@ def finish_calibration(s: Session, *, cal_id: str, **values: Any) -> None:
 def finish_validation(s: Session, *, val_id: str, **values: Any) -> None:
     """Store a validation's outcome (``state``, ``result`` or ``error``; ``finished_at``
     defaults to now) if it is still running."""
-    s.execute(update(Validation).where(Validation.id == val_id, Validation.state == "running")
+    s.execute(update(ValidationRecord)
+              .where(ValidationRecord.id == val_id, ValidationRecord.state == "running")
               .values(**{"finished_at": utcnow(), **values}))
     s.commit()
 
@@ -354,20 +364,22 @@ def recover(s: Session, *, cell: str, live: set[str]) -> tuple[int, int, int]:
     """The cell's work whose service is not among the ``live`` instances: capturing runs
     become interrupted, running calibrations and validations failed; how many of each.
     Another cell's work and a live service's are not touched."""
-    def orphaned(model: type[Run] | type[Calibration] | type[Validation]) -> Any:
+    def orphaned(model: type[RunRecord] | type[CalibrationRecord] | type[ValidationRecord]) -> Any:
         return (model.cell == cell) & (model.instance_id.is_(None)
                                        | model.instance_id.not_in(live))
 
     runs = s.execute(
-        update(Run).where(Run.state == "capturing", orphaned(Run))
+        update(RunRecord).where(RunRecord.state == "capturing", orphaned(RunRecord))
         .values(state="interrupted", owner=None, error_code="interrupted",
                 error=INTERRUPTED)).rowcount
     cals = s.execute(
-        update(Calibration).where(Calibration.state == "running", orphaned(Calibration))
+        update(CalibrationRecord)
+        .where(CalibrationRecord.state == "running", orphaned(CalibrationRecord))
         .values(state="failed", finished_at=utcnow(),
                 error="The service stopped during the computation; start it again.")).rowcount
     vals = s.execute(
-        update(Validation).where(Validation.state == "running", orphaned(Validation))
+        update(ValidationRecord)
+        .where(ValidationRecord.state == "running", orphaned(ValidationRecord))
         .values(state="failed", finished_at=utcnow(),
                 error="The service stopped during the validation; start it again.")).rowcount
     s.commit()
@@ -377,18 +389,18 @@ def recover(s: Session, *, cell: str, live: set[str]) -> tuple[int, int, int]:
 # ---- service instances ---------------------------------------------------------------------
 
 
-def instances(s: Session, *, cell: str) -> list[Instance]:
+def instances(s: Session, *, cell: str) -> list[InstanceRecord]:
     """The cell's registered service instances."""
-    return list(s.scalars(select(Instance).where(Instance.cell == cell)))
+    return list(s.scalars(select(InstanceRecord).where(InstanceRecord.cell == cell)))
 
 
-def get_instance(s: Session, *, instance_id: str | None) -> Instance | None:
-    return None if instance_id is None else s.get(Instance, instance_id)
+def get_instance(s: Session, *, instance_id: str | None) -> InstanceRecord | None:
+    return None if instance_id is None else s.get(InstanceRecord, instance_id)
 
 
 def renew_instance(s: Session, *, instance_id: str) -> bool:
     """Renew the instance's lease; False if its row is gone (taken for dead)."""
-    changed = s.execute(update(Instance).where(Instance.id == instance_id)
+    changed = s.execute(update(InstanceRecord).where(InstanceRecord.id == instance_id)
                         .values(heartbeat_at=utcnow())).rowcount
     s.commit()
     return bool(changed)
@@ -397,8 +409,9 @@ def renew_instance(s: Session, *, instance_id: str) -> bool:
 def forget_instances(s: Session, *, cell: str, live: set[str],
                      only: set[str] | None = None) -> None:
     """Remove the cell's instance rows not in ``live`` (only those in ``only``, if given)."""
-    query = delete(Instance).where(Instance.cell == cell, Instance.id.not_in(live))
-    s.execute(query if only is None else query.where(Instance.id.in_(only)))
+    query = delete(InstanceRecord).where(InstanceRecord.cell == cell,
+                                         InstanceRecord.id.not_in(live))
+    s.execute(query if only is None else query.where(InstanceRecord.id.in_(only)))
     s.commit()
 
 
@@ -407,9 +420,9 @@ def forget_instances(s: Session, *, cell: str, live: set[str],
 
 def add_event(s: Session, *, topic: Topic, event: dict[str, Any]) -> int:
     """Store an event of ``topic``; its id, which increases along the topic's stream."""
-    row: RunEvent | JobEvent = (
-        RunEvent(run_id=topic.id, type=event["type"], data=event) if topic.kind == "run"
-        else JobEvent(kind=topic.kind, job_id=topic.id, type=event["type"], data=event))
+    row: RunEventRecord | JobEventRecord = (
+        RunEventRecord(run_id=topic.id, type=event["type"], data=event) if topic.kind == "run"
+        else JobEventRecord(kind=topic.kind, job_id=topic.id, type=event["type"], data=event))
     s.add(row)
     s.commit()
     return row.id
@@ -429,11 +442,11 @@ def last_event_id(s: Session, *, topic: Topic) -> int:
     return s.scalar(select(func.max(table.id)).where(*where)) or 0
 
 
-def _events_of(topic: Topic) -> tuple[type[RunEvent] | type[JobEvent], list[Any]]:
+def _events_of(topic: Topic) -> tuple[type[RunEventRecord] | type[JobEventRecord], list[Any]]:
     """The table holding the topic's events and the condition selecting them."""
     if topic.kind == "run":
-        return RunEvent, [RunEvent.run_id == topic.id]
-    return JobEvent, [JobEvent.kind == topic.kind, JobEvent.job_id == topic.id]
+        return RunEventRecord, [RunEventRecord.run_id == topic.id]
+    return JobEventRecord, [JobEventRecord.kind == topic.kind, JobEventRecord.job_id == topic.id]
 
 
 # ---- figures for GET /metrics --------------------------------------------------------------
@@ -465,24 +478,27 @@ def service_figures(s: Session) -> ServiceFigures:
     """Runs by (state, mode), stations and calibrations by state, the durations of finished
     calibrations and the newest finished calibration per setup (result fields read in SQL)."""
     runs = {(state, mode): n for state, mode, n in s.execute(
-        select(Run.state, Run.mode, func.count()).group_by(Run.state, Run.mode)).all()}
-    stations = dict(s.execute(select(Station.state, func.count())
-                              .group_by(Station.state)).all())
-    calibrations = dict(s.execute(select(Calibration.state, func.count())
-                                  .group_by(Calibration.state)).all())
-    done = (Calibration.state == "done", Calibration.finished_at.is_not(None))
+        select(RunRecord.state, RunRecord.mode, func.count())
+        .group_by(RunRecord.state, RunRecord.mode)).all()}
+    stations = dict(s.execute(select(StationRecord.state, func.count())
+                              .group_by(StationRecord.state)).all())
+    calibrations = dict(s.execute(select(CalibrationRecord.state, func.count())
+                                  .group_by(CalibrationRecord.state)).all())
+    done = (CalibrationRecord.state == "done", CalibrationRecord.finished_at.is_not(None))
     durations = [(end - start).total_seconds() for start, end in s.execute(
-        select(Calibration.created_at, Calibration.finished_at).where(*done)).all()]
-    newest = select(Run.setup, func.max(Calibration.finished_at).label("at")) \
-        .join(Run, Run.id == Calibration.run_id).where(*done).group_by(Run.setup).subquery()
+        select(CalibrationRecord.created_at, CalibrationRecord.finished_at).where(*done)).all()]
+    newest = select(RunRecord.setup, func.max(CalibrationRecord.finished_at).label("at")) \
+        .join(RunRecord, RunRecord.id == CalibrationRecord.run_id).where(*done) \
+        .group_by(RunRecord.setup).subquery()
     rows = s.execute(
-        select(Run.setup, Calibration.finished_at,
-               Calibration.result[("camera", "rms_px")].as_float(),
-               Calibration.result[("cross_validation", "rms_px")].as_float(),
-               Calibration.result[("quality", "verdict")].as_string())
-        .join(Run, Run.id == Calibration.run_id)
-        .join(newest, (newest.c.setup == Run.setup) & (newest.c.at == Calibration.finished_at))
-        .where(*done).order_by(Run.setup)).all()
+        select(RunRecord.setup, CalibrationRecord.finished_at,
+               CalibrationRecord.result[("camera", "rms_px")].as_float(),
+               CalibrationRecord.result[("cross_validation", "rms_px")].as_float(),
+               CalibrationRecord.result[("quality", "verdict")].as_string())
+        .join(RunRecord, RunRecord.id == CalibrationRecord.run_id)
+        .join(newest, (newest.c.setup == RunRecord.setup)
+              & (newest.c.at == CalibrationRecord.finished_at))
+        .where(*done).order_by(RunRecord.setup)).all()
     latest = {row[0]: LatestCalibration(*row) for row in rows}  # one per setup on ties
     return ServiceFigures(runs=runs, stations=stations, calibrations=calibrations,
                           durations_s=durations, latest=list(latest.values()))

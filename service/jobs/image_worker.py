@@ -7,7 +7,7 @@ An image a cell controller posts (``service.runs.external``) is untrusted: a str
 * the pixel count in the PNG or JPEG header is checked in the request, before anything is
   decoded: beyond ``Settings.max_image_pixels`` the post is answered 413 ``image_too_large`` at
   once and nothing is stored;
-* decoding and the board search run in a worker process (``service.workers.WorkerPool``)
+* decoding and the board search run in a worker process (``service.jobs.workers.WorkerPool``)
   whose address space is capped at ``Settings.image_worker_memory_mb``: an allocation beyond
   it fails in the worker (413 ``image_too_large``, saying so), not in the host;
 * each search has a CPU budget, ``Settings.image_cpu_s``: the kernel ends a worker that
@@ -30,11 +30,11 @@ import cv2
 import numpy as np
 
 from calib import Detection, Target, TargetAdapter, board_from_target
+from service.api.guard import PayloadTooLargeError
 from service.errors import UnprocessableError
-from service.guard import PayloadTooLargeError
-from service.image_files import ImageFileError, decode_image_bytes, image_size
+from service.jobs.workers import WorkerPool
 from service.settings import Settings
-from service.workers import WorkerPool
+from service.stationsets.images import ImageFileError, decode_image_bytes, image_size
 
 #: Workers of the pool: two, so a second run is served while one run's image is searched.
 WORKERS = 2

@@ -1,7 +1,7 @@
 """Who moves the robot, and where it may go.
 
 The robot does one motion job at a time: a capture run (``service.runs``) or a dot-hit
-validation (``service.validations``). A validation is refused while a run is active (capturing
+validation (``service.jobs.validations``). A validation is refused while a run is active (capturing
 or paused) and a run while a validation is running. ``claim`` makes each check and the row
 that claims the robot one transaction that first writes the robot's ``motion_claims`` row, so
 it holds across every service on the database (its write lock makes a second claimer wait
@@ -22,14 +22,14 @@ import numpy as np
 from sqlalchemy.orm import Session
 
 from drivers.errors import WorkspaceError
-from service import store
-from service.db import Database
-from service.devices import Devices
+from service.cell.devices import Devices
 from service.errors import ConflictError
 from service.events import EventBus
-from service.instances import describe
-from service.models import Run, Validation
 from service.settings import Settings
+from service.store import queries
+from service.store.db import Database
+from service.store.instances import describe
+from service.store.records import RunRecord, ValidationRecord
 
 
 class Motion:
@@ -40,7 +40,7 @@ class Motion:
         self.settings = settings
         self.db = db
         self.devices = devices
-        #: This service's instance (``service.instances``): its jobs' rows name it.
+        #: This service's instance (``service.store.instances``): its jobs' rows name it.
         self.instance_id = instance_id
         #: Held by the one thread that drives the robot.
         self.robot_lock = threading.Lock()
@@ -54,11 +54,11 @@ class Motion:
 
     @contextlib.contextmanager
     def claim(self, job: str, *, check: bool = True) -> Iterator[Session]:
-        """A session whose transaction holds the robot's claim (``store.claim_robot``) until
+        """A session whose transaction holds the robot's claim (``queries.claim_robot``) until
         the block, which stores the claiming row ``job`` names, commits; first check that the
         robot is free (409 if not) unless the block makes its own checks (``check=False``)."""
         with self.db.session() as s:
-            store.claim_robot(s, cell=self.settings.cell, robot=self.settings.robot, job=job,
+            queries.claim_robot(s, cell=self.settings.cell, robot=self.settings.robot, job=job,
                               instance_id=self.instance_id)
             if check:
                 self.check_free(s)
@@ -68,22 +68,22 @@ class Motion:
         """409 while a run is active on the robot or a validation moves it."""
         with contextlib.ExitStack() as stack:
             s = s or stack.enter_context(self.db.session())
-            if store.running_validation(s, **self._robot()) is not None or \
-                    store.active_run(s, **self._robot()) is not None:
+            if queries.running_validation(s, **self._robot()) is not None or \
+                    queries.active_run(s, **self._robot()) is not None:
                 raise self.busy(s)
 
     def busy(self, s: Session | None = None) -> ConflictError:
         """The 409 that says what keeps the robot busy and which service holds it."""
         with contextlib.ExitStack() as stack:
             s = s or stack.enter_context(self.db.session())
-            job: Run | Validation | None = store.active_run(s, **self._robot())
+            job: RunRecord | ValidationRecord | None = queries.active_run(s, **self._robot())
             what = "already has an active run"
             if job is None:
-                job = store.running_validation(s, **self._robot())
+                job = queries.running_validation(s, **self._robot())
                 what = "is running validation"
-            holder = store.get_instance(s, instance_id=job.instance_id if job else None)
+            holder = queries.get_instance(s, instance_id=job.instance_id if job else None)
         held = f", held by {describe(holder)}" if holder is not None else ""
-        advice = ("let it finish first" if isinstance(job, Validation)
+        advice = ("let it finish first" if isinstance(job, ValidationRecord)
                   else "cancel it or let it finish first")
         return ConflictError(f"The robot {self.settings.robot} of cell {self.settings.cell} "
                              f"{what} {job.id if job else ''}{held}; {advice}.",

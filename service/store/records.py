@@ -76,7 +76,7 @@ class Base(DeclarativeBase):
         dict[str, Any]: JSON, list[Any]: JSON, dt.datetime: UTCDateTime}
 
 
-class Run(Base):
+class RunRecord(Base):
     """A capture run: planned TCP poses visited in order, one station per pose; or, in
     ``external`` mode, the stations a cell controller posts."""
 
@@ -108,11 +108,11 @@ class Run(Base):
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
     updated_at: Mapped[dt.datetime] = mapped_column(default=utcnow, onupdate=utcnow)
 
-    stations: Mapped[list[Station]] = relationship(
-        back_populates="run", order_by="Station.index", cascade="all, delete-orphan")
+    stations: Mapped[list[StationRecord]] = relationship(
+        back_populates="run", order_by="StationRecord.index", cascade="all, delete-orphan")
 
 
-class Station(Base):
+class StationRecord(Base):
     """One visited pose: the robot reading, the image file and the detection, or why not."""
 
     __tablename__ = "stations"
@@ -139,10 +139,10 @@ class Station(Base):
     attempts: Mapped[int] = mapped_column(default=1)
     captured_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
 
-    run: Mapped[Run] = relationship(back_populates="stations")
+    run: Mapped[RunRecord] = relationship(back_populates="stations")
 
 
-class Calibration(Base):
+class CalibrationRecord(Base):
     """A solve over a run's captured stations; ``result`` is the ``cellcal/result@1`` JSON."""
 
     __tablename__ = "calibrations"
@@ -162,7 +162,7 @@ class Calibration(Base):
     finished_at: Mapped[dt.datetime | None]
 
 
-class RunEvent(Base):
+class RunEventRecord(Base):
     """An event of a run as streamed (``GET /runs/{id}/events``); the row id is the stream's
     event id, so a listener resumes after it with ``Last-Event-ID``."""
 
@@ -177,7 +177,7 @@ class RunEvent(Base):
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
 
 
-class JobEvent(Base):
+class JobEventRecord(Base):
     """An event of a calibration or a validation as streamed (``GET /calibrations/{id}/events``,
     ``GET /validations/{id}/events``); like ``RunEvent``, the row id is the stream's event id."""
 
@@ -202,7 +202,7 @@ class Topic:
     id: str
 
 
-class Activation(Base):
+class ActivationRecord(Base):
     """A calibration made a cell's current one for its setup at ``activated_at``; it stays
     current until the next activation of that cell and setup, so the rows are the history of
     what was active when."""
@@ -221,7 +221,7 @@ class Activation(Base):
     activated_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
 
 
-class Validation(Base):
+class ValidationRecord(Base):
     """A validation of a calibration (dot-hit run, pose prediction), with its report."""
 
     __tablename__ = "validations"
@@ -242,7 +242,7 @@ class Validation(Base):
     finished_at: Mapped[dt.datetime | None]
 
 
-class ActiveCalibration(Base):
+class ActiveCalibrationRecord(Base):
     """The calibration active now on a cell for a setup, and the ``Activation`` that made it
     so; one row per cell and setup, updated in the same transaction as the history row."""
 
@@ -255,7 +255,7 @@ class ActiveCalibration(Base):
     activation_id: Mapped[int]
 
 
-class Instance(Base):
+class InstanceRecord(Base):
     """A running service: where it listens and its heartbeat. Its lease lasts until
     ``heartbeat_at`` plus the lease time; work whose instance's lease ran out is recovered."""
 
@@ -270,7 +270,7 @@ class Instance(Base):
     heartbeat_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
 
 
-class MotionClaim(Base):
+class MotionClaimRecord(Base):
     """The row a job that moves a cell's robot (a capture run, a dot-hit validation) updates
     first in the transaction that stores it: the database's lock on that robot, so the check
     that it is free and the claim are one step across every service, and the last claim."""

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import httpx
 
-from service.parent_death import die_with_parent
+from service.serving.parent_death import die_with_parent
 
 #: Only a bound against a hang: a loaded machine starts a service many times slower.
 STARTUP_TIMEOUT_S = 120.0

@@ -1,4 +1,4 @@
-"""The result document ``cellcal/result@1`` as pydantic models: what ``service.results``
+"""The result document ``cellcal/result@1`` as pydantic models: what ``service.results.document``
 writes, ``GET /calibrations/{id}`` answers (so the OpenAPI document shows every field) and the
 exports read.
 

@@ -18,7 +18,7 @@ from collections.abc import Callable
 from sqlalchemy import Engine, text
 from sqlalchemy.orm import Session
 
-from service.models import Topic
+from service.store.records import Topic
 
 log = logging.getLogger("cellcal.service")
 

@@ -7,9 +7,7 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query
 
-from service import registry, store
 from service.api.deps import SessionDep, SettingsDep
-from service.pages import Cursor
 from service.schemas import (
     ActiveCalibration,
     CalibrationPage,
@@ -17,6 +15,8 @@ from service.schemas import (
     CalibrationQuery,
     CalibrationSummary,
 )
+from service.store import active, queries
+from service.store.pages import Cursor
 
 router = APIRouter(prefix="/calibrations", tags=["calibrations"])
 
@@ -25,16 +25,16 @@ router = APIRouter(prefix="/calibrations", tags=["calibrations"])
 def list_calibrations(session: SessionDep,
                       query: Annotated[CalibrationQuery, Query()]) -> CalibrationPage:
     """Calibrations, newest first, a page at a time (summaries: read one for its result)."""
-    rows, total = store.page_calibrations(
-        session, where=store.CalibrationFilter(run_id=query.run_id, cell=query.cell,
+    rows, total = queries.page_calibrations(
+        session, where=queries.CalibrationFilter(run_id=query.run_id, cell=query.cell,
                                                active=query.active, state=query.state,
                                                setup=query.setup),
         limit=query.limit, offset=query.offset,
         cursor=None if query.cursor is None else Cursor.decode(query.cursor))
-    active = store.active_calibration_ids(session, cal_ids=[r[0].id for r in rows])
+    active_ids = queries.active_calibration_ids(session, cal_ids=[r[0].id for r in rows])
     items = [CalibrationSummary(
         id=cal.id, run_id=cal.run_id, cell=cal.cell, setup=setup, robot=robot, state=cal.state,
-        method=cal.options.get("method"), rms_px=rms, verdict=verdict, active=cal.id in active,
+        method=cal.options.get("method"), rms_px=rms, verdict=verdict, active=cal.id in active_ids,
         error=cal.error, created_at=cal.created_at, finished_at=cal.finished_at)
         for cal, setup, robot, rms, verdict in rows]
     end = query.offset + len(items)
@@ -62,13 +62,13 @@ def get_active(session: SessionDep, settings: SettingsDep,
 def activate(cal_id: str, session: SessionDep,
              history: Annotated[int, Query(ge=1, le=500)] = 50) -> ActiveCalibration:
     """Make a finished calibration the current one of its cell and setup (idempotent)."""
-    cell, setup = registry.activate(session, cal_id=cal_id)
+    cell, setup = active.activate(session, cal_id=cal_id)
     return _active(session, cell=cell, setup=setup, history=history)
 
 
 def _active(session: SessionDep, *, cell: str, setup: str, history: int) -> ActiveCalibration:
-    now, periods = registry.current(session, cell=cell, setup=setup, history=history)
-    cal = store.get_calibration(session, cal_id=now.calibration_id)
+    now, periods = active.current(session, cell=cell, setup=setup, history=history)
+    cal = queries.get_calibration(session, cal_id=now.calibration_id)
     return ActiveCalibration(cell=cell, setup=setup, robot=now.robot,
                              activated_at=now.activated_at,
                              calibration=CalibrationPublic.model_validate(cal),

@@ -10,29 +10,29 @@ from __future__ import annotations
 
 from sqlalchemy.orm import Session
 
-from service import store
 from service.errors import ConflictError, NotFoundError
-from service.models import Activation
 from service.schemas import ActivationPublic
+from service.store import queries
+from service.store.records import ActivationRecord
 
 
 def activate(s: Session, *, cal_id: str) -> tuple[str, str]:
     """Make a finished calibration the current one of its cell and setup; the cell and
     setup. Activating the current calibration again changes nothing (idempotent)."""
-    cal = store.get_calibration(s, cal_id=cal_id)
+    cal = queries.get_calibration(s, cal_id=cal_id)
     if cal.state != "done" or cal.result is None:
         raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished calibration "
                             "can be activated.", code="invalid_state")
-    run = store.get_run(s, run_id=cal.run_id)
-    store.activate(s, cal_id=cal_id, cell=cal.cell, setup=run.setup, robot=run.robot)
+    run = queries.get_run(s, run_id=cal.run_id)
+    queries.activate(s, cal_id=cal_id, cell=cal.cell, setup=run.setup, robot=run.robot)
     return cal.cell, run.setup
 
 
 def current(s: Session, *, cell: str, setup: str,
-            history: int) -> tuple[Activation, list[ActivationPublic]]:
+            history: int) -> tuple[ActivationRecord, list[ActivationPublic]]:
     """The cell's current activation for ``setup`` and its last ``history`` periods, newest
     first (404 ``no_active_calibration`` if none was ever activated)."""
-    rows = store.activations(s, cell=cell, setup=setup, limit=history)
+    rows = queries.activations(s, cell=cell, setup=setup, limit=history)
     if not rows:
         raise NotFoundError(f"No {setup} calibration was activated for cell {cell}; activate "
                             "one with POST /calibrations/{id}/activate.",

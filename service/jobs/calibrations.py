@@ -1,7 +1,7 @@
 """Calibrations: start a solve over a run's captured stations, compute it in a worker process,
 store the outcome when it completes.
 
-Calibrations are CPU-bound: they run in worker processes (``service.workers``: they exit with
+Calibrations are CPU-bound: they run in worker processes (``service.jobs.workers``: they exit with
 the service, however it dies) so the API stays responsive, and the result is stored when the
 future completes. At most ``Settings.max_queued_calibrations`` solves wait or run at a time;
 beyond, a request is refused (429 ``queue_full``) instead of piling up work and memory.
@@ -26,16 +26,16 @@ from calib import (
     board_from_target,
     calibrate_stations,
 )
-from service import store
-from service.db import Database
 from service.errors import ConflictError, QueueFullError, UnprocessableError
 from service.events import EventBus
-from service.models import Calibration, Topic
-from service.outcomes import Outcomes
+from service.jobs.outcomes import Outcomes
+from service.jobs.workers import WorkerPool, report_progress
 from service.schemas import CalibrationOptions
 from service.settings import Settings
-from service.station_rows import captured_station_set
-from service.workers import WorkerPool, report_progress
+from service.store import queries
+from service.store.db import Database
+from service.store.records import CalibrationRecord, Topic
+from service.store.stations import captured_station_set
 
 log = logging.getLogger("cellcal.service")
 
@@ -57,7 +57,7 @@ class Calibrations:
         self._ending: dict[str, _Ending] = {}  # solves not yet stored, under _events_lock
         self._events_lock = threading.Lock()
 
-    def start(self, run_id: str, options: CalibrationOptions) -> Calibration:
+    def start(self, run_id: str, options: CalibrationOptions) -> CalibrationRecord:
         """Queue a solve over the run's captured stations in a worker process (429 when
         ``max_queued_calibrations`` are already queued or running)."""
         self._reserve()
@@ -86,10 +86,10 @@ class Calibrations:
             self._pending -= 1
 
     def _create(self, run_id: str, options: CalibrationOptions
-                ) -> tuple[Calibration, dict[str, Any]]:
+                ) -> tuple[CalibrationRecord, dict[str, Any]]:
         """The calibration row (committed) and the worker's payload."""
         with self.db.session() as s:
-            run = store.get_run(s, run_id=run_id)
+            run = queries.get_run(s, run_id=run_id)
             if run.state == "capturing":
                 raise ConflictError(f"Run {run_id} is still capturing; pause it or wait until "
                                     "it is done.", code="invalid_state")
@@ -98,7 +98,7 @@ class Calibrations:
                 raise UnprocessableError(
                     f"Run {run_id} has {len(stations.stations)} captured stations; a "
                     f"calibration needs at least {MIN_IMAGES}.", code="too_few_stations")
-            cal = Calibration(run_id=run_id, cell=run.cell, instance_id=self.instance_id,
+            cal = CalibrationRecord(run_id=run_id, cell=run.cell, instance_id=self.instance_id,
                               state="running", options=options.model_dump())
             s.add(cal)
             s.commit()
@@ -172,7 +172,7 @@ class Calibrations:
         solve's last progress message are in (they come by different pipes), so the stored
         state turns final together with the event that ends the stream, after every
         progress event (none is published once the solve has left ``_ending``). The outcome
-        is stored through ``service.outcomes``: retried, spooled if the database fails."""
+        is stored through ``service.jobs.outcomes``: retried, spooled if the database fails."""
         with self._events_lock:
             ending = self._ending.get(cal_id)
             if ending is None:
@@ -191,7 +191,7 @@ def solve_calibration(payload: dict[str, Any]) -> dict[str, Any]:
 
     Top level (picklable) and self-contained: it imports the pipeline in the worker.
     """
-    from service.results import calibration_result_json
+    from service.results.document import calibration_result_json
 
     stations = payload["stations"]
     options = CalibrationOptions.model_validate(payload["options"]).pipeline(stations.setup)
@@ -208,7 +208,7 @@ def solve_calibration(payload: dict[str, Any]) -> dict[str, Any]:
 
 class SolveProgress:
     """In a worker: a solve's ``progress`` events, sent to the service process
-    (``service.workers.report_progress``)."""
+    (``service.jobs.workers.report_progress``)."""
 
     def __init__(self, cal_id: str, n_stations: int) -> None:
         self.cal_id = cal_id

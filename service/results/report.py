@@ -20,9 +20,9 @@ from typing import Any
 
 import numpy as np
 
-from service.report_plots import Plot, cv_by_station, report_plots
-from service.result_schema import parse_result
-from service.results import cv_dropped_clause
+from service.results.document import cv_dropped_clause
+from service.results.plots import Plot, cv_by_station, report_plots
+from service.results.schema import parse_result
 
 Result = Mapping[str, Any]
 

@@ -1,0 +1,2 @@
+"""Station-set files (``cellcal/stations@1``): the format (``format``) and the image
+files it names (``images``)."""
