@@ -1,6 +1,7 @@
 """Capture runs of a running service (cellcal serve): list them, show one, start one (planned
-stations, a pose list, or an external run a cell controller feeds), pause, resume or cancel it.
-'start --wait' follows the run's event stream with a progress bar until it ends. The service
+stations, planned until a tolerance is met, a pose list, or an external run a cell controller
+feeds), pause, resume or cancel it. 'start --wait' follows the run's event stream with a
+progress bar (and the hand-eye's σ against the tolerance) until it ends. The service
 is --url (CELLCAL_URL), its key --api-key (CELLCAL_API_KEY).
 """
 
@@ -38,6 +39,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="JSON file with a list of TCP poses [x, y, z, rx, ry, rz] (m, rad)")
     plan.add_argument("--external", action="store_true",
                       help="a cell controller posts the stations (POST /runs/{id}/stations)")
+    plan.add_argument("--tolerance-mm", type=float, metavar="MM",
+                      help="plan stations until the hand-eye translation's honest 1-sigma is "
+                           "within MM (with --tolerance-deg)")
+    start.add_argument("--tolerance-deg", type=float, metavar="DEG",
+                       help="... and its rotation's within DEG degrees")
+    start.add_argument("--max-stations", type=int, metavar="N",
+                       help="with a tolerance: stop after N stations at the latest (default 40)")
     start.add_argument("--wait", action="store_true",
                        help="follow the run until it ends, with a progress bar")
     for name, what in (("pause", "stop after the station in progress"),
@@ -64,11 +72,19 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _start(service: client.Service, args: argparse.Namespace) -> int:
+    if (args.tolerance_mm is None) != (args.tolerance_deg is None):
+        raise ValueError("give --tolerance-mm and --tolerance-deg together")
+    if args.max_stations is not None and args.tolerance_mm is None:
+        raise ValueError("--max-stations goes with --tolerance-mm and --tolerance-deg")
     body: dict[str, Any]
     if args.external:
         body = {"mode": "external"}
     elif args.stations is not None:
         body = {"stations": args.stations}
+    elif args.tolerance_mm is not None:
+        body = {"tolerance_mm": args.tolerance_mm, "tolerance_deg": args.tolerance_deg}
+        if args.max_stations is not None:
+            body["max_stations"] = args.max_stations
     else:
         body = {"poses": _read_poses(args.poses)}
     run_id = service.post("/runs", body)["id"]
@@ -79,8 +95,10 @@ def _start(service: client.Service, args: argparse.Namespace) -> int:
     final = client.follow(service, f"/runs/{run_id}/events", total=planned, unit="station",
                    progress=StationCount())
     error = final.get("error") or {}
+    stop = final.get("stop_reason")
     print(f"run {run_id}: {final['state']}, {final['stations_captured']} captured, "
           f"{final['stations_skipped']} skipped"
+          + (f", stopped: {stop}" if stop else "")
           + (f" ({error['detail']})" if error.get("detail") else ""), file=sys.stderr)
     return 0 if final["state"] == "done" else EXIT_FAILED
 

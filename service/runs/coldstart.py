@@ -224,7 +224,10 @@ class ColdStartCapture(Capture):
         self._update(sigma_history=history)
         self._publish({"type": "sigma", "run_id": self.run_id, **point,
                        "tolerance_deg": rule["tolerance_deg"],
-                       "tolerance_mm": rule["tolerance_mm"]})
+                       "tolerance_mm": rule["tolerance_mm"],
+                       "message": f"σ {point['rot_deg']:.3f}° / {point['trans_mm']:.2f} mm "
+                                  f"({point['kind']}; tolerance {rule['tolerance_deg']:g}° / "
+                                  f"{rule['tolerance_mm']:g} mm)"})
         return (point["kind"] == "honest" and point["rot_deg"] <= rule["tolerance_deg"]
                 and point["trans_mm"] <= rule["tolerance_mm"])
 
