@@ -36,7 +36,7 @@ from sqlalchemy import create_engine, text
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from service.local import LocalService, ServeOptions, local_service
+from service.serving.local import LocalService, ServeOptions, local_service
 from tests.support.postgres import PostgresServer
 
 TIMEOUT_S = 900.0
