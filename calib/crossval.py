@@ -23,6 +23,7 @@ the reported uncertainty is checked (``calib.uncertainty``).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass, replace
 
 import cv2
@@ -33,6 +34,7 @@ from calib.chain import camera_from_robot
 from calib.geometry import pose_error
 from calib.joint import CellParameters
 from calib.jointfit import JointData, JointModel, fit_joint
+from calib.parallel import InlineExecutor
 
 DEFAULT_FOLDS = 5
 #: Below this many stations every station is its own fold (leave-one-out).
@@ -155,17 +157,57 @@ def cross_validate_joint(data: JointData, station_ids: Sequence[str], model: Joi
 
     ``full`` is the fit on all stations (the start of every fold).
     """
-    n = len(data)
-    held, estimates = [], []
+    return submit_joint_folds(JointFolds(data, tuple(station_ids), model, full),
+                              InlineExecutor(), folds=folds).result()
+
+
+@dataclass(frozen=True)
+class JointFolds:
+    """What the folds of a joint cross-validation share: the data, the station ids, the
+    model, and its fit on all stations (the start of every fold)."""
+
+    data: JointData
+    station_ids: tuple[str, ...]
+    model: JointModel
+    full: CellParameters
+
+
+@dataclass(frozen=True)
+class PendingFolds:
+    """The folds of :func:`submit_joint_folds`, fitting in ``pool``; :meth:`result` waits
+    for them and puts their held-out stations in the order of ``station_ids``."""
+
+    station_ids: tuple[str, ...]
+    kind: str
+    folds: tuple[Future, ...]  # each (FoldEstimate, list[HeldOut])
+
+    def result(self) -> CrossValidation:
+        done = [f.result() for f in self.folds]
+        held = sorted((h for _, fold in done for h in fold),
+                      key=lambda h: self.station_ids.index(h.id))
+        return CrossValidation(kind=self.kind, stations=tuple(held),
+                               estimates=tuple(estimate for estimate, _ in done))
+
+
+def submit_joint_folds(job: JointFolds, pool: Executor, *,
+                       folds: int = DEFAULT_FOLDS) -> PendingFolds:
+    """:func:`cross_validate_joint` with every fold fitted and predicted as a task of
+    ``pool`` (``calib.parallel``), so that the folds of several models share the cores."""
+    n = len(job.data)
     parts = fold_indices(n, folds)
-    for f, test in enumerate(parts):
-        train = np.setdiff1d(np.arange(n), test)
-        cell = fit_joint(data.subset(train), model, full).cell
-        estimates.append(FoldEstimate.of(cell))
-        held += [predict_image_station(cell, data, int(k), station_ids[k], f) for k in test]
-    held.sort(key=lambda h: list(station_ids).index(h.id))
-    return CrossValidation(kind=_kind(parts, n), stations=tuple(held),
-                           estimates=tuple(estimates))
+    tasks = tuple(pool.submit(_joint_fold, job, test, f) for f, test in enumerate(parts))
+    return PendingFolds(station_ids=job.station_ids, kind=_kind(parts, n), folds=tasks)
+
+
+def _joint_fold(job: JointFolds, test: np.ndarray, fold: int
+                ) -> tuple[FoldEstimate, list[HeldOut]]:
+    """Fold ``fold``: the model fitted without the stations ``test`` (from the full fit),
+    and each of them predicted from its robot reading."""
+    data = job.data
+    train = np.setdiff1d(np.arange(len(data)), test)
+    cell = fit_joint(data.subset(train), job.model, job.full).cell
+    return FoldEstimate.of(cell), [
+        predict_image_station(cell, data, int(k), job.station_ids[k], fold) for k in test]
 
 
 def cross_validate_fixed_camera(data: JointData, station_ids: Sequence[str],

@@ -15,13 +15,15 @@ Every candidate's cross-validated figure is kept, so the choice can be checked.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from calib.crossval import CrossValidation, FoldEstimate, cross_validate_joint
+from calib.crossval import CrossValidation, FoldEstimate, JointFolds, submit_joint_folds
 from calib.joint import CellParameters
 from calib.jointfit import JointData, JointFit, JointModel, fit_joint, held_at_one
+from calib.parallel import fit_pool
 from calib.quality import BOARD_SCALE_MIN
 from calib.uncertainty import jackknife_sigmas
 
@@ -146,49 +148,82 @@ def select_joint_model(data: JointData, station_ids: Sequence[str], base: JointM
 
     ``base`` estimates everything it may (κ unless ``kappa='fixed'``, ν unless held) with the
     assumed noise levels; ``start`` its solution on all stations; ``modes`` which choices
-    are forced.
+    are forced. The candidates and their folds are fitted on all cores
+    (``calib.parallel``), with the same results as one after the other.
     """
     kappa, nu, noise = modes.kappa, modes.nu, modes.noise
-
-    def run(model: JointModel) -> Candidate:
-        fit = fit_joint(data, model, held_at_one(
-            start, [p for p in ("kappa", "nu") if p in model.fix and p not in base.fix]))
-        cv_model = replace(model, noise=fit.noise, estimate_noise=False)
-        cv_data = replace(data, sigma_px=fit.sigma_px)
-        cv = cross_validate_joint(cv_data, station_ids, cv_model, fit.cell)
-        return Candidate(name=model.name, cv=cv, model=model, fit=fit)
-
-    base_c = run(base)
-    candidates = [base_c]
-    chosen_fix, estimate_noise, decisions = set(base.fix), False, []
-    for name, mode in (("kappa", kappa), ("nu", nu)):
-        if name in base.fix or mode == "estimate":
-            decisions.append(f"{name}: {'held' if name in base.fix else 'estimated'} "
-                             f"({'given' if mode != 'auto' else 'known intrinsics'})")
-            continue
-        simple = run(replace(base, name=f"{name} = 1", fix=(*base.fix, name)))
-        candidates.append(simple)
-        why = "given" if mode == "fixed" else _estimate_reason(base_c, simple, name)
-        if why is None or mode == "fixed":
-            chosen_fix.add(name)
-            why = why or NOT_WARRANTED
-            decisions.append(f"{name}: held at 1 ({why})")
-        else:
-            decisions.append(f"{name}: estimated ({why})")
+    held = [name for name, mode in (("kappa", kappa), ("nu", nu))
+            if name not in base.fix and mode != "estimate"]
+    models = [base, *(replace(base, name=f"{name} = 1", fix=(*base.fix, name)) for name in held)]
     if noise != "assumed":
-        rich = run(replace(base, name="robot noise estimated", estimate_noise=True))
-        candidates.append(rich)
-        estimate_noise = noise == "estimate" or clearly_better(rich.cv, base_c.cv)
-        decisions.append("robot noise: " + ("estimated from the data" if estimate_noise else
-                                            "assumed: estimating it does not predict "
-                                            "clearly better"))
-    fix = tuple(p for p in base.fix if p in chosen_fix) + tuple(
-        p for p in ("kappa", "nu") if p in chosen_fix and p not in base.fix)
-    chosen = next((c for c in candidates if c.model is not None and set(c.model.fix) == set(fix)
-                   and c.model.estimate_noise == estimate_noise), None)
-    if chosen is None:
-        held = " and ".join(p for p in fix if p in ("kappa", "nu")) + " = 1"
-        chosen = run(replace(base, name=held + (", robot noise estimated" if estimate_noise
-                                                else ""), fix=fix, estimate_noise=estimate_noise))
-        candidates.append(chosen)
+        models.append(replace(base, name="robot noise estimated", estimate_noise=True))
+    with fit_pool() as pool:
+
+        def run(models: Sequence[JointModel]) -> list[Candidate]:
+            return _run_candidates(_Start(data, tuple(station_ids), base, start), models, pool)
+
+        tried = dict(zip((m.name for m in models), run(models), strict=True))
+        base_c = tried[base.name]
+        candidates = list(tried.values())
+        chosen_fix, estimate_noise, decisions = set(base.fix), False, []
+        for name, mode in (("kappa", kappa), ("nu", nu)):
+            if name not in held:
+                decisions.append(f"{name}: {'held' if name in base.fix else 'estimated'} "
+                                 f"({'given' if mode != 'auto' else 'known intrinsics'})")
+                continue
+            why = "given" if mode == "fixed" else _estimate_reason(base_c, tried[f"{name} = 1"],
+                                                                   name)
+            if why is None or mode == "fixed":
+                chosen_fix.add(name)
+                why = why or NOT_WARRANTED
+                decisions.append(f"{name}: held at 1 ({why})")
+            else:
+                decisions.append(f"{name}: estimated ({why})")
+        if noise != "assumed":
+            estimate_noise = noise == "estimate" or clearly_better(
+                tried["robot noise estimated"].cv, base_c.cv)
+            decisions.append("robot noise: " + ("estimated from the data" if estimate_noise
+                                                else "assumed: estimating it does not predict "
+                                                     "clearly better"))
+        fix = tuple(p for p in base.fix if p in chosen_fix) + tuple(
+            p for p in ("kappa", "nu") if p in chosen_fix and p not in base.fix)
+        chosen = next((c for c in candidates if c.model is not None
+                       and set(c.model.fix) == set(fix)
+                       and c.model.estimate_noise == estimate_noise), None)
+        if chosen is None:
+            named = " and ".join(p for p in fix if p in ("kappa", "nu")) + " = 1"
+            model = replace(base, name=named + (", robot noise estimated" if estimate_noise
+                                                else ""), fix=fix, estimate_noise=estimate_noise)
+            chosen = run([model])[0]
+            candidates.append(chosen)
     return Selection(candidates=tuple(candidates), chosen=chosen, decisions=tuple(decisions))
+
+
+@dataclass(frozen=True)
+class _Start:
+    """What every candidate starts from: the data, the station ids, the base model and its
+    solution on all stations."""
+
+    data: JointData
+    station_ids: tuple[str, ...]
+    base: JointModel
+    cell: CellParameters
+
+
+def _run_candidates(start: _Start, models: Sequence[JointModel],
+                    pool: Executor) -> list[Candidate]:
+    """Each of ``models`` fitted on all stations (from the base solution, with κ, ν at 1
+    where the model holds them and the base does not) and cross-validated from that fit, its
+    folds fitted at its assumed or estimated noise levels; every fit a task of ``pool``."""
+    data, base = start.data, start.base
+    fits = [pool.submit(fit_joint, data, model, held_at_one(
+        start.cell, [p for p in ("kappa", "nu") if p in model.fix and p not in base.fix]))
+        for model in models]
+    pending = []
+    for model, task in zip(models, fits, strict=True):
+        fit = task.result()
+        job = JointFolds(replace(data, sigma_px=fit.sigma_px), start.station_ids,
+                         replace(model, noise=fit.noise, estimate_noise=False), fit.cell)
+        pending.append((model, fit, submit_joint_folds(job, pool)))
+    return [Candidate(name=model.name, cv=folds.result(), model=model, fit=fit)
+            for model, fit, folds in pending]
