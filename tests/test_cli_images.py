@@ -83,15 +83,30 @@ def test_known_intrinsics_and_another_method(tmp_path):
     assert doc["method"] == "sm" and doc["camera"]["K"] == K and doc["rejected"] == []
 
 
-def test_wrong_inner_corners_is_one_clear_line(tmp_path, capsys):
-    d = write_image_set(tmp_path / "set", inner_corners=(10, 8), n=3)
+@pytest.mark.parametrize("inner_corners", [(10, 8), (12, 9), (8, 7)])
+def test_wrong_inner_corners_is_told_from_the_first_image(tmp_path, capsys, monkeypatch,
+                                                           inner_corners):
+    """Issue 19 item 2: a board of another size fails at once, naming the grid it saw (a
+    larger configured board took the detector's whole search on every image)."""
+    d = write_image_set(tmp_path / "set", inner_corners=inner_corners, n=3)
+    solved = []
+    monkeypatch.setattr("service.cli.calibrate.calibrate_stations",
+                        lambda *a, **k: solved.append(1))
     assert main(["calibrate", str(d)]) == 2
     err = capsys.readouterr().err
-    assert re.match(r"cellcal: error: only 0 of 3 stations usable, need at least 3 \(000: "
-                    r"board not found with 10x8 inner corners; a larger (11x8|8x11) grid is "
-                    r"visible: "
-                    r"check inner_corners", err), err
-    assert err.count("\n") == 1
+    cols, rows = inner_corners
+    assert err == (f"cellcal: error: {d}: station 000: found a 11x8 grid of inner corners, "
+                   f"you configured {cols}x{rows}: correct the target in stations.json\n")
+    assert solved == []
+
+
+def test_square_size_in_millimetres_gets_a_hint(tmp_path, capsys):
+    d = write_image_set(tmp_path / "set", n=3)
+    doc = json.loads((d / "stations.json").read_text())
+    doc["target"]["square_size_m"] = 30
+    (d / "stations.json").write_text(json.dumps(doc))
+    assert main(["calibrate", str(d)]) == 2
+    assert "millimetres? 30 mm is 0.03 m" in capsys.readouterr().err
 
 
 def test_mixed_pose_and_image_stations_are_refused(tmp_path, capsys):

@@ -13,7 +13,7 @@ configuration that names them.
   :func:`board_from_target`.
 """
 
-from calib.boards.base import Board, BoardTarget
+from calib.boards.base import Board, BoardTarget, ChecksConfiguration
 from calib.boards.charuco import MIN_CHARUCO_CORNERS, Charuco, CharucoTarget, detect_charuco
 from calib.boards.checkerboard import (
     Checkerboard,
@@ -42,6 +42,7 @@ __all__ = [
     "CharucoTarget",
     "Checkerboard",
     "CheckerboardTarget",
+    "ChecksConfiguration",
     "Detection",
     "Target",
     "TargetAdapter",

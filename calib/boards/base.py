@@ -3,10 +3,10 @@ the base of every board type's configuration (:class:`BoardTarget`)."""
 
 from __future__ import annotations
 
-from typing import Annotated, Protocol, runtime_checkable
+from typing import Annotated, Any, Protocol, runtime_checkable
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from calib.boards.detection import Detection
 
@@ -14,8 +14,20 @@ from calib.boards.detection import Detection
 #: printed or milled for a robot cell (a length beyond either end is a unit mistake, and a
 #: subnormal one broke the solver long after the board was accepted).
 MIN_TARGET_LENGTH_M, MAX_TARGET_LENGTH_M = 1e-3, 1.0
+
+
+def _unit_hint(value: Any) -> Any:
+    """A length beyond 1 m was meant in millimetres (30 for a 30 mm square): say so, with the
+    value in metres, instead of only the bound."""
+    if isinstance(value, int | float) and MAX_TARGET_LENGTH_M < value <= 1000.0:
+        raise ValueError(f"{value:g} m is longer than any board's square or marker (at most "
+                         f"{MAX_TARGET_LENGTH_M:g} m): millimetres? {value:g} mm is "
+                         f"{value / 1000:g} m")
+    return value
+
+
 TargetLength = Annotated[float, Field(ge=MIN_TARGET_LENGTH_M, le=MAX_TARGET_LENGTH_M,
-                                      allow_inf_nan=False)]
+                                      allow_inf_nan=False), BeforeValidator(_unit_hint)]
 
 
 @runtime_checkable
@@ -52,6 +64,18 @@ class Board(Protocol):
 
     def target(self) -> BoardTarget:
         """The board's configuration (the inverse of :meth:`BoardTarget.board`)."""
+        ...
+
+
+@runtime_checkable
+class ChecksConfiguration(Protocol):
+    """Capability of a board: it tells from one image that its configuration is wrong (a
+    board of another size in view), before a search for the configured board that could not
+    succeed."""
+
+    def mismatch(self, image: np.ndarray) -> str | None:
+        """What the image shows instead of the configured board ("found a 9x6 grid, you
+        configured 12x9"), or None when it shows the configured board or cannot tell."""
         ...
 
 

@@ -92,6 +92,11 @@ class Checkerboard:
         """:func:`detect_checkerboard` with this board's corner counts."""
         return detect_checkerboard(image, self.inner_corners)
 
+    def mismatch(self, image: np.ndarray) -> str | None:
+        """:func:`grid_mismatch` with this board's corner counts
+        (``calib.boards.ChecksConfiguration``)."""
+        return grid_mismatch(image, self.inner_corners)
+
     def outline(self, per_side: int = 8) -> np.ndarray:
         """Points along the outer edge of the squares (one square beyond the inner corners),
         shape (4 * per_side, 3), target frame."""
@@ -419,3 +424,31 @@ def _even_square_darkness(grey: np.ndarray, grid: np.ndarray) -> float:
     b, a = np.mgrid[1:grid.shape[0], 1:grid.shape[1]]
     even = (a + b) % 2 == 0
     return float(vals[~even].mean() - vals[even].mean())
+
+
+def grid_mismatch(image: np.ndarray, inner_corners: tuple[int, int]) -> str | None:
+    """What ``image`` shows instead of a board of ``inner_corners`` (cols, rows): "found a 9x6
+    grid of inner corners, you configured 12x9"; None when it shows that size (either way
+    round), no grid, or a grid it cannot vouch for.
+
+    The grid survey (any size, on a half-size copy of a large image) is read again with SB at
+    exactly the size it saw. SB reads only a board of exactly the size asked for, so success
+    means the whole board in view has that size, not a patch of a larger one hidden in part
+    (which the survey also reports). Costs two detector calls, not the full search for a
+    board that is not there.
+    """
+    cols, rows = _check_inner_corners(inner_corners)
+    grey, _ = as_grey(image)
+    if grey is None:
+        return None
+    survey = _GridSurvey(grey if min(grey.shape) < _COARSE_MIN_SIZE else cv2.pyrDown(grey))
+    grid = survey.grid
+    if grid is None:
+        return None
+    seen = sorted(grid.shape[1::-1], reverse=cols >= rows)  # in the configured order
+    if seen == sorted((cols, rows), reverse=cols >= rows):
+        return None
+    found, _ = cv2.findChessboardCornersSB(survey.grey, tuple(seen))
+    if not found:
+        return None
+    return f"found a {seen[0]}x{seen[1]} grid of inner corners, you configured {cols}x{rows}"

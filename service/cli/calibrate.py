@@ -28,6 +28,7 @@ import numpy as np
 from calib import (
     KAPPA_MODES,
     METHODS,
+    ChecksConfiguration,
     Detection,
     PipelineOptions,
     PoseStations,
@@ -167,9 +168,16 @@ def _calibrate_images(args: argparse.Namespace, stations: Stations,
         return tqdm(items, total=n, desc="detecting corners", unit="image", file=sys.stderr,
                     disable=n < PROGRESS_MIN_IMAGES, leave=False)
 
+    board = board_from_target(target)
+    if stations.stations and isinstance(board, ChecksConfiguration):
+        first = stations.stations[0]
+        seen = image(first)
+        if isinstance(seen, np.ndarray) and (mismatch := board.mismatch(seen)) is not None:
+            raise ValueError(f"{directory}: station {first.id}: {mismatch}: correct the "
+                             "target in stations.json")
     result = calibrate_stations(
         stations.inputs(image),
-        board_from_target(target),
+        board,
         PipelineOptions(setup=stations.setup, method=args.method or "joint",
                         nu_method=args.nu_method, kappa=args.kappa), progress=progress)
     return calibration_result_json(result, command=command)

@@ -38,7 +38,7 @@ import numpy as np
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from calib import Board, Station, board_from_target
+from calib import Board, ChecksConfiguration, Station, board_from_target
 from drivers.capture import CaptureOptions, capture_station
 from drivers.errors import (
     CameraError,
@@ -92,6 +92,10 @@ class _Shot:
         return self.attempt + self.late
 
 
+class BoardMismatchError(ValueError):
+    """The run's first image shows a board of another size than the configured one."""
+
+
 def _stops_run(exc: DeviceError) -> bool:
     """True for faults that need a person (robot gone or stopped, camera gone)."""
     if isinstance(exc, RobotConnectionError | ProtectiveStopError | EmergencyStopError):
@@ -129,6 +133,8 @@ class Capture:
         self.board: Board | None = None
         #: The station the worker last developed (stored or not), for a planner to read.
         self.developed: Station | None = None
+        #: Whether the first station was checked against the board (``_first_view_mismatch``).
+        self._board_checked = False
 
     # ---- the thread body: every way a capture ends -----------------------------------------
 
@@ -147,6 +153,8 @@ class Capture:
             log.error("run %s interrupted: %s", self.run_id, exc)
             self.finish("interrupted", f"{exc}; resume the run once the database is back.",
                         DatabaseUnavailableError.code)
+        except BoardMismatchError as exc:
+            self.finish("failed", str(exc), "board_mismatch")
         except ValueError as exc:  # e.g. a malformed device URL
             self.finish("failed", str(exc), "invalid_configuration")
         except Exception as exc:
@@ -335,19 +343,44 @@ class Capture:
         if taken is not None and (too_many := self._too_many_pixels(taken)) is not None:
             shot, taken = replace(shot, error=too_many, error_code="image_too_large"), None
             code = shot.error_code
+        mismatch = None
         if taken is None or not isinstance(taken.image, np.ndarray):
             station = Station(f"{shot.index:03d}", rejected=shot.error or "No image.")
+        elif (mismatch := self._first_view_mismatch(shot, taken.image)) is not None:
+            station, code = replace(taken, rejected=mismatch), "board_mismatch"
         else:
             assert self.board is not None  # read with the run
             det = (self.board.detect(taken.image) if taken.detection is None
                    else taken.detection)
             if not det.ok and shot.attempt < ATTEMPTS and not shot.final:
                 return _RETRY
-            station = replace(taken, detection=det, rejected=None if det.ok
-                              else f"{self.board.kind.capitalize()} not found: {det.reason}.")
-            code = None if det.ok else "not_detected"
+            if not det.ok and shot.final:  # a posted image: the better reason, if any
+                mismatch = self._mismatch(taken.image)
+            station = replace(taken, detection=det, rejected=None if det.ok else mismatch or
+                              f"{self.board.kind.capitalize()} not found: {det.reason}.")
+            code = None if det.ok else "board_mismatch" if mismatch else "not_detected"
         self.developed = station
-        return STORED if self._store(shot, station, code) else _LOST
+        stored = self._store(shot, station, code)
+        if mismatch is not None and not shot.final:
+            raise BoardMismatchError(mismatch)
+        return STORED if stored else _LOST
+
+    def _first_view_mismatch(self, shot: _Shot, image: np.ndarray) -> str | None:
+        """``_mismatch`` for the first station a capture thread develops (not a posted one),
+        None for the others: a wrong board configuration ends the run at its first station
+        instead of after every station failed its whole search."""
+        if shot.final or self._board_checked:
+            return None
+        self._board_checked = True
+        return self._mismatch(image)
+
+    def _mismatch(self, image: np.ndarray) -> str | None:
+        """What ``image`` shows instead of the run's board, as a station's reason, or None
+        (``calib.ChecksConfiguration``)."""
+        seen = (self.board.mismatch(image) if isinstance(self.board, ChecksConfiguration)
+                else None)
+        return None if seen is None else (f"Wrong board configuration: {seen}; correct the "
+                                          "run's target.")
 
     def _too_many_pixels(self, taken: Station) -> str | None:
         """Why a camera frame is too large to search, or None: a camera set to a larger

@@ -10,6 +10,7 @@ import numpy as np
 
 from calib import (
     CellGuess,
+    ChecksConfiguration,
     Pinhole,
     PlanOptions,
     Target,
@@ -49,6 +50,9 @@ def plan_poses(motion: Motion, *, n: int, target: Target,
         f = float(settings.focal_px_guess or 0.0)
         K = np.array([[f, 0.0, w / 2.0], [0.0, f, h / 2.0], [0.0, 0.0, 1.0]])
     board = board_from_target(target)
+    if isinstance(board, ChecksConfiguration) and (seen := board.mismatch(image)) is not None:
+        raise UnprocessableError(f"Cannot plan: wrong board configuration: {seen}; correct "
+                                 "the run's target.", code="board_mismatch")
     det = board.detect(image)
     if not det.ok:
         raise UnprocessableError(

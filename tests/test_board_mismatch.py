@@ -1,0 +1,62 @@
+"""A board configured with the wrong size (issue 19 item 2) is told from the first image,
+naming the grid that was seen: a pose-list run fails at its first station, a planned run is
+refused, a posted image says so; the check never refuses the configured board."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from calib.boards.checkerboard import grid_mismatch
+from mocks.scene import default_scene
+from tests.test_pipeline import BOARD, rendered_stations
+from tests.test_service_api import client, finished, poses, wait_run  # noqa: F401
+from tests.test_service_external import external_run, post, robot_pose
+
+SCENE_BOARD = tuple(default_scene().target.inner_corners)
+WRONG = {"type": "checkerboard", "inner_corners": [SCENE_BOARD[0] + 1, SCENE_BOARD[1] + 1],
+         "square_size_m": 0.03}
+SEEN = (f"found a {SCENE_BOARD[0]}x{SCENE_BOARD[1]} grid of inner corners, you configured "
+        f"{SCENE_BOARD[0] + 1}x{SCENE_BOARD[1] + 1}")
+
+
+def test_the_configured_board_either_way_round_is_no_mismatch() -> None:
+    image = rendered_stations()[0][0]
+    cols, rows = BOARD
+    assert grid_mismatch(image, (cols, rows)) is None
+    assert grid_mismatch(image, (rows, cols)) is None
+    assert grid_mismatch(image, (cols + 2, rows)) == (
+        f"found a {cols}x{rows} grid of inner corners, you configured {cols + 2}x{rows}")
+
+
+@pytest.mark.timeout(60)
+def test_pose_list_run_fails_at_its_first_station(client: TestClient) -> None:  # noqa: F811
+    r = client.post("/runs", json={"poses": poses(4), "target": WRONG})
+    assert r.status_code == 201, r.text
+    run = wait_run(client, r.json()["id"], finished)
+    assert run["state"] == "failed"
+    assert run["error"] == {"code": "board_mismatch", "detail": "Wrong board configuration: "
+                            f"{SEEN}; correct the run's target."}
+    stations = client.get(f"/runs/{run['id']}/stations").json()
+    assert [(s["index"], s["state"], s["error"]["code"]) for s in stations] == \
+        [(0, "skipped", "board_mismatch")]  # the stations after it were not visited
+
+
+@pytest.mark.timeout(60)
+def test_planned_run_is_refused(client: TestClient) -> None:  # noqa: F811
+    r = client.post("/runs", json={"stations": 5, "target": WRONG})
+    assert r.status_code == 422
+    body: dict[str, Any] = r.json()
+    assert body["code"] == "board_mismatch" and SEEN in body["detail"]
+
+
+@pytest.mark.timeout(60)
+def test_posted_station_says_what_was_seen(client: TestClient) -> None:  # noqa: F811
+    run_id = external_run(client, target=WRONG)
+    station = post(client, run_id, pose=robot_pose(client))
+    assert station.status_code == 201, station.text
+    assert station.json()["state"] == "skipped"
+    assert station.json()["error"]["code"] == "board_mismatch"
+    assert SEEN in station.json()["error"]["detail"]
