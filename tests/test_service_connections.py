@@ -128,6 +128,29 @@ def test_a_connection_without_a_request_is_closed(tmp_path: Path) -> None:
         assert httpx.get(f"{service.url}/health", timeout=HANG_S).status_code == 200
 
 
+def test_a_client_trickling_its_next_request_is_closed(tmp_path: Path) -> None:
+    """After an answer on a kept-alive connection, the next request's headers come one byte
+    at a time (each byte restarts uvicorn's keep-alive timer): the header timeout ends it."""
+    options = ServeOptions(env={**os.environ, "CELLCAL_HEADER_TIMEOUT_S": "1"})
+    with local_service(tmp_path / "data", KEY, options) as service, _sockets() as held:
+        sock = socket.create_connection(_address(service), timeout=HANG_S)
+        held.append(sock)
+        sock.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\n\r\n")
+        assert sock.recv(4096).startswith(b"HTTP/1.1 200")
+        sock.settimeout(0.2)
+        deadline = time.monotonic() + HANG_S
+        closed = False
+        while not closed and time.monotonic() < deadline:
+            try:
+                sock.sendall(b"X")
+                closed = sock.recv(4096) == b""
+            except TimeoutError:
+                continue
+            except (BrokenPipeError, ConnectionResetError):
+                closed = True
+        assert closed
+
+
 def _open_stream(service: LocalService, run_id: str) -> socket.socket:
     """A connection following the run's event stream (busy until the run ends)."""
     sock = socket.create_connection(_address(service), timeout=HANG_S)

@@ -6,8 +6,8 @@ idle TCP connections under the usual limit of 1,024 open files starved ``/health
 a running capture with ``Errno 24``, and each refused ``accept`` logged a traceback. Here:
 
 * at start the soft open-files limit is raised to the hard one (``raise_fd_limit``);
-* a connection must send its first request's headers within ``header_timeout_s`` (later
-  requests are bounded by uvicorn's keep-alive timeout, which only a complete request ends);
+* a connection must send each request's headers within ``header_timeout_s`` of its opening
+  or of the previous answer (idle keep-alive connections are closed sooner by uvicorn);
 * at most ``cap`` connections are open, ``fd_reserve`` descriptors below the limit. A
   connection beyond the cap takes the place of the oldest one with no request in progress (an
   idle client is worth least), or, when every connection is busy, is answered 503 and closed
@@ -83,13 +83,13 @@ class ConnectionLimits:
 
     cap: int
     header_timeout_s: float
-    #: When each open connection was accepted (loop time), in order: oldest first.
-    opened: dict[GuardedH11, float] = field(default_factory=dict)
+    #: The open connections in the order they came (a dict as an ordered set): oldest first.
+    opened: dict[GuardedH11, None] = field(default_factory=dict)
 
     def admit(self, new: GuardedH11) -> bool:
         """Make room for ``new`` (True), or refuse it (False: every connection is busy)."""
         if len(self.opened) < self.cap:
-            self.opened[new] = time.monotonic()
+            self.opened[new] = None
             return True
         victim = next((c for c in self.opened if c.idle()), None)
         if victim is None:
@@ -99,7 +99,7 @@ class ConnectionLimits:
         log.warning("%d connections: the oldest idle one was closed for a new one",
                     self.cap)
         victim.drop()
-        self.opened[new] = time.monotonic()
+        self.opened[new] = None
         return True
 
 
@@ -112,6 +112,7 @@ class GuardedH11(H11Protocol):
         super().__init__(*args, **kwargs)
         self._refused = False
         self._timer: asyncio.TimerHandle | None = None
+        self._answered: Any = None  # the request cycle before the headers awaited now
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
@@ -124,8 +125,21 @@ class GuardedH11(H11Protocol):
                 transport.write_eof()
             self._timer = self.loop.call_later(REFUSAL_LINGER_S, transport.abort)
             return
-        self._timer = self.loop.call_later(self.limits.header_timeout_s,
-                                                  self._header_timeout)
+        self._await_headers()
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        if not self.transport.is_closing():  # kept alive: the next request's headers are due
+            self._await_headers()
+
+    def _await_headers(self) -> None:
+        """Drop the connection unless a new request's headers are in within the timeout
+        (uvicorn's keep-alive timer stops at the first byte, so a client sending one byte at
+        a time would hold the connection for good)."""
+        if self._timer is not None:
+            self._timer.cancel()
+        self._answered = self.cycle
+        self._timer = self.loop.call_later(self.limits.header_timeout_s, self._header_timeout)
 
     def data_received(self, data: bytes) -> None:
         if not self._refused:
@@ -153,7 +167,7 @@ class GuardedH11(H11Protocol):
 
     def _header_timeout(self) -> None:
         self._timer = None
-        if self.cycle is None and not self.transport.is_closing():
+        if self.cycle is self._answered and self.idle() and not self.transport.is_closing():
             log.warning("a connection sent no complete request in %g s: closed",
                         self.limits.header_timeout_s)
             self.drop()
