@@ -6,6 +6,7 @@ from __future__ import annotations
 import base64
 import json
 import shutil
+from concurrent.futures import ThreadPoolExecutor
 from html.parser import HTMLParser
 from pathlib import Path
 from typing import Any
@@ -184,3 +185,16 @@ def test_rest_report_of_a_capture_run(client) -> None:  # noqa: F811
     assert all(f"<td class=\"l\">{s['id']}</td>" in r.text for s in cal["result"]["stations"])
     missing = client.get("/calibrations/nope/report")
     assert missing.status_code == 404 and missing.json()["code"] == "not_found"
+    # rendered once and kept (issue 22, row 7): the cached page is what later requests get,
+    # also several at once, and a rendering in flight is shared
+    reports = client.app.state.runtime.calibrations.reports
+    cached = reports.cached(cal_id)
+    assert cached.read_text() == r.text
+    cached.write_text(r.text.replace("Calibration report", "Calibration report (cached)"))
+    with ThreadPoolExecutor(8) as pool:
+        pages = list(pool.map(lambda _: client.get(f"/calibrations/{cal_id}/report"), range(8)))
+    assert all(p.status_code == 200 and "(cached)" in p.text for p in pages)
+    cached.unlink()
+    with ThreadPoolExecutor(8) as pool:
+        pages = list(pool.map(lambda _: client.get(f"/calibrations/{cal_id}/report"), range(8)))
+    assert {p.text for p in pages} == {r.text} and cached.read_text() == r.text

@@ -3,10 +3,11 @@ export it in the format a user's stack wants."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Response, status
-from fastapi.responses import HTMLResponse, StreamingResponse
+from fastapi.responses import FileResponse, HTMLResponse, StreamingResponse
 
 from service.api.deps import CalibrationsDep, EventsDep, SessionDep
 from service.api.reads import Read, add_reads
@@ -79,15 +80,18 @@ def export_calibration(cal_id: str, session: SessionDep,
     200: {"content": {"text/html": {}},
           "description": "one self-contained HTML page (plots embedded, no external links)"},
     409: {"description": "the calibration is running or failed"}})
-def calibration_report(cal_id: str, session: SessionDep) -> HTMLResponse:
-    """The report a person reads, prints and files: verdict, findings, plots, stations."""
-    from service.results.report import render_report  # matplotlib: loaded on the first report only
-
+def calibration_report(cal_id: str, session: SessionDep,
+                       calibrations: CalibrationsDep) -> Response:
+    """The report a person reads, prints and files: verdict, findings, plots, stations.
+    Rendered once, in a worker process, then served from the data directory."""
     cal = queries.get_calibration(session, cal_id=cal_id)
     if cal.state != "done" or cal.result is None:
         raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished calibration "
                             "has a report.", code="invalid_state")
     try:
-        return HTMLResponse(render_report(cal.result))
+        page = calibrations.reports.page(cal_id, cal.result)
     except ValueError as exc:  # a stored result edited by hand
         raise UnprocessableError(str(exc), code="invalid_result") from None
+    if isinstance(page, Path):
+        return FileResponse(page, media_type="text/html; charset=utf-8")
+    return HTMLResponse(page)

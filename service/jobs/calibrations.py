@@ -30,6 +30,7 @@ from service.errors import ConflictError, QueueFullError, UnprocessableError
 from service.events import EventBus
 from service.jobs.outcomes import Outcomes
 from service.jobs.workers import WorkerPool, report_progress
+from service.results.report_cache import Reports
 from service.schemas import CalibrationOptions
 from service.settings import Settings
 from service.store import queries
@@ -51,6 +52,8 @@ class Calibrations:
         #: This service's instance: the calibrations it solves name it.
         self.instance_id = instance_id
         self.outcomes = outcomes
+        #: Their reports, rendered once in a worker process and kept.
+        self.reports = Reports(settings)
         self._pool: WorkerPool | None = None
         self._pool_lock = threading.Lock()
         self._pending = 0  # solves queued or running, under _pool_lock
@@ -116,6 +119,7 @@ class Calibrations:
             if self._pool is not None:
                 self._pool.shutdown()
                 self._pool = None
+        self.reports.shutdown()
 
     def _submit(self, payload: dict[str, Any]) -> cf.Future[dict[str, Any]]:
         with self._pool_lock:

@@ -94,7 +94,8 @@ def _watch_parent(parent_pid: int) -> None:
 
 class WorkerPool:
     """A process pool whose workers exit when the service process does, each with at most
-    ``memory_bytes`` of address space if given.
+    ``memory_bytes`` of address space if given, at scheduling priority ``nice`` (0 = the
+    service's; 19 yields the cores to everything else).
 
     ``submit`` hands the call to one long-lived thread, which is where the pool spawns its
     workers (``ProcessPoolExecutor`` starts them in the submitting thread), so the parent-death
@@ -102,13 +103,16 @@ class WorkerPool:
     """
 
     def __init__(self, workers: int, on_progress: Callable[[Any], None], *,
-                 memory_bytes: int | None = None) -> None:
+                 memory_bytes: int | None = None, nice: int = 0) -> None:
         context = multiprocessing.get_context("spawn")
         self._receive, send = context.Pipe(duplex=False)
         self._pool = cf.ProcessPoolExecutor(
             workers, mp_context=context, initializer=_init_worker,
             initargs=(os.getpid(), _ProgressPipe(send, context.Lock()), memory_bytes))
-        self._spawner = cf.ThreadPoolExecutor(1, thread_name_prefix="calibration-spawner")
+        # Linux keeps a nice value per thread and a new process inherits its creator's: the
+        # spawning thread takes ``nice``, so the workers run at it from their first import
+        self._spawner = cf.ThreadPoolExecutor(1, thread_name_prefix="worker-spawner",
+                                              initializer=os.nice, initargs=(nice,))
         self._stop = threading.Event()
         self._reader = threading.Thread(target=self._read_progress, args=(on_progress,),
                                         name="calibration-progress", daemon=True)
