@@ -22,8 +22,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from service.settings import Settings
 from service.jobs.workers import WorkerPool
+from service.settings import Settings
 
 log = logging.getLogger("cellcal.service")
 
