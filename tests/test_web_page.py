@@ -218,3 +218,42 @@ def test_devices_line_refreshes_itself(tmp_path: Path) -> None:
                          f"document.querySelector('#devices').textContent"
                          f".includes('TCP at ' + ({x_mm!r}).toFixed(1) + ' ')")
         assert text(browser, "#devices") != before
+
+
+@pytest.mark.timeout(900)
+def test_a_tolerance_run_from_the_page_plots_sigma_against_it(served: LocalService,
+                                                              tmp_path: Path,
+                                                              shots: Path) -> None:
+    """Issue 17 item 3: the page starts a run that stops at a tolerance and shows the
+    hand-eye's σ against the tolerance as it goes, with why the run stopped."""
+    with Browser(tmp_path / "chromium") as browser:
+        browser.goto(f"{served.url}/#key={KEY}")
+        browser.wait_for("the page to connect", "document.querySelector('#status')"
+                         ".textContent === 'connected'")
+        browser.click("#use-tolerance")
+        for selector, value in (("#tolerance-mm", "2"), ("#tolerance-deg", "0.2"),
+                                ("#max-stations", "10")):
+            browser.js(f"document.querySelector('{selector}').value = ''")
+            browser.type(selector, value)
+        browser.click("#run-form button")
+        browser.wait_for("the σ plot", "!document.querySelector('#sigma-view').hidden && "
+                         "document.querySelector('#sigma-caption').textContent"
+                         ".startsWith('σ ')")
+        browser.wait_for("the run to finish",
+                         "document.querySelector('#run-state').textContent === 'done'")
+        browser.wait_for("the stop reason", "document.querySelector('#sigma-caption')"
+                         ".textContent.includes('stopped: ')")
+        caption = text(browser, "#sigma-caption")
+        # the plot has ink: its non-white pixels
+        inked = browser.js(
+            "(() => { const c = document.querySelector('#sigma-plot');"
+            " const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;"
+            " let n = 0; for (let i = 3; i < d.length; i += 4) n += d[i] > 0; return n; })()")
+        browser.screenshot(shots / "web-tolerance.png")
+    assert "tolerance 0.2° / 2 mm" in caption
+    assert re.search(r"stopped: (tolerance_met|max_stations)", caption), caption
+    assert inked > 200
+    run_id = httpx.get(f"{served.url}/runs?limit=1", headers=AUTH).json()
+    run = run_id[0] if isinstance(run_id, list) else run_id["items"][0]
+    assert run["cold_start"]["stop_rule"] == {"tolerance_mm": 2.0, "tolerance_deg": 0.2,
+                                              "max_stations": 10}

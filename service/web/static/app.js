@@ -114,6 +114,7 @@ async function refreshRun() {
     ? `${run.stations_captured} stations captured, ${run.stations_skipped} skipped`
     : `${seen} of ${run.stations_planned} stations: ${run.stations_captured} captured, ` +
       `${run.stations_skipped} skipped`;
+  drawSigma(run.cold_start);
   const stations = await json("GET", `/runs/${currentRun}/stations`);
   const body = $("#stations tbody");
   body.replaceChildren();
@@ -125,6 +126,53 @@ async function refreshRun() {
   }
   const last = stations.filter((s) => s.image_url).pop();
   if (last) await drawStation(last.index);
+}
+
+// A tolerance run's hand-eye σ after each station, in units of its tolerance (rotation and
+// translation), against the line where it is met; log scale, newest on the right.
+function drawSigma(cold) {
+  const rule = cold?.stop_rule;
+  $("#sigma-view").hidden = !rule;
+  if (!rule) return;
+  const history = cold.sigma_history;
+  const canvas = $("#sigma-plot");
+  const g = canvas.getContext("2d");
+  const w = canvas.width, h = canvas.height, pad = 30;
+  g.clearRect(0, 0, w, h);
+  const series = [
+    { color: "#c0392b", label: "rotation", values: history.map((p) => p.rot_deg / rule.tolerance_deg) },
+    { color: "#2c7fb8", label: "translation", values: history.map((p) => p.trans_mm / rule.tolerance_mm) },
+  ];
+  const all = series.flatMap((s) => s.values).concat([1]);
+  const top = Math.log10(Math.max(...all) * 1.2), bottom = Math.log10(Math.min(...all) / 1.2);
+  const n = Math.max(rule.max_stations, ...history.map((p) => p.stations));
+  const x = (stations) => pad + (w - 2 * pad) * stations / n;
+  const y = (v) => pad + (h - 2 * pad) * (top - Math.log10(v)) / Math.max(top - bottom, 1e-9);
+  g.strokeStyle = "#888";
+  g.setLineDash([4, 4]);
+  g.beginPath(); g.moveTo(pad, y(1)); g.lineTo(w - pad, y(1)); g.stroke();
+  g.setLineDash([]);
+  g.fillStyle = "#555";
+  g.font = "11px sans-serif";
+  g.fillText("tolerance", w - pad - 50, y(1) - 4);
+  g.fillText(`stations (of at most ${rule.max_stations})`, pad, h - 8);
+  series.forEach((s, k) => {
+    g.fillStyle = s.color;
+    g.fillText(`${s.label} σ / tolerance`, pad + 150 * k, 14);
+  });
+  for (const s of series) {
+    g.strokeStyle = g.fillStyle = s.color;
+    g.beginPath();
+    history.forEach((p, i) => (i ? g.lineTo : g.moveTo).call(g, x(p.stations), y(s.values[i])));
+    g.stroke();
+    history.forEach((p, i) => g.fillRect(x(p.stations) - 2, y(s.values[i]) - 2, 4, 4));
+  }
+  const last = history[history.length - 1];
+  $("#sigma-caption").textContent = (last
+    ? `σ ${last.rot_deg.toFixed(3)}° / ${last.trans_mm.toFixed(2)} mm (${last.kind}) after ` +
+      `${last.stations} stations; tolerance ${rule.tolerance_deg}° / ${rule.tolerance_mm} mm`
+    : `tolerance ${rule.tolerance_deg}° / ${rule.tolerance_mm} mm; no σ yet`) +
+    (cold.stop_reason ? `; stopped: ${cold.stop_reason}` : "");
 }
 
 async function drawStation(index) {
@@ -327,7 +375,12 @@ $("#key-form").addEventListener("submit", (event) => {
 $("#run-form").addEventListener("submit", (event) => {
   event.preventDefault();
   run(async () => {
-    const created = await json("POST", "/runs", { stations: Number($("#stations").value) });
+    const body = $("#use-tolerance").checked
+      ? { tolerance_mm: Number($("#tolerance-mm").value),
+          tolerance_deg: Number($("#tolerance-deg").value),
+          max_stations: Number($("#max-stations").value) }
+      : { stations: Number($("#stations").value) };
+    const created = await json("POST", "/runs", body);
     await loadRuns();
     await openRun(created.id);
   });
