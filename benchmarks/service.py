@@ -20,6 +20,7 @@ while a run captures, p99 latency of ``GET /runs/{id}`` under 50 ms.
 
     python -m benchmarks.service            # 80 stations, about 1 min
     python -m benchmarks.service --quick    # 20 stations
+    python -m benchmarks.service --history  # latency over a plant's history (service_history)
 
 Prints tables and writes benchmarks/results/service.png. Sends requests only to 127.0.0.1,
 bounded in number and time; the server process and the temporary directory are removed on
@@ -351,7 +352,15 @@ def main() -> int:
     parser.add_argument("--hz", type=float, default=20.0, help="GET /runs/{id} rate")
     parser.add_argument("--timeout", type=float, default=120.0,
                         help="give up on a run after this many seconds")
+    parser.add_argument("--history", action="store_true",
+                        help="latency over a stored history on SQLite and PostgreSQL instead "
+                             "(benchmarks/service_history.py)")
+    parser.add_argument("--seconds", type=float, help="--history: load time per level")
     args = parser.parse_args()
+    if args.history:
+        from benchmarks.service_history import run_history
+
+        return run_history(quick=args.quick, seconds=args.seconds)
     n = args.stations or (20 if args.quick else 80)
 
     def on_term(signum: int, frame: Any) -> None:

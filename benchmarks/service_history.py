@@ -1,0 +1,366 @@
+"""History mode of the service benchmark: API latency over a plant's history, on SQLite and on
+PostgreSQL (``python -m benchmarks.service --history``).
+
+Acceptance target (issue 21): with 10,000 calibrations and 200,000 stations stored, 20
+concurrent clients and 5 server-sent-event listeners, the p99 of every common GET under 50 ms
+on both databases, and the p99 at 10,000 calibrations at most 1.2x the p99 at 1,000.
+
+For each database (a SQLite file; a throwaway PostgreSQL server, ``tests/support/postgres``)
+the history is seeded straight into the tables (a run of 20 stations with real-sized
+detections, 88 corners each, and one finished calibration with a full result per run, over
+20 cells, every 10th calibration of a cell activated), then ``cellcal serve --mock`` runs
+on it in a subprocess. Load, for ``--seconds`` per level: 20 client threads each send a GET
+from the mix below and pause 0.2 s (a dashboard polling); 5 listeners follow the event
+stream of the newest run; one thread opens an external run (``POST /runs``) and finishes it
+every 0.5 s. Latency is measured at the client, request sent to body read. The history is
+then grown to the second level and measured again.
+
+    python -m benchmarks.service --history           # 1,000 -> 10,000 calibrations
+    python -m benchmarks.service --history --quick   # 200 -> 2,000, 5 stations per run
+
+Prints a table and writes benchmarks/results/service_history.png. Requests go only to
+127.0.0.1, bounded in time; servers and temporary directories are removed on every exit.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as dt
+import os
+import random
+import secrets
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import httpx
+import matplotlib
+import numpy as np
+from sqlalchemy import create_engine, insert
+
+from service.store.db import Database
+from service.store.pages import Cursor
+from service.store.records import (
+    ActivationRecord,
+    ActiveCalibrationRecord,
+    CalibrationRecord,
+    RunRecord,
+    StationRecord,
+    new_id,
+)
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+
+OUT = Path(__file__).resolve().parent / "results"
+TARGET_P99_MS = 50.0
+TARGET_GROWTH = 1.2
+CLIENTS, LISTENERS, CELLS = 20, 5, 20
+THINK_S, POST_EVERY_S = 0.2, 0.5
+T0 = dt.datetime(2025, 1, 1, tzinfo=dt.UTC)
+
+
+@dataclass
+class Latencies:
+    """Seconds per request kind, and the answers that were not 2xx."""
+
+    by_kind: dict[str, list[float]] = field(default_factory=dict)
+    errors: dict[str, int] = field(default_factory=dict)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def add(self, kind: str, seconds: float, status: int) -> None:
+        with self.lock:
+            self.by_kind.setdefault(kind, []).append(seconds)
+            if status >= 300:
+                self.errors[kind] = self.errors.get(kind, 0) + 1
+
+
+# ---- seeding -------------------------------------------------------------------------------
+
+def _result() -> dict[str, Any]:
+    from tests.test_exports import full_result  # a complete cellcal/result@1 document
+
+    return full_result()
+
+
+def seed(url: str, *, first: int, count: int, stations: int) -> list[str]:
+    """Calibrations ``first`` .. ``first + count - 1``, each with its run of ``stations``
+    stations, one a minute from T0; activations every 10th; their ids."""
+    rng = np.random.default_rng(first)
+    result = _result()
+    engine = create_engine(url)
+    cal_ids = []
+    with engine.begin() as conn:
+        for start in range(first, first + count, 500):
+            runs, rows, cals, acts = [], [], [], []
+            for k in range(start, min(start + 500, first + count)):
+                at = T0 + dt.timedelta(minutes=k)
+                cell = f"cell-{k % CELLS:02d}"
+                run_id, cal_id = new_id(), new_id()
+                runs.append(dict(id=run_id, cell=cell, robot="mock://", state="done",
+                                 mode="robot", setup="eye_in_hand", poses=[[0.3] * 6] * stations,
+                                 target={"inner_corners": [11, 8], "square_size_m": 0.03},
+                                 created_at=at, updated_at=at))
+                corners = np.round(rng.uniform(0, 1280, (stations, 88, 2)), 2).tolist()
+                rows += [dict(run_id=run_id, index=i, state="captured", target_pose=[0.3] * 6,
+                              tcp_pose=[0.3] * 6, image_path=f"runs/{run_id}/{i:04d}.png",
+                              image_size=[1280, 1024], attempts=1, captured_at=at,
+                              detection={"ok": True, "corners": corners[i], "sharpness": 1.0})
+                         for i in range(stations)]
+                cals.append(dict(id=cal_id, cell=cell, run_id=run_id, state="done",
+                                 options={"method": "joint"}, result=result, created_at=at,
+                                 finished_at=at))
+                if (k // CELLS) % 10 == 0:  # each cell: every 10th calibration
+                    acts.append(dict(cell=cell, setup="eye_in_hand", robot="mock://",
+                                     calibration_id=cal_id, activated_at=at))
+                cal_ids.append(cal_id)
+            for table, values in ((RunRecord, runs), (StationRecord, rows),
+                                  (CalibrationRecord, cals), (ActivationRecord, acts)):
+                if values:
+                    conn.execute(insert(table.__table__), values)
+    _set_active(engine)
+    engine.dispose()
+    return cal_ids
+
+
+def _set_active(engine: Any) -> None:
+    """``active_calibrations`` from the newest activation per cell (as activating does)."""
+    from sqlalchemy import delete, func, select
+
+    with engine.begin() as conn:
+        conn.execute(delete(ActiveCalibrationRecord.__table__))
+        newest = select(func.max(ActivationRecord.id)).group_by(ActivationRecord.cell)
+        for row in conn.execute(select(ActivationRecord.__table__)
+                                .where(ActivationRecord.id.in_(newest))):
+            conn.execute(insert(ActiveCalibrationRecord.__table__).values(
+                cell=row.cell, setup=row.setup, calibration_id=row.calibration_id,
+                activation_id=row.id))
+
+
+# ---- load ----------------------------------------------------------------------------------
+
+def get_mix(cal_ids: list[str], run_ids: list[str], deep: str) -> list[tuple[str, Callable[
+        [random.Random], str]]]:
+    """(kind, path maker): the GETs a plant dashboard and the cells' controllers send."""
+    return [
+        ("GET /runs", lambda r: "/runs?limit=50"),
+        ("GET /runs/{id}", lambda r: f"/runs/{r.choice(run_ids)}"),
+        ("GET /calibrations", lambda r: "/calibrations?limit=50"),
+        ("GET /calibrations?cursor (deep)", lambda r: f"/calibrations?limit=50&cursor={deep}"),
+        ("GET /calibrations?cell&active",
+         lambda r: f"/calibrations?cell=cell-{r.randrange(CELLS):02d}&active=true"),
+        ("GET /calibrations/{id}", lambda r: f"/calibrations/{r.choice(cal_ids)}"),
+        ("GET /calibrations/active",
+         lambda r: f"/calibrations/active?cell=cell-{r.randrange(CELLS):02d}"),
+    ]
+
+
+@dataclass
+class Load:
+    """What the load threads share: the service, the measurements, the newest run."""
+
+    url: str
+    headers: dict[str, str]
+    out: Latencies = field(default_factory=Latencies)
+    stop: threading.Event = field(default_factory=threading.Event)
+    newest_run: list[str] = field(default_factory=list)
+
+    def client(self) -> httpx.Client:
+        return httpx.Client(base_url=self.url, headers=self.headers, timeout=30.0)
+
+
+def dashboard(ld: Load, mix: list[Any], seed_: int) -> None:
+    """One client: a GET from the mix, then a pause of about ``THINK_S``."""
+    rng = random.Random(seed_)
+    with ld.client() as c:
+        while not ld.stop.wait(THINK_S * rng.uniform(0.5, 1.5)):
+            kind, path = rng.choice(mix)
+            t0 = time.perf_counter()
+            r = c.get(path(rng))
+            ld.out.add(kind, time.perf_counter() - t0, r.status_code)
+
+
+def run_opener(ld: Load) -> None:
+    """Opens an external run and finishes it, every ``POST_EVERY_S``."""
+    with ld.client() as c:
+        while not ld.stop.wait(POST_EVERY_S):
+            t0 = time.perf_counter()
+            r = c.post("/runs", json={"mode": "external"})
+            ld.out.add("POST /runs", time.perf_counter() - t0, r.status_code)
+            if r.status_code == 201:
+                ld.newest_run[:] = [r.json()["id"]]
+                c.post(f"/runs/{r.json()['id']}/finish")
+
+
+def listener(ld: Load) -> None:
+    """Follows the newest run's event stream, again after each one ends."""
+    with ld.client() as c:
+        while not ld.stop.is_set():
+            if not ld.newest_run:
+                ld.stop.wait(0.1)
+                continue
+            with c.stream("GET", f"/runs/{ld.newest_run[0]}/events") as r:
+                for _ in r.iter_lines():
+                    if ld.stop.is_set():
+                        break
+
+
+def load(url: str, key: str, mix: list[Any], seconds: float) -> Latencies:
+    """The clients, listeners and run opener against ``url`` for ``seconds``."""
+    ld = Load(url, {"Authorization": f"Bearer {key}"})
+    threads = [threading.Thread(target=dashboard, args=(ld, mix, k)) for k in range(CLIENTS)]
+    threads += [threading.Thread(target=listener, args=(ld,)) for _ in range(LISTENERS)]
+    threads.append(threading.Thread(target=run_opener, args=(ld,)))
+    for t in threads:
+        t.start()
+    ld.stop.wait(seconds)
+    ld.stop.set()
+    for t in threads:
+        t.join(60.0)
+    return ld.out
+
+
+# ---- the two databases ---------------------------------------------------------------------
+
+@contextlib.contextmanager
+def database(kind: str, tmp: Path) -> Iterator[str]:
+    """A new empty database of ``kind`` at the newest schema; its URL."""
+    if kind == "sqlite":
+        url = f"sqlite:///{tmp / 'history.db'}"
+        Database(url).close()
+        yield url
+        return
+    from tests.support.postgres import PostgresServer
+
+    server = PostgresServer().start()
+    try:
+        url = server.url(server.create_database("history"))
+        Database(url).close()
+        yield url
+    finally:
+        server.stop()
+
+
+@dataclass(frozen=True)
+class Level:
+    backend: str
+    calibrations: int
+    stations: int
+    latencies: Latencies
+    #: The machine's 1-minute load average at the end of the load (2 cores: above 2, the
+    #: service waited for CPU).
+    load_average: float
+
+
+def measure(kind: str, levels: tuple[int, int], stations: int, seconds: float) -> list[Level]:
+    """Seed, serve and load one database at both history sizes."""
+    from service.serving.local import ServeOptions, local_service
+
+    key = secrets.token_urlsafe(24)
+    found: list[Level] = []
+    with tempfile.TemporaryDirectory(prefix="cellcal-history-") as tmp_dir, \
+            database(kind, Path(tmp_dir)) as url:
+        cal_ids: list[str] = []
+        for level in levels:
+            t0 = time.perf_counter()
+            cal_ids += seed(url, first=len(cal_ids), count=level - len(cal_ids),
+                            stations=stations)
+            print(f"  {kind}: {level:,} calibrations seeded ({time.perf_counter() - t0:.0f} s)",
+                  flush=True)
+            env = {**_env(), "CELLCAL_DATABASE_URL": url, "CELLCAL_CELL": "cell-00"}
+            with local_service(Path(tmp_dir) / "data", key,
+                               ServeOptions(env=env, startup_timeout=60.0)) as svc:
+                run_ids = [run["id"] for run in httpx.get(
+                    f"{svc.url}/runs?limit=500", headers={"Authorization": f"Bearer {key}"},
+                    timeout=30).json()]
+                deep = _deep_cursor(url, cal_ids)
+                measured = load(svc.url, key, get_mix(cal_ids, run_ids, deep), seconds)
+                found.append(Level(kind, level, level * stations, measured,
+                                   os.getloadavg()[0]))
+    return found
+
+
+def _deep_cursor(url: str, cal_ids: list[str]) -> str:
+    """A cursor near the oldest end of the history (the page a deep scroll reads)."""
+    from sqlalchemy.orm import Session
+
+    engine = create_engine(url)
+    with Session(engine) as s:
+        cal = s.get(CalibrationRecord, cal_ids[len(cal_ids) // 20])
+        cursor = Cursor.of(cal).encode()
+    engine.dispose()
+    return cursor
+
+
+def _env() -> dict[str, str]:
+    from benchmarks.service_loop import clean_env
+
+    return clean_env()
+
+
+# ---- report --------------------------------------------------------------------------------
+
+def _ms(values: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values) * 1e3, q)) if values else float("nan")
+
+
+def report(levels: list[Level]) -> bool:
+    """The table, the verdicts and the figure; True if every target is met."""
+    kinds = sorted({k for lv in levels for k in lv.latencies.by_kind})
+    print(f"\n{'database':10} {'calibrations':>12} {'request':34} {'n':>6} {'p50 ms':>8} "
+          f"{'p99 ms':>8} {'non-2xx':>7}")
+    for lv in levels:
+        for kind in kinds:
+            got = lv.latencies.by_kind.get(kind, [])
+            print(f"{lv.backend:10} {lv.calibrations:>12,} {kind:34} {len(got):>6} "
+                  f"{_ms(got, 50):>8.1f} {_ms(got, 99):>8.1f} "
+                  f"{lv.latencies.errors.get(kind, 0):>7}")
+    ok = True
+    for backend in dict.fromkeys(lv.backend for lv in levels):
+        small, large = (lv for lv in levels if lv.backend == backend)
+        gets = {lv.calibrations: [x for k, v in lv.latencies.by_kind.items()
+                                  if k.startswith("GET") for x in v] for lv in (small, large)}
+        p99_small, p99_large = (_ms(gets[lv.calibrations], 99) for lv in (small, large))
+        growth = p99_large / p99_small
+        met = p99_large < TARGET_P99_MS and growth <= TARGET_GROWTH
+        ok &= met
+        n_gets = sum(len(v) for v in gets.values())
+        print(f"{backend}: all GETs p99 {p99_small:.1f} ms at {small.calibrations:,}, "
+              f"{p99_large:.1f} ms at {large.calibrations:,} ({growth:.2f}x; {n_gets} GETs, "
+              f"load average {small.load_average:.1f} / {large.load_average:.1f}): "
+              f"{'met' if met else 'NOT met'} (target < {TARGET_P99_MS:g} ms, "
+              f"<= {TARGET_GROWTH}x)")
+    _plot(levels, kinds)
+    return ok
+
+
+def _plot(levels: list[Level], kinds: list[str]) -> None:
+    OUT.mkdir(exist_ok=True)
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5), sharey=True)
+    backends = list(dict.fromkeys(lv.backend for lv in levels))
+    for ax, backend in zip(axes, backends, strict=False):
+        mine = [lv for lv in levels if lv.backend == backend]
+        y = np.arange(len(kinds))
+        for j, lv in enumerate(mine):
+            ax.barh(y + 0.4 * j, [_ms(lv.latencies.by_kind.get(k, []), 99) for k in kinds],
+                    height=0.4, label=f"{lv.calibrations:,} calibrations")
+        ax.axvline(TARGET_P99_MS, color="k", ls="--", lw=1, label="target")
+        ax.set_yticks(y + 0.2, kinds)
+        ax.set_xlabel("p99 latency (ms)")
+        ax.set_title(f"{backend}: {CLIENTS} clients, {LISTENERS} SSE listeners")
+        ax.legend(loc="lower right", fontsize=8, framealpha=0.9)
+    fig.tight_layout()
+    fig.savefig(OUT / "service_history.png", dpi=110)
+    print(f"wrote {OUT / 'service_history.png'}")
+
+
+def run_history(*, quick: bool, seconds: float | None) -> int:
+    levels, stations = ((200, 2000), 5) if quick else ((1000, 10000), 20)
+    found: list[Level] = []
+    for kind in ("sqlite", "postgresql"):
+        found += measure(kind, levels, stations, seconds or (8.0 if quick else 30.0))
+    return 0 if report(found) else 1
