@@ -50,6 +50,7 @@ from service.settings import Settings
 from service.store.db import TRANSIENT_ERRORS, DatabaseUnavailableError
 from service.version import software_version
 from service.web import mount_page
+from service.web.docs_page import mount_redoc
 
 log = logging.getLogger("cellcal.service")
 
@@ -88,13 +89,14 @@ def create_app(settings: Settings | None = None, *,
 
     # Swagger UI and ReDoc from assets shipped in fastapi_offline: /docs works without internet
     app = FastAPIOffline(
-        title="cellcal", version=software_version(), lifespan=lifespan,
+        redoc_url=None, title="cellcal", version=software_version(), lifespan=lifespan,
         description="Capture calibration stations with a robot and a camera, compute the "
                     "camera intrinsics and the hand-eye transform. Every call but /health "
                     "needs `Authorization: Bearer <CELLCAL_API_KEY>`. Units: metres and "
                     "radians; poses are UR vectors [x, y, z, rx, ry, rz] (T_base_tcp).")
     app.state.settings = settings
     mount_page(app)
+    mount_redoc(app)
     app.include_router(health.router)
     # active before calibrations: /calibrations/active is not a calibration id
     for module in (runs, stations, active, calibrations, validations, devices, metrics):

@@ -7,7 +7,7 @@ as everywhere in cellcal (``docs/conventions.md``).
 from __future__ import annotations
 
 import datetime as dt
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from fastapi import Path as PathParam
@@ -37,15 +37,16 @@ class _Input(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True)
 
 
-def _only(mode: str | None, given: str | None) -> dict[str, Any]:
+def _only(mode: str | None, given: str | None, title: str) -> dict[str, Any]:
     """The JSON schema of a run-creation body with ``mode`` and exactly ``given`` of
-    stations / poses / tolerance_mm (None: neither); a tolerance goes with tolerance_deg."""
+    stations / poses / tolerance_mm (None: neither); a tolerance goes with tolerance_deg.
+    ``title`` names the shape in the docs (ReDoc shows an untitled branch as "object")."""
     kinds = {"stations": {"type": "integer"}, "poses": {"type": "array"},
              "tolerance_mm": {"type": "number"}}
     props: dict[str, Any] = {k: v if k == given else {"type": "null"} for k, v in kinds.items()}
     if given != "tolerance_mm":
         props |= {"tolerance_deg": {"type": "null"}, "max_stations": {"type": "null"}}
-    branch: dict[str, Any] = {"properties": props}
+    branch: dict[str, Any] = {"title": title, "properties": props}
     if mode == "external":
         props["mode"] = {"const": "external"}
         branch["required"] = ["mode"]
@@ -63,8 +64,26 @@ class RunCreate(_Input):
 
     # the rule of ``_one_plan`` in the OpenAPI document: exactly one of the four shapes
     model_config = ConfigDict(json_schema_extra={"oneOf": [
-        _only("robot", "stations"), _only("robot", "poses"), _only("robot", "tolerance_mm"),
-        _only("external", None)]})
+        _only("robot", "stations", "planned stations"), _only("robot", "poses", "pose list"),
+        _only("robot", "tolerance_mm", "planned to a tolerance"),
+        _only("external", None, "external")]})
+
+    #: A valid body of each shape, shown in the API docs instead of one generated from the
+    #: schema (which mixed the shapes into a body the service refuses).
+    EXAMPLES: ClassVar[dict[str, dict[str, Any]]] = {
+        "planned": {"summary": "15 stations planned automatically",
+                    "value": {"stations": 15}},
+        "tolerance": {"summary": "planned until the hand-eye's 1-sigma meets a tolerance",
+                      "value": {"tolerance_mm": 0.5, "tolerance_deg": 0.05,
+                                "max_stations": 40}},
+        "poses": {"summary": "the given TCP poses, in order",
+                  "value": {"poses": [[0.4, -0.1, 0.5, 0.0, 3.1416, 0.0],
+                                      [0.45, -0.1, 0.5, 0.1, 3.1, 0.0],
+                                      [0.4, -0.05, 0.55, 0.0, 3.1, 0.1]]}},
+        "external": {"summary": "a cell controller moves the robot and posts the stations",
+                     "value": {"mode": "external", "target": {
+                         "type": "checkerboard", "inner_corners": [11, 8],
+                         "square_size_m": 0.03}}}}
 
     mode: Literal["robot", "external"] = Field(
         "robot", description="robot: the service moves the robot through the stations; "

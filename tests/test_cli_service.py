@@ -77,6 +77,8 @@ def test_run_calibrate_activate_export(served: LocalService, tmp_path: Path) -> 
     assert json.loads(cellcal("calibrations", "show", cal_id, url=url).stdout) == cal
     listed = cellcal("calibrations", "list", "--run", run_id, url=url).stdout.splitlines()
     assert [line.split()[:3] for line in listed[1:]] == [[cal_id, run_id, "done"]]
+    rms = listed[1].split()[4]  # rounded, not 17 digits (issue 19)
+    assert rms == f"{cal['result']['camera']['rms_px']:.3f}", listed
 
     activated = cellcal("calibrations", "activate", cal_id, url=url)
     assert activated.stdout == f"calibration {cal_id} is the active calibration of mock://\n"
@@ -98,6 +100,25 @@ def test_cancel_an_external_run(served: LocalService) -> None:
     cancelled = cellcal("runs", "cancel", run_id, url=served.url)
     assert cancelled.stdout == f"run {run_id}: cancelled\n"
     assert rest(served, f"/runs/{run_id}").json()["state"] == "cancelled"
+
+
+def test_start_with_a_target(served: LocalService, tmp_path) -> None:
+    """``cellcal runs start --target``, inline or from a file (issue 19)."""
+    board = {"type": "checkerboard", "inner_corners": [9, 6], "square_size_m": 0.025}
+    inline = cellcal("runs", "start", "--external", "--target", json.dumps(board),
+                     url=served.url)
+    assert inline.returncode == 0, inline.stderr
+    run_id = inline.stdout.strip()
+    assert rest(served, f"/runs/{run_id}").json()["target"]["inner_corners"] == [9, 6]
+    cellcal("runs", "cancel", run_id, url=served.url)
+    (tmp_path / "board.json").write_text(json.dumps(board | {"square_size_m": 30}))
+    refused = cellcal("runs", "start", "--external", "--target", str(tmp_path / "board.json"),
+                      url=served.url)
+    assert refused.returncode == EXIT_FAILED
+    assert_one_line_error(refused.stderr, "millimetres? 30 mm is 0.03 m")
+    unreadable = cellcal("runs", "start", "--external", "--target", "{9, 6}", url=served.url)
+    assert unreadable.returncode == 2
+    assert_one_line_error(unreadable.stderr, "--target: not JSON")
 
 
 def test_service_down_is_one_line() -> None:

@@ -139,6 +139,19 @@ def test_run_body_schema_says_exactly_one_of_stations_or_poses(doc: dict[str, An
     assert len(doc["components"]["schemas"]["RunCreate"]["oneOf"]) == 4
 
 
+def test_docs_show_named_shapes_and_valid_sample_bodies(doc: dict[str, Any]) -> None:
+    """Issue 19: ReDoc named every shape of the run body "object" and showed a sample body
+    mixing them, which the service refuses."""
+    titles = [branch.get("title") for branch in doc["components"]["schemas"]["RunCreate"]["oneOf"]]
+    assert None not in titles and len(set(titles)) == len(titles)
+    examples = doc["paths"]["/runs"]["post"]["requestBody"]["content"]["application/json"][
+        "examples"]
+    assert len(examples) == 4
+    for example in examples.values():
+        assert _accepts(RunCreate, example["value"]), example
+        assert body_schema(doc, "RunCreate").is_valid(example["value"])
+
+
 @pytest.mark.parametrize("body", [{}, {"stations": 3}, {"poses": [[0.1] * 6]},
                                   {"stations": 3, "poses": [[0.1] * 6]},
                                   {"stations": 3, "poses": None}])

@@ -29,7 +29,7 @@ from service.errors import AuthError, ServiceError
 #: Paths served without a key: liveness, the API documentation and the web page (its data
 #: calls need the key).
 OPEN_PATHS = frozenset({"/health", "/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json",
-                        "/", "/ui"})
+                        "/", "/ui", "/redoc/bundle.js", "/favicon.ico"})
 #: Static assets served without a key: the web page's and the offline docs' (no data in them).
 OPEN_PREFIXES = ("/ui/", "/static-offline-docs/")
 

@@ -7,7 +7,7 @@ import tempfile
 from pathlib import Path
 from typing import Annotated
 
-from fastapi import APIRouter, Query, Request, Response, status
+from fastapi import APIRouter, Body, Query, Request, Response, status
 from fastapi.responses import FileResponse, StreamingResponse
 from starlette.background import BackgroundTask
 
@@ -56,7 +56,8 @@ def runs_public(session: SessionDep, runs: list[RunRecord]) -> list[RunPublic]:
 @router.post("", status_code=status.HTTP_201_CREATED, responses={
     409: {"description": "the robot already has an active run"},
     422: {"description": "malformed body, pose outside the workspace, no planning"}})
-def create_run(body: RunCreate, runs: RunsDep) -> Created:
+def create_run(body: Annotated[RunCreate, Body(openapi_examples=RunCreate.EXAMPLES)],
+               runs: RunsDep) -> Created:
     """Create a capture run and start capturing in the background."""
     return Created(id=runs.create(body).id)
 

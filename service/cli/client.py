@@ -190,10 +190,16 @@ def print_json(value: Any) -> None:
     sys.stdout.write(json.dumps(value, indent=2) + "\n")
 
 
+def _cell(value: Any) -> str:
+    """A table cell: - for None, a float to 3 decimals (an RMS in px, not 17 digits)."""
+    if value is None:
+        return "-"
+    return f"{value:.3f}" if isinstance(value, float) else str(value)
+
+
 def print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:
-    """Rows as a plain text table on stdout (None shown as -)."""
-    cells = [[("-" if row.get(c) is None else str(row.get(c))) for c in columns]
-             for row in rows]
+    """Rows as a plain text table on stdout (None shown as -, numbers with 3 decimals)."""
+    cells = [[_cell(row.get(c)) for c in columns] for row in rows]
     widths = [max([len(c), *(len(r[i]) for r in cells)]) for i, c in enumerate(columns)]
     for line in ([columns, *cells]):
         sys.stdout.write("  ".join(v.ljust(w) for v, w in zip(line, widths, strict=True))

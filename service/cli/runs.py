@@ -46,6 +46,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="... and its rotation's within DEG degrees")
     start.add_argument("--max-stations", type=int, metavar="N",
                        help="with a tolerance: stop after N stations at the latest (default 40)")
+    start.add_argument("--target", metavar="JSON|FILE",
+                       help="the board, as in a station set: a JSON object such as "
+                            "'{\"type\": \"checkerboard\", \"inner_corners\": [9, 6], "
+                            "\"square_size_m\": 0.025}', or a file holding one (default: "
+                            "the service's configured board)")
     start.add_argument("--wait", action="store_true",
                        help="follow the run until it ends, with a progress bar")
     for name, what in (("pause", "stop after the station in progress"),
@@ -87,6 +92,8 @@ def _start(service: client.Service, args: argparse.Namespace) -> int:
             body["max_stations"] = args.max_stations
     else:
         body = {"poses": _read_poses(args.poses)}
+    if args.target is not None:
+        body["target"] = _read_target(args.target)
     run_id = service.post("/runs", body)["id"]
     print(run_id)
     if not args.wait:
@@ -101,6 +108,20 @@ def _start(service: client.Service, args: argparse.Namespace) -> int:
           + (f", stopped: {stop}" if stop else "")
           + (f" ({error['detail']})" if error.get("detail") else ""), file=sys.stderr)
     return 0 if final["state"] == "done" else EXIT_FAILED
+
+
+def _read_target(value: str) -> dict[str, Any]:
+    """``--target``: a JSON object given inline or in a file (the service checks its fields)."""
+    text = value if value.lstrip().startswith("{") else _read_text(Path(value), "--target")
+
+    try:
+        target = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"--target: not JSON ({exc.msg} at character {exc.pos})") from None
+    if not isinstance(target, dict):
+        raise ValueError("--target: a JSON object is needed, e.g. {\"type\": \"checkerboard\", "
+                         "\"inner_corners\": [9, 6], \"square_size_m\": 0.025}")
+    return target
 
 
 class StationCount:
@@ -123,8 +144,16 @@ class StationCount:
 
 def _read_poses(path: Path) -> Any:
     try:
-        return json.loads(path.read_text())
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        return json.loads(_read_text(path, "--poses"))
+    except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: not JSON ({exc})") from None
+
+
+def _read_text(path: Path, option: str) -> str:
+    """The text of the file an option names; ``ValueError`` with one line if unreadable."""
+    try:
+        return path.read_text()
+    except OSError as exc:
+        raise ValueError(f"{option} {path}: cannot read ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{option} {path}: not a text file ({exc.reason})") from None

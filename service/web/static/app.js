@@ -303,7 +303,7 @@ async function showCalibration(calId) {
     findings: r.quality?.findings?.map((f) => `${f.severity}: ${f.message}`).join("\n"),
     "reprojection RMS (px)": r.camera?.rms_px?.toFixed(3),
     "predicted from robot poses, RMS (px)": r.cross_validation?.rms_px?.toFixed(3),
-    "board scale κ / shear ν": r.target && `${r.target.kappa?.toFixed(5)} / ${r.target.nu?.toFixed(5)}`,
+    "board scale κ / aspect ratio ν": r.target && `${r.target.kappa?.toFixed(5)} / ${r.target.nu?.toFixed(5)}`,
     [`hand-eye (${r.setup === "eye_to_hand" ? "base → camera" : "tool → camera"}) x / y / z (mm)`]:
       mm(pose?.slice(0, 3)),
     "hand-eye rotation vector rx / ry / rz (deg)": deg(pose?.slice(3)),
