@@ -16,7 +16,12 @@ from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
 from service.metrics import CONTENT_TYPE_LATEST
-from service.store.records import CalibrationRecord, RunRecord, StationRecord
+from service.store.records import (
+    CalibrationRecord,
+    RunRecord,
+    StationRecord,
+    ValidationRecord,
+)
 from tests.test_exports import full_result
 from tests.test_service_api import (
     CELL,
@@ -277,3 +282,31 @@ def test_metrics_of_an_empty_service_and_after_a_run(client: TestClient) -> None
 
 def test_metrics_need_the_key(client: TestClient) -> None:
     assert client.get("/metrics", headers={"Authorization": ""}).status_code == 401
+
+
+@pytest.mark.timeout(120)
+def test_a_bad_last_event_id_on_a_validation_stream_is_ignored(client: TestClient) -> None:
+    """The third kind of stream (issue 22, row 10): a finished validation's stream is its
+    final state whatever the header; a running one's starts with its state."""
+    with client.app.state.db.session() as s:
+        run = RunRecord(cell=CELL, robot="mock://", state="done", setup="eye_in_hand",
+                        mode="robot", target={}, poses=[])
+        s.add(run)
+        s.flush()
+        cal = CalibrationRecord(cell=CELL, run_id=run.id, state="done", options={})
+        s.add(cal)
+        s.flush()
+        done, running = (ValidationRecord(cell=CELL, robot="mock://", calibration_id=cal.id,
+                                          kind="check", state=state) for state in
+                         ("done", "running"))
+        s.add_all([done, running])
+        s.commit()
+        done_id, running_id = done.id, running.id
+    path = "/validations/{}/events"
+    final = read_events(client, done_id, path=path)
+    assert [(kind, data["state"]) for _, kind, data in final] == [("state", "done")]
+    for header in (*BAD_EVENT_IDS, str(final[0][0] + 1)):
+        assert read_events(client, done_id, path=path, last_event_id=header) == final
+        first = read_events(client, running_id, path=path, last_event_id=header,
+                            until=lambda events: True)
+        assert [(kind, data["state"]) for _, kind, data in first] == [("state", "running")]
