@@ -157,11 +157,11 @@ def test_a_tolerance_run_from_the_command_line(served: LocalService) -> None:
     """``runs start --tolerance-mm --tolerance-deg --wait``: the run plans from a cold start
     until the hand-eye's σ meets the tolerance or its station limit; the bar shows the σ."""
     started = cellcal("runs", "start", "--tolerance-mm", "2", "--tolerance-deg", "0.2",
-                      "--max-stations", "12", "--wait", url=served.url)
+                      "--max-stations", "8", "--wait", url=served.url)
     assert started.returncode == 0, started.stderr
     run = rest(served, f"/runs/{started.stdout.strip()}").json()
     cold = run["cold_start"]
-    assert cold["stop_rule"] == {"tolerance_mm": 2.0, "tolerance_deg": 0.2, "max_stations": 12}
+    assert cold["stop_rule"] == {"tolerance_mm": 2.0, "tolerance_deg": 0.2, "max_stations": 8}
     assert cold["stop_reason"] in ("tolerance_met", "max_stations")
     assert f"stopped: {cold['stop_reason']}" in started.stderr
     assert "tolerance 0.2° / 2 mm" in started.stderr  # the σ against the tolerance, live

@@ -246,7 +246,7 @@ def test_a_tolerance_run_from_the_page_plots_sigma_against_it(served: LocalServi
                          ".textContent === 'connected'")
         browser.click("#use-tolerance")
         for selector, value in (("#tolerance-mm", "2"), ("#tolerance-deg", "0.2"),
-                                ("#max-stations", "10")):
+                                ("#max-stations", "8")):
             browser.js(f"document.querySelector('{selector}').value = ''")
             browser.type(selector, value)
         browser.click("#run-form button")
@@ -270,4 +270,4 @@ def test_a_tolerance_run_from_the_page_plots_sigma_against_it(served: LocalServi
     run_id = httpx.get(f"{served.url}/runs?limit=1", headers=AUTH).json()
     run = run_id[0] if isinstance(run_id, list) else run_id["items"][0]
     assert run["cold_start"]["stop_rule"] == {"tolerance_mm": 2.0, "tolerance_deg": 0.2,
-                                              "max_stations": 10}
+                                              "max_stations": 8}
