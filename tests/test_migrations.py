@@ -145,3 +145,11 @@ def test_serve_refuses_an_old_database_and_names_the_upgrade(
     assert capsys.readouterr().out.split()[0] == migrations.head()
     assert main(["db", "upgrade"]) == 0
     assert f"already at schema revision {migrations.head()}" in capsys.readouterr().err
+
+
+def test_a_url_as_libpq_writes_it_opens(url: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """``postgresql://...`` (no driver named, as pg_dump and psql take it) means psycopg 3."""
+    plain = url.replace("postgresql+psycopg://", "postgresql://")
+    Database(plain).close()
+    assert main(["db", "current", "--url", plain]) == 0
+    assert capsys.readouterr().out.split()[0] == migrations.head()

@@ -26,9 +26,10 @@ def run(args: argparse.Namespace) -> int:
     from sqlalchemy.exc import SQLAlchemyError
 
     from service import migrations
+    from service.store.db import with_driver
 
     url = args.url or _service_database()
-    engine = create_engine(url)
+    engine = create_engine(with_driver(url))
     where = engine.url.render_as_string(hide_password=True)
     try:
         if args.action == "upgrade":

@@ -9,7 +9,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, TypeVar
 
-from sqlalchemy import Engine, create_engine, event
+from sqlalchemy import URL, Engine, create_engine, event, make_url
 from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -57,6 +57,14 @@ def retry_transient(transaction: Callable[[], T], *, budget_s: float, what: str,
         delay = min(2.0 * delay, _MAX_DELAY_S)
 
 
+def with_driver(url: str) -> URL:
+    """The URL with the PostgreSQL driver cellcal ships (psycopg 3) when it names none:
+    ``postgresql://...`` as libpq and ``pg_dump`` write it works as it is."""
+    parsed = make_url(url)
+    return parsed.set(drivername="postgresql+psycopg") if parsed.drivername in (
+        "postgresql", "postgres") else parsed
+
+
 class Database:
     """Engine plus session factory. Opens a database at the newest schema revision, creating
     an empty one there; refuses an older one (``migrations.SchemaOutdatedError``: run
@@ -71,7 +79,8 @@ class Database:
         connect_args: dict[str, Any] = (
             {"check_same_thread": False, "timeout": busy_timeout_s} if is_sqlite else {})
         # pre-ping: a connection dropped by a restarted server is replaced, not handed out
-        self.engine: Engine = create_engine(url, connect_args=connect_args, pool_pre_ping=True)
+        self.engine: Engine = create_engine(with_driver(url), connect_args=connect_args,
+                                            pool_pre_ping=True)
         if is_sqlite:
             event.listen(self.engine, "connect", _sqlite_pragmas)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
