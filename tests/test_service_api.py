@@ -452,7 +452,6 @@ def test_events_of_a_finished_run_end_with_its_state(client: TestClient) -> None
     assert '"state": "done"' in text and '"stations_captured": 3' in text
 
 
-@pytest.mark.pg_fast
 @pytest.mark.timeout(240)
 def test_calibration_of_a_run(client: TestClient) -> None:
     run_id = start_run(client, 8)
