@@ -48,6 +48,7 @@ from service.errors import (
 from service.runtime import Runtime
 from service.settings import Settings
 from service.store.db import TRANSIENT_ERRORS, DatabaseUnavailableError
+from service.store.storage import STORAGE_ERRNOS, StorageError, storage_error
 from service.version import software_version
 from service.web import mount_page
 from service.web.docs_page import mount_redoc
@@ -64,6 +65,7 @@ ERROR_STATUS: dict[type[Exception], int] = {
     QueueFullError: 429,
     WorkspaceError: 422,
     DeviceError: 503,
+    StorageError: 503,
     ServiceError: 400,
 }
 _HTTP_CODES = {404: "not_found", 405: "method_not_allowed"}
@@ -147,7 +149,11 @@ async def _database_error(request: Request, exc: Exception) -> JSONResponse:
 
 
 async def _internal_error(request: Request, exc: Exception) -> JSONResponse:
-    """Anything unforeseen still gets the JSON error body (the traceback goes to the log)."""
+    """Anything unforeseen still gets the JSON error body (the traceback goes to the log); a
+    file that cannot be written (read-only or full data directory) is 503, not 500."""
+    if isinstance(exc, OSError) and exc.errno in STORAGE_ERRNOS:
+        log.error("%s %s: %s", request.method, request.url.path, exc)
+        return error_response(storage_error(exc, "The data directory cannot be written"))
     log.error("%s %s: %s: %s", request.method, request.url.path, type(exc).__name__, exc)
     return _error(500, f"Internal error ({type(exc).__name__}); see the service log.",
                   "internal_error")

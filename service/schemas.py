@@ -395,8 +395,12 @@ class DevicesPublic(BaseModel):
 
 
 class Health(BaseModel):
-    status: Literal["ok"] = "ok"
+    status: Literal["ok", "degraded"] = Field(
+        "ok", description="degraded: the service answers, but its data directory takes no "
+                          "writes (new runs are refused 503 until it is fixed)")
     version: str
+    problem: ErrorInfo | None = Field(None, description="what is degraded (storage_unavailable, "
+                                                        "disk_full)")
 
 
 class ExportQuery(BaseModel):

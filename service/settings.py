@@ -102,6 +102,9 @@ class Settings(BaseSettings):
     image_cpu_s: Annotated[float, Field(gt=0.0)] = Field(
         60.0, description="CPU seconds the board search of one posted image may take (422 "
                           "image_too_complex beyond)")
+    min_free_mb: Annotated[int, Field(ge=0)] = Field(
+        64, description="free space the data directory's disk must keep: below it, runs fail "
+                        "with disk_full, new runs are refused 503 and /health is degraded")
     settle_timeout_s: Annotated[float, Field(gt=0.0)] = 5.0
     grab_timeout_s: Annotated[float, Field(gt=0.0)] = 2.0
     move_speed: Annotated[float, Field(gt=0.0, le=1.0)] = 0.25

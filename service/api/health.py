@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Request
 
-from service.schemas import Health
+from service.schemas import ErrorInfo, Health
 from service.version import software_version
 
 router = APIRouter(tags=["health"])
 
 
 @router.get("/health")
-def health() -> Health:
-    """The service is up and answering."""
-    return Health(version=software_version())
+def health(request: Request) -> Health:
+    """The service is up and answering; ``degraded`` (still 200) while its data directory
+    takes no writes, with the reason."""
+    runtime = getattr(request.app.state, "runtime", None)
+    problem = None if runtime is None else runtime.motion.storage.problem()
+    if problem is None:
+        return Health(version=software_version())
+    return Health(status="degraded", version=software_version(),
+                  problem=ErrorInfo(code=problem.code, detail=str(problem)))

@@ -30,6 +30,7 @@ from service.store import queries
 from service.store.db import Database
 from service.store.instances import describe
 from service.store.records import RunRecord, ValidationRecord
+from service.store.storage import Storage
 
 
 class Motion:
@@ -42,6 +43,8 @@ class Motion:
         self.devices = devices
         #: This service's instance (``service.store.instances``): its jobs' rows name it.
         self.instance_id = instance_id
+        #: The data directory's health, checked before each station and each new job.
+        self.storage = Storage(settings)
         #: Held by the one thread that drives the robot.
         self.robot_lock = threading.Lock()
         #: Set at shutdown: motion threads take no new step.

@@ -188,7 +188,7 @@ def _from_json(values: dict[str, Any]) -> dict[str, Any]:
 
 def _write_atomically(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` through a temporary file, synced, then renamed."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path.parent.mkdir(exist_ok=True)  # not a deleted data directory
     tmp = path.with_suffix(".tmp")
     with tmp.open("w") as f:
         f.write(text)

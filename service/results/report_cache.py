@@ -68,7 +68,7 @@ class Reports:
         """Write a rendered page to the cache (best effort), then let new requests read it."""
         try:
             if future.exception() is None:
-                self.dir.mkdir(parents=True, exist_ok=True)
+                self.dir.mkdir(exist_ok=True)  # not a deleted data directory
                 tmp = self.cached(cal_id).with_suffix(".tmp")
                 tmp.write_text(future.result())
                 os.replace(tmp, self.cached(cal_id))

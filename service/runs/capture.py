@@ -56,6 +56,7 @@ from service.store import queries
 from service.store.db import DatabaseUnavailableError, retry_transient
 from service.store.records import RunRecord, StationRecord, Topic
 from service.store.stations import row_values, run_target
+from service.store.storage import StorageError, storage_error
 
 log = logging.getLogger("cellcal.service")
 T = TypeVar("T")
@@ -105,11 +106,10 @@ def _stops_run(exc: DeviceError) -> bool:
 
 
 def write_png(path: Path, image: np.ndarray) -> None:
-    """Write a PNG atomically (temporary file, then rename)."""
+    """Write a PNG atomically (temporary file, then rename) into an existing folder."""
     ok, data = cv2.imencode(".png", image)
     if not ok:
         raise OSError(f"could not encode the image for {path}")
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".png.tmp")
     tmp.write_bytes(data.tobytes())
     os.replace(tmp, path)
@@ -148,6 +148,9 @@ class Capture:
             # whatever the fault, the next run or resume opens the devices afresh (a camera
             # unplugged and plugged in again, a robot that dropped its connection)
             self.motion.devices.reset()
+            self.finish("failed", str(exc), exc.code)
+        except StorageError as exc:
+            log.error("run %s failed: %s", self.run_id, exc)
             self.finish("failed", str(exc), exc.code)
         except DatabaseUnavailableError as exc:
             log.error("run %s interrupted: %s", self.run_id, exc)
@@ -411,10 +414,16 @@ class Capture:
         the run row), so a station is never committed after a cancel, a pause or a takeover
         has been committed.
         """
+        self.motion.storage.check()  # a data directory deleted, read-only or full
         rel = None
         if isinstance(station.image, np.ndarray):
             rel = Path("runs") / self.run_id / f"{shot.index:03d}-{self.token[:8]}.png"
-            write_png(self.data_dir / rel, station.image)
+            try:
+                for folder in (self.data_dir / "runs", self.data_dir / rel.parent):
+                    folder.mkdir(exist_ok=True)  # never the data directory itself
+                write_png(self.data_dir / rel, station.image)
+            except OSError as exc:
+                raise storage_error(exc, f"writing the image of station {shot.index}") from exc
         row = row_values(station)
 
         def commit(s: Session) -> bool:

@@ -71,6 +71,7 @@ class ExternalStations:
     def add(self, run_id: str, posted: PostedStation) -> StationRecord:
         """Store one posted station of an external run that accepts stations; the row."""
         pose, joints = _checked(posted)
+        self.motion.storage.check()
         if posted.image is not None:  # before anything else: a refusal costs nothing
             check_pixels(posted.image, self.motion.settings.max_image_pixels)
         with self.motion.db.session() as s:

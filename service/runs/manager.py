@@ -28,7 +28,9 @@ class RunManager(MotionJobs):
         self.external = ExternalStations(motion, events)
 
     def create(self, body: RunCreate) -> RunRecord:
-        """Validate the plan, store the run and start capturing; 409 if the robot is busy."""
+        """Validate the plan, store the run and start capturing; 409 if the robot is busy,
+        503 while the data directory takes no writes."""
+        self.motion.storage.check()
         target = body.target or self.settings.run_target()
         setup = self.settings.calibration_setup()
         cold_start = None

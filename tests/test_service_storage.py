@@ -1,0 +1,114 @@
+"""Storage faults are loud (issue 22, rows 5 and 8; ``service.store.storage``).
+
+A deleted data directory went unnoticed, a full disk showed ``capturing`` for 145 s and then
+``internal_error``, cancel answered 503, and a read-only directory made the station-set
+download a 500. Here each fault is made for real where a test can (the directory is deleted)
+and through the storage check's seams where it cannot (no tmpfs in a test: the free space and
+the writers' ``OSError`` are provoked); ``tools/storage-faults`` does the real tmpfs and
+read-only mount as root.
+"""
+
+from __future__ import annotations
+
+import errno
+import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.app import create_app
+from service.runs import capture
+from service.store import storage
+from tests.test_service_api import AUTH, finished, poses, settings, start_run, wait_run
+from tests.test_service_external import external_run, post, robot_pose
+
+
+@contextmanager
+def service(tmp_path: Path) -> Iterator[TestClient]:
+    """A service whose data directory is ``tmp_path / "data"`` and whose database is beside
+    it (so the run's fate stays readable when the directory goes)."""
+    app = create_app(settings(tmp_path / "data",
+                              database_url=f"sqlite:///{tmp_path / 'cellcal.db'}"))
+    with TestClient(app, raise_server_exceptions=False) as client:
+        client.headers.update(AUTH)
+        yield client
+
+
+def refused(r: Any, code: str) -> None:
+    assert r.status_code == 503, r.text
+    assert r.json()["code"] == code
+
+
+def degraded(client: TestClient, code: str) -> None:
+    health = client.get("/health")
+    assert health.status_code == 200
+    assert health.json()["status"] == "degraded"
+    assert health.json()["problem"]["code"] == code
+
+
+@pytest.mark.timeout(120)
+def test_a_deleted_data_directory_fails_the_run_and_new_ones(tmp_path: Path) -> None:
+    with service(tmp_path) as client:
+        assert client.get("/health").json()["status"] == "ok"
+        run_id = start_run(client, 40)
+        wait_run(client, run_id, lambda r: r["stations_captured"] >= 2)
+        shutil.rmtree(tmp_path / "data")
+        run = wait_run(client, run_id, finished)
+        assert run["state"] == "failed" and run["error"]["code"] == "storage_unavailable"
+        assert "deleted or replaced" in run["error"]["detail"]
+        assert run["stations_captured"] + run["stations_skipped"] < 40
+        degraded(client, "storage_unavailable")
+        refused(client.post("/runs", json={"poses": poses(3)}), "storage_unavailable")
+        (tmp_path / "data").mkdir()  # another directory in its place: still not the data
+        degraded(client, "storage_unavailable")
+
+
+@pytest.mark.timeout(120)
+def test_a_full_disk_fails_the_run_refuses_new_ones_and_cancel_works(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    with service(tmp_path) as client:
+        run_id = external_run(client)
+        pose = robot_pose(client)
+        assert post(client, run_id, pose=pose).status_code == 201
+        monkeypatch.setattr(storage, "_free_bytes", lambda path: 5 * 2**20)  # 5 MB left
+        refused(post(client, run_id, pose=pose), "disk_full")
+        degraded(client, "disk_full")
+        assert not (tmp_path / "data" / ".space-reserve").exists()  # given back for the end
+        r = client.post(f"/runs/{run_id}/cancel")
+        assert r.status_code == 200 and r.json()["state"] == "cancelled"
+        refused(client.post("/runs", json={"poses": poses(3)}), "disk_full")
+        monkeypatch.undo()
+        assert client.get("/health").json()["status"] == "ok"
+        assert (tmp_path / "data" / ".space-reserve").exists()
+
+        # the disk fills between the check and the write: the writer's ENOSPC fails the run
+        def no_space(path: Path, image: Any) -> None:
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+        monkeypatch.setattr(capture, "write_png", no_space)
+        run_id = start_run(client, 10)
+        run = wait_run(client, run_id, finished)
+        assert run["state"] == "failed" and run["error"]["code"] == "disk_full"
+        assert run["stations_captured"] == 0  # nothing stored without its image
+
+
+@pytest.mark.timeout(120)
+def test_a_read_only_data_directory_is_503_not_500(tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    with service(tmp_path) as client:
+        run_id = start_run(client, 4)
+        assert wait_run(client, run_id, finished)["state"] == "done"
+
+        def read_only(*args: Any, **kwargs: Any) -> Any:
+            raise OSError(errno.EROFS, "Read-only file system")
+
+        monkeypatch.setattr(storage.tempfile, "TemporaryFile", read_only)
+        monkeypatch.setattr("service.api.runs.tempfile.mkdtemp", read_only)
+        degraded(client, "storage_unavailable")
+        refused(client.get(f"/runs/{run_id}/stationset"), "storage_unavailable")
+        refused(client.post("/runs", json={"poses": poses(3)}), "storage_unavailable")
+        assert client.get(f"/runs/{run_id}").json()["state"] == "done"  # reads still answer
