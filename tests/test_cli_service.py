@@ -60,7 +60,7 @@ def test_run_calibrate_activate_export(served: LocalService, tmp_path: Path) -> 
     assert f"run {run_id}: done, {run['stations_captured']} captured" in started.stderr
     assert "6/6" in started.stderr  # the progress bar reached the planned stations
 
-    shown = cellcal("runs", "show", run_id, url=url)
+    shown = cellcal("runs", "show", run_id[:8], url=url)  # the short id the page shows
     assert shown.returncode == 0 and json.loads(shown.stdout) == run
     listed = cellcal("runs", "list", url=url)
     assert listed.stdout.splitlines()[0].split()[:3] == ["id", "state", "mode"]
@@ -74,13 +74,13 @@ def test_run_calibrate_activate_export(served: LocalService, tmp_path: Path) -> 
     verdict = cal["result"]["quality"]["verdict"]
     assert f"calibration {cal_id}: done, verdict {verdict}" in calibrated.stderr
 
-    assert json.loads(cellcal("calibrations", "show", cal_id, url=url).stdout) == cal
+    assert json.loads(cellcal("calibrations", "show", cal_id[:8], url=url).stdout) == cal
     listed = cellcal("calibrations", "list", "--run", run_id, url=url).stdout.splitlines()
     assert [line.split()[:3] for line in listed[1:]] == [[cal_id, run_id, "done"]]
     rms = listed[1].split()[4]  # rounded, not 17 digits (issue 19)
     assert rms == f"{cal['result']['camera']['rms_px']:.3f}", listed
 
-    activated = cellcal("calibrations", "activate", cal_id, url=url)
+    activated = cellcal("calibrations", "activate", cal_id[:8], url=url)
     assert activated.stdout == f"calibration {cal_id} is the active calibration of mock://\n"
     active = json.loads(cellcal("calibrations", "active", url=url).stdout)
     assert active["calibration"]["id"] == cal_id and active["robot"] == "mock://"

@@ -71,7 +71,8 @@ def _list(service: client.Service, args: argparse.Namespace) -> None:
 
 def _activate(service: client.Service, args: argparse.Namespace) -> None:
     active = service.post(f"/calibrations/{args.cal_id}/activate")
-    print(f"calibration {args.cal_id} is the active calibration of {active['robot']}")
+    print(f"calibration {active['calibration']['id']} is the active calibration of "
+          f"{active['robot']}")
 
 
 def _start(service: client.Service, args: argparse.Namespace) -> int:
