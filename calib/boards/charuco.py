@@ -30,6 +30,7 @@ from pydantic import Field, model_validator
 
 from calib.boards import detection as imaging
 from calib.boards.base import BoardTarget, TargetLength
+from calib.boards.charuco_grid import FEW_MARKERS, Markers, whole_grid
 from calib.boards.checkerboard import board_points, rectangle_outline
 from calib.boards.detection import MIN_CONTRAST, MIN_SHARPNESS, Detection
 from calib.boards.markers import (
@@ -163,7 +164,10 @@ def detect_charuco(image: np.ndarray, board: Charuco, *, min_sharpness: float = 
     grey, reason = imaging.as_grey(image)
     if grey is None:
         return Detection(ok=False, reason=reason)
-    corners, ids, marker_ids = _detect_board(grey, board)
+    corners, ids, markers = _detect_board(grey, board)
+    unplaced = None
+    if not _usable(ids, board) and len(markers.ids):
+        corners, ids, unplaced = _with_whole_grid(grey, board, markers, corners, ids)
     half = _window(_grid(corners, ids, board))
     inside = _inside(corners, grey.shape, half)
     corners, ids = corners[inside], ids[inside]
@@ -175,7 +179,7 @@ def detect_charuco(image: np.ndarray, board: Charuco, *, min_sharpness: float = 
         if sharp < min_sharpness:
             reason = f"image too blurred (sharpness {sharp:.3f} < {min_sharpness:.3f})"
         else:
-            reason = _missing_reason(grey, board, marker_ids, len(ids))
+            reason = unplaced or _missing_reason(grey, board, markers.ids, len(ids))
         return Detection(ok=False, reason=reason, sharpness=sharp)
     corners = imaging.refine_corners(grey, corners, half / 0.3)
     box = imaging.corner_box(grey, corners)
@@ -189,16 +193,31 @@ def detect_charuco(image: np.ndarray, board: Charuco, *, min_sharpness: float = 
 
 
 def _detect_board(grey: np.ndarray, board: Charuco
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """OpenCV's detector: corners (N, 2) and ids (N,) sorted by id, marker ids (M,)."""
+                  ) -> tuple[np.ndarray, np.ndarray, Markers]:
+    """OpenCV's detector: corners (N, 2) and ids (N,) sorted by id, the decoded markers."""
     detector = cv2.aruco.CharucoDetector(board.opencv_board())
-    corners, ids, _, marker_ids = detector.detectBoard(grey)
-    marker_ids = np.zeros(0, int) if marker_ids is None else marker_ids.ravel()
+    corners, ids, marker_corners, marker_ids = detector.detectBoard(grey)
+    decoded = np.zeros(0, int) if marker_ids is None else marker_ids.ravel()
+    markers = Markers(ids=decoded, centres=np.array(
+        [np.asarray(c).reshape(4, 2).mean(axis=0) for c in marker_corners]).reshape(-1, 2)
+        if len(decoded) else np.zeros((0, 2)))
     if ids is None or len(ids) == 0:
-        return np.zeros((0, 2)), np.zeros(0, np.int64), marker_ids
+        return np.zeros((0, 2)), np.zeros(0, np.int64), markers
     ids = ids.ravel().astype(np.int64)
     order = np.argsort(ids)
-    return corners.reshape(-1, 2).astype(float)[order], ids[order], marker_ids
+    return corners.reshape(-1, 2).astype(float)[order], ids[order], markers
+
+
+def _with_whole_grid(grey: np.ndarray, board: Charuco, markers: Markers, corners: np.ndarray,
+                     ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, str | None]:
+    """Too few corners between decoded markers: every corner of the grid when the checkerboard
+    detector reads it and the markers place it (:func:`whole_grid`), in id order; else the
+    corners as they were, with the reason when the grid was read but not placed."""
+    whole = whole_grid(grey, board.opencv_board(), markers)
+    if whole is None or isinstance(whole, str):
+        return corners, ids, whole
+    order = np.argsort(whole[1])
+    return whole[0][order], whole[1][order], None
 
 
 def _grid(corners: np.ndarray, ids: np.ndarray, board: Charuco) -> np.ndarray:
@@ -252,7 +271,8 @@ def _missing_reason(grey: np.ndarray, board: Charuco, marker_ids: np.ndarray,
         return (f"{len(marker_ids)} {board.dictionary} markers seen, but ids such as "
                 f"{int(foreign.max())} are not on a {cols}x{rows}-square board (ids "
                 f"0..{n_markers - 1}): check squares")
-    layout = _layout_in_view(grey, board)
+    layout = (_layout_in_view(grey, board) if len(marker_ids) >= FEW_MARKERS * n_markers
+              else None)  # a few markers suggest layouts by chance
     if layout is not None and layout != (cols, rows, board.legacy_pattern):
         return (f"{len(marker_ids)} {board.dictionary} markers seen but only {n_corners} "
                 f"ChArUco corners readable: the markers sit as on a board with squares "
