@@ -35,6 +35,7 @@ from service.api import (
 )
 from service.api.deps import require_api_key
 from service.api.guard import PayloadTooLargeError, RequestGuard
+from service.api.idempotency import Idempotency
 from service.api.openapi import document_errors
 from service.api.short_ids import ShortIds
 from service.cell.devices import DeviceOpener, Devices
@@ -111,6 +112,7 @@ def create_app(settings: Settings | None = None, *,
     for exc_type in (*TRANSIENT_ERRORS, DatabaseUnavailableError):
         app.add_exception_handler(exc_type, _database_error)
     app.add_exception_handler(Exception, _internal_error)
+    app.add_middleware(Idempotency, refuse=error_response)  # sees the full ids
     app.add_middleware(ShortIds, refuse=error_response)  # inside the guard: keyed requests only
     app.add_middleware(RequestGuard, api_key=settings.api_key,
                        max_body_bytes=settings.max_body_bytes, refuse=error_response)

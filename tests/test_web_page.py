@@ -157,9 +157,19 @@ def test_click_through_run_calibrate_report_export(served: LocalService, tmp_pat
         assert browser.js("[...document.querySelectorAll('[data-action]')]"
                           ".every((b) => b.disabled)")  # nothing to pause, resume or cancel
 
-        browser.click("#calibrate")
+        # κ chosen on the page; a double click (two clicks in one task) starts one solve
+        browser.js("document.querySelector('#kappa').value = 'estimate'")
+        browser.js("(() => { const b = document.querySelector('#calibrate');"
+                   " b.click(); b.click(); })()")
+        assert browser.js("document.querySelector('#calibrate').disabled")
         browser.wait_for("the calibration", "document.querySelector('#status').textContent"
                          " === 'calibration finished'")
+        run_id = browser.js("currentRun")
+        cals = [c for c in httpx.get(f"{served.url}/calibrations?limit=50", headers=AUTH)
+                .json()["items"] if c["run_id"] == run_id]
+        assert len(cals) == 1, cals
+        assert httpx.get(f"{served.url}/calibrations/{cals[0]['id']}", headers=AUTH
+                         ).json()["options"]["kappa"] == "estimate"
         row = "#calibrations tbody tr:first-child"
         assert browser.js(f"document.querySelector('{row} td:nth-child(4)').textContent") \
             == "done"
@@ -169,6 +179,8 @@ def test_click_through_run_calibrate_report_export(served: LocalService, tmp_pat
             == verdict
         assert "aspect ratio ν" in text(browser, "#figures")  # not "shear" (issue 19)
         browser.screenshot(shots / "web-page.png")
+
+        activate_asks_first(browser, row, cals[0]["id"])
 
         report = browser.click_to_open_tab(f"{row} a.report")
         browser.wait_for("the report", "document.readyState === 'complete' && "
@@ -187,6 +199,39 @@ def test_click_through_run_calibrate_report_export(served: LocalService, tmp_pat
     assert any(u.startswith(f"{served.url}/calibrations/") and u.endswith("/report")
                for u in requested)
     assert left_the_machine(requested, served) == []
+
+
+def activate_asks_first(browser: Browser, row: str, cal_id: str) -> None:
+    """Issue 19 item 8: Activate opens a dialog naming the calibration and what it replaces;
+    Cancel changes nothing, Activate activates; a second time the dialog names it as the
+    active one."""
+    def dialog(answer: str) -> str:
+        browser.click(f"{row} button")
+        browser.wait_for("the dialog", "document.querySelector('#activate-dialog').open && "
+                         "document.querySelector('#activate-old').textContent !== ''")
+        said = text(browser, "#activate-dialog")
+        browser.js("document.querySelector('#activate-old').textContent = ''")
+        browser.click(f"#activate-dialog button[value={answer}]")
+        browser.wait_for("the dialog to close", "!document.querySelector('#activate-dialog')"
+                         ".open && document.querySelector('#status').textContent !== ''")
+        return said
+
+    first = dialog("cancel")
+    assert cal_id[:8] in text(browser, "#activate-new") and "verdict" in first
+    assert text(browser, "#status") == "activation cancelled"
+    active = httpx.get(f"{browser_url(browser)}/calibrations/active", headers=AUTH)
+    before = active.json()["calibration"]["id"] if active.status_code == 200 else None
+    assert before != cal_id
+    assert (before or "nothing")[:8] in first
+    dialog("activate")
+    browser.wait_for("the row to say active", f"document.querySelector('{row} "
+                     "td:nth-child(7)')?.textContent === 'active'")
+    again = dialog("cancel")
+    assert f"It replaces {cal_id[:8]}" in again and "nothing changes" in again
+
+
+def browser_url(browser: Browser) -> str:
+    return str(browser.js("location.origin"))
 
 
 @pytest.mark.timeout(300)

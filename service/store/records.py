@@ -270,6 +270,23 @@ class InstanceRecord(Base):
     heartbeat_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
 
 
+class IdempotencyRecord(Base):
+    """A request that started work under an ``Idempotency-Key`` (``service.api.idempotency``):
+    the hash of what was asked and, once answered, the answer, so the same request repeated
+    gets the first answer from any instance, also after a restart. ``status`` is None while the
+    first request is being answered."""
+
+    __tablename__ = "idempotency_keys"
+
+    cell: Mapped[str] = mapped_column(String(255), primary_key=True)
+    key: Mapped[str] = mapped_column(String(255), primary_key=True)
+    #: SHA-256 (hex) of the method, the path and the body.
+    request_hash: Mapped[str] = mapped_column(String(64))
+    status: Mapped[int | None]
+    body: Mapped[str | None] = mapped_column(Text)
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow, index=True)
+
+
 class MotionClaimRecord(Base):
     """The row a job that moves a cell's robot (a capture run, a dot-hit validation) updates
     first in the transaction that stores it: the database's lock on that robot, so the check

@@ -9,8 +9,8 @@ let stream = null;
 
 function setStatus(text) { $("#status").textContent = text; }
 
-async function api(method, path, body) {
-  const options = { method, headers: { Authorization: `Bearer ${key}` } };
+async function api(method, path, body, headers = {}) {
+  const options = { method, headers: { Authorization: `Bearer ${key}`, ...headers } };
   if (body !== undefined) {
     options.headers["Content-Type"] = "application/json";
     options.body = JSON.stringify(body);
@@ -23,7 +23,16 @@ async function api(method, path, body) {
   return response;
 }
 
-const json = async (method, path, body) => (await api(method, path, body)).json();
+const json = async (method, path, body, headers) =>
+  (await api(method, path, body, headers)).json();
+
+// A new Idempotency-Key: the service answers a start repeated with it (a double click, a
+// retry after a lost answer) with the first answer instead of starting the work again.
+// (crypto.randomUUID needs a secure context; a plant page is often plain http.)
+function idempotencyKey() {
+  const bytes = crypto.getRandomValues(new Uint8Array(16));
+  return [...bytes].map((b) => b.toString(16).padStart(2, "0")).join("");
+}
 
 function cell(row, text, cls) {
   const td = row.insertCell();
@@ -276,10 +285,9 @@ async function loadCalibrations() {
       activate.textContent = "Activate";
       activate.title = "make this the calibration the cell controller gets from " +
         "GET /calibrations/active";
-      activate.addEventListener("click", async (event) => {
+      activate.addEventListener("click", (event) => {
         event.stopPropagation();
-        await json("POST", `/calibrations/${cal.id}/activate`);
-        await loadCalibrations();
+        run(() => confirmActivate(cal));
       });
       cell(row, "").append(activate);
     } else {
@@ -287,6 +295,50 @@ async function loadCalibrations() {
     }
     row.addEventListener("click", () => showCalibration(cal.id));
   }
+}
+
+// Activation changes what the cell controller gets, so the page asks first and shows what
+// would be replaced: the calibration active now for the same cell and setup.
+async function currentlyActive(setup) {
+  const response = await fetch(`/calibrations/active?setup=${setup}`,
+                               { headers: { Authorization: `Bearer ${key}` } });
+  if (response.status === 404) return null;
+  if (!response.ok) throw new Error(`${response.status}: cannot read the active calibration`);
+  return response.json();
+}
+
+function summary(cal) {
+  const r = cal.result ?? {};
+  const pose = r.hand_eye?.pose;
+  const parts = [`${short(cal.id)} (run ${short(cal.run_id)})`,
+                 `verdict ${r.quality?.verdict ?? "–"}`,
+                 `RMS ${r.camera?.rms_px?.toFixed(3) ?? "–"} px`];
+  if (pose) {
+    parts.push(`hand-eye ${pose.slice(0, 3).map((v) => (1e3 * v).toFixed(1)).join(" / ")} mm`);
+  }
+  return parts.join(", ");
+}
+
+async function confirmActivate(cal) {
+  const [full, now] = await Promise.all([json("GET", `/calibrations/${cal.id}`),
+                                         currentlyActive(cal.setup)]);
+  $("#activate-new").textContent = summary(full);
+  $("#activate-old").textContent = now === null
+    ? `nothing: no calibration is active for ${cal.setup} yet`
+    : `${summary(now.calibration)}, active since ${new Date(now.activated_at).toLocaleString()}` +
+      (now.calibration.id === cal.id ? " (the same calibration: nothing changes)" : "");
+  const dialog = $("#activate-dialog");
+  dialog.showModal();
+  const answer = await new Promise((resolve) => {
+    dialog.addEventListener("close", () => resolve(dialog.returnValue), { once: true });
+  });
+  if (answer !== "activate") {
+    setStatus("activation cancelled");
+    return;
+  }
+  await json("POST", `/calibrations/${cal.id}/activate`);
+  await loadCalibrations();
+  setStatus(`activated ${short(cal.id)}`);
 }
 
 async function showCalibration(calId) {
@@ -394,18 +446,26 @@ for (const button of document.querySelectorAll("[data-action]")) {
   }));
 }
 
-$("#calibrate").addEventListener("click", () => run(async () => {
-  const created = await json("POST", `/runs/${currentRun}/calibrations`, {});
-  setStatus(`calibrating (${short(created.id)})`);
-  for (;;) {
-    const cal = await json("GET", `/calibrations/${created.id}`);
-    if (cal.state !== "running") break;
-    await new Promise((resolve) => setTimeout(resolve, 1000));
-  }
-  await loadCalibrations();
-  await showCalibration(created.id);
-  setStatus("calibration finished");
-}));
+// Calibrate disables itself while its request runs, and sends an Idempotency-Key, so a
+// double click starts one solve.
+$("#calibrate").addEventListener("click", () => {
+  const button = $("#calibrate");
+  button.disabled = true;
+  const options = { method: $("#method").value, kappa: $("#kappa").value };
+  run(async () => {
+    const created = await json("POST", `/runs/${currentRun}/calibrations`, { options },
+                               { "Idempotency-Key": idempotencyKey() });
+    setStatus(`calibrating (${short(created.id)})`);
+    for (;;) {
+      const cal = await json("GET", `/calibrations/${created.id}`);
+      if (cal.state !== "running") break;
+      await new Promise((resolve) => setTimeout(resolve, 1000));
+    }
+    await loadCalibrations();
+    await showCalibration(created.id);
+    setStatus("calibration finished");
+  }).finally(() => refreshRun().catch(() => { button.disabled = false; }));
+});
 
 // The address fragment (never sent to the server) may carry the key, taken once and removed,
 // and a run and a calibration to open: #key=...&run=ID&calibration=ID.
