@@ -100,7 +100,7 @@ class Settings(BaseSettings):
         3072, description="address space of the process that decodes a posted image and "
                           "searches it for the board; an image needing more is answered 413")
     image_cpu_s: Annotated[float, Field(gt=0.0)] = Field(
-        60.0, description="CPU seconds the board search of one posted image may take (422 "
+        20.0, description="CPU seconds the board search of one posted image may take (422 "
                           "image_too_complex beyond)")
     min_free_mb: Annotated[int, Field(ge=0)] = Field(
         64, description="free space the data directory's disk must keep: below it, runs fail "
