@@ -14,12 +14,22 @@ they are skipped with one line; in CI (``CI=true``) a missing PostgreSQL fails t
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
 from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
 
+import cv2
+import numpy as np
 import pytest
+from fastapi.testclient import TestClient
 
+from service.cli.main import main
+from tests.support.helpers import SHARED
 from tests.support.postgres import PostgresServer, PostgresUnavailableError
+from tests.support.service import service
 
 BACKENDS = ["sqlite", "postgresql"]
 
@@ -82,3 +92,31 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         on_postgres = "postgresql" in (params.get("database"), params.get("module_database"))
         if on_postgres and item.get_closest_marker("pg_fast") is None:
             item.add_marker(pytest.mark.slow)
+
+
+@pytest.fixture
+def client(tmp_path: Path) -> Iterator[TestClient]:
+    """An authorised client of a service with mock devices on the test's data directory and
+    database (``tests.support.service.service``)."""
+    with service(tmp_path) as c:
+        yield c
+
+
+#: A real UR eye-in-hand set (``../shared/data``), calibrated once per module by ``ur_result``.
+UR_SET = SHARED / "data" / "ur-kinect-lowR_highT"
+
+
+@pytest.fixture(scope="module")
+def ur_result(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, Any]]:
+    """``cellcal calibrate`` on the real UR set, with one station's image replaced by a blank
+    frame (a station the pipeline must reject with its reason)."""
+    d = tmp_path_factory.mktemp("ur")
+    doc = json.loads((UR_SET / "stations.json").read_text())
+    for s in doc["stations"]:
+        shutil.copy(UR_SET / s["image"], d / s["image"])
+    blank = doc["stations"][4]["image"]
+    cv2.imwrite(str(d / blank), np.full((720, 1280), 128, np.uint8))
+    (d / "stations.json").write_text(json.dumps(doc))
+    out = d / "result.json"
+    assert main(["calibrate", str(d), "--out", str(out)]) in (0, 3)
+    return out, json.loads(out.read_text())

@@ -11,9 +11,8 @@ from fastapi.testclient import TestClient
 
 from calib.boards.checkerboard import grid_mismatch
 from mocks.scene import default_scene
-from tests.test_pipeline import BOARD, rendered_stations
-from tests.test_service_api import client, finished, poses, wait_run  # noqa: F401
-from tests.test_service_external import external_run, post, robot_pose
+from tests.support.service import external_run, finished, poses, post, robot_pose, wait_run
+from tests.support.stations import BOARD, rendered_stations
 
 SCENE_BOARD = tuple(default_scene().target.inner_corners)
 WRONG = {"type": "checkerboard", "inner_corners": [SCENE_BOARD[0] + 1, SCENE_BOARD[1] + 1],
@@ -32,7 +31,7 @@ def test_the_configured_board_either_way_round_is_no_mismatch() -> None:
 
 
 @pytest.mark.timeout(60)
-def test_pose_list_run_fails_at_its_first_station(client: TestClient) -> None:  # noqa: F811
+def test_pose_list_run_fails_at_its_first_station(client: TestClient) -> None:
     r = client.post("/runs", json={"poses": poses(4), "target": WRONG})
     assert r.status_code == 201, r.text
     run = wait_run(client, r.json()["id"], finished)
@@ -45,7 +44,7 @@ def test_pose_list_run_fails_at_its_first_station(client: TestClient) -> None:  
 
 
 @pytest.mark.timeout(60)
-def test_planned_run_is_refused(client: TestClient) -> None:  # noqa: F811
+def test_planned_run_is_refused(client: TestClient) -> None:
     r = client.post("/runs", json={"stations": 5, "target": WRONG})
     assert r.status_code == 422
     body: dict[str, Any] = r.json()
@@ -53,7 +52,7 @@ def test_planned_run_is_refused(client: TestClient) -> None:  # noqa: F811
 
 
 @pytest.mark.timeout(60)
-def test_posted_station_says_what_was_seen(client: TestClient) -> None:  # noqa: F811
+def test_posted_station_says_what_was_seen(client: TestClient) -> None:
     run_id = external_run(client, target=WRONG)
     station = post(client, run_id, pose=robot_pose(client))
     assert station.status_code == 201, station.text

@@ -23,7 +23,7 @@ from mocks.devices import MockRobot
 from mocks.scene import default_scene, sample_station_poses
 from service.cli import main as cli
 from service.stationsets.format import load_station_set, station_record, write_station_set
-from tests.helpers import assert_pose_close
+from tests.support.helpers import assert_pose_close
 
 SCENE = default_scene()
 TARGET = {"type": "checkerboard", "inner_corners": list(SCENE.target.inner_corners),

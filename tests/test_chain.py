@@ -7,7 +7,7 @@ import pytest
 
 from calib import chain
 from calib.geometry import invert
-from tests.helpers import exact_stations
+from tests.support.helpers import exact_stations
 
 
 @pytest.fixture(params=["eye_in_hand", "eye_to_hand"])

@@ -5,21 +5,10 @@ import sys
 import numpy as np
 import pytest
 
-from calib.geometry import pose_error, ur_pose_from_matrix
+from calib.geometry import pose_error
 from mocks.posesim import default_cell, simulate
 from service.cli.main import main
-
-
-def write_station_set(path, P, C, *, setup="eye_in_hand", mutate=None):
-    doc = {"format": "cellcal/stations@1", "setup": setup,
-           "stations": [{"id": f"{k:03d}", "tcp_pose": ur_pose_from_matrix(P[k]).tolist(),
-                         "target_pose": ur_pose_from_matrix(C[k]).tolist()}
-                        for k in range(len(P))]}
-    if mutate:
-        mutate(doc)
-    path.mkdir(parents=True, exist_ok=True)
-    (path / "stations.json").write_text(json.dumps(doc))
-    return path
+from tests.support.stations import write_station_set
 
 
 @pytest.fixture

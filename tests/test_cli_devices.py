@@ -14,6 +14,7 @@ from calib.boards import detect_checkerboard
 from calib.geometry import matrix_from_ur_pose, pose_error
 from mocks.scene import default_scene
 from service.cli import main as cli
+from tests.support.cli import assert_one_line_error
 
 SCENE = default_scene()
 
@@ -24,9 +25,6 @@ def run(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
     return code, out, err
 
 
-def assert_one_line_error(err: str, text: str) -> None:
-    assert err.startswith("cellcal: error: ") and err.count("\n") == 1, err
-    assert text in err and "Traceback" not in err
 
 
 @pytest.mark.timeout(30)

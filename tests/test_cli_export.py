@@ -15,8 +15,7 @@ from service.cli.exit_codes import EXIT_FAILED, EXIT_USAGE
 from service.cli.main import main
 from service.exports import FORMATS, ExportNames, export
 from service.version import software_version
-from tests.test_export_consumers import intrinsics_only_result
-from tests.test_exports import full_result
+from tests.support.results import full_result, intrinsics_only_result
 
 
 def write(tmp_path: Path, doc: Any, name: str = "result.json") -> Path:

@@ -5,36 +5,14 @@ from __future__ import annotations
 import json
 import re
 
-import cv2
 import numpy as np
 import pytest
 
 from calib.geometry import pose_error
 from service.cli.main import main
 from service.results.schema import parse_result
-from tests.helpers import undeclared_fields
-from tests.test_pipeline import BOARD, SCENE, SQUARE, rendered_stations
-
-N = 12
-
-
-def write_image_set(path, *, intrinsics=None, inner_corners=BOARD, n=N):
-    """Station set of n rendered images (PNG, the first two JPEG) with noisy tcp poses."""
-    images, poses = rendered_stations()
-    path.mkdir(parents=True, exist_ok=True)
-    stations = []
-    for k in range(n):
-        name = f"{k:03d}.{'jpg' if k < 2 else 'png'}"
-        cv2.imwrite(str(path / name), images[k])
-        stations.append({"id": f"{k:03d}", "tcp_pose": poses[k], "image": name})
-    doc = {"format": "cellcal/stations@1", "setup": "eye_in_hand",
-           "target": {"type": "checkerboard", "inner_corners": list(inner_corners),
-                      "square_size_m": SQUARE},
-           "stations": stations}
-    if intrinsics:
-        doc["intrinsics"] = intrinsics
-    (path / "stations.json").write_text(json.dumps(doc))
-    return path
+from tests.support.helpers import undeclared_fields
+from tests.support.stations import N_IMAGES, SCENE, write_image_set
 
 
 def test_image_set_gives_the_full_result(tmp_path, capsys):
@@ -67,7 +45,7 @@ def test_image_set_gives_the_full_result(tmp_path, capsys):
     u = doc["uncertainty"]
     assert len(u["hand_eye_trans_m"]) == 3 and len(u["target_pose_rot_rad"]) == 3
     assert u["camera"]["fx"] > 0 and 0.5 < u["variance_factor"] < 2
-    assert [s["id"] for s in doc["stations"]] == ["000", *(f"{k:03d}" for k in range(5, N))]
+    assert [s["id"] for s in doc["stations"]] == ["000", *(f"{k:03d}" for k in range(5, N_IMAGES))]
     assert all(s["mahalanobis"] is not None for s in doc["stations"])
     assert {"E_R", "E_t", "loo_trans_m_mean", "chain_rms_px"} <= set(doc["validation"])
     assert doc["options"]["nu_method"] == "images" and doc["software"]["version"]

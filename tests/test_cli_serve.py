@@ -14,7 +14,7 @@ import pytest
 
 from service.cli import main as cli
 from service.serving.local import ServeOptions, listening_socket, local_service
-from tests.test_cli_devices import assert_one_line_error
+from tests.support.cli import assert_one_line_error
 
 KEY = "serve-key-0123456789abcdef"
 

@@ -18,8 +18,8 @@ import pytest
 from service.cli.client import Event, parse_events
 from service.cli.exit_codes import EXIT_FAILED
 from service.serving.local import LocalService, listening_socket, local_service
-from tests.helpers import ends_with_this_process
-from tests.test_cli_devices import assert_one_line_error
+from tests.support.cli import assert_one_line_error
+from tests.support.helpers import ends_with_this_process
 
 KEY = "cli-key-0123456789abcdef"
 

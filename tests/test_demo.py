@@ -15,7 +15,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.helpers import ends_with_this_process
+from tests.support.helpers import ends_with_this_process
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO = [sys.executable, "-m", "service.cli", "demo"]

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from calib.boards import detect_checkerboard
-from tests.helpers import OPENCV_LEFT, SHARED
+from tests.support.helpers import OPENCV_LEFT, SHARED
 
 UR_SETS = [SHARED / "data" / s for s in ("ur-kinect-highR_highT", "ur-kinect-lowR_highT")]
 OPENCV_FLAGS = {

@@ -20,12 +20,7 @@ from urdf_parser_py.urdf import URDF
 
 from calib.geometry import make_transform
 from service.exports import CAMERA_FORMATS, TRANSFORM_FORMATS, ExportNames, export
-from tests.test_exports import SCENE, full_result, pose_only_result
-
-
-def intrinsics_only_result() -> dict[str, Any]:
-    """A camera model without robot poses (``calib.pipeline``: hand_eye None)."""
-    return full_result() | {"hand_eye": None, "target_pose": None}
+from tests.support.results import SCENE, full_result, intrinsics_only_result, pose_only_result
 
 
 def filestorage(text: str) -> cv2.FileStorage:

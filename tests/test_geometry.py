@@ -12,7 +12,7 @@ from calib.geometry import (
     rotation_angle,
     ur_pose_from_matrix,
 )
-from tests.helpers import random_transforms
+from tests.support.helpers import random_transforms
 
 
 def test_ur_pose_round_trip():

@@ -7,7 +7,7 @@ from calib.handeye import POSE_METHODS, calibrate_hand_eye
 from calib.refine import RefineOptions
 from calib.screw import screw_parameters, solve_sm
 from mocks.posesim import default_cell, simulate
-from tests.helpers import assert_pose_close, random_transforms
+from tests.support.helpers import assert_pose_close, random_transforms
 
 
 def exact_stations(rng, n, setup):

@@ -20,7 +20,7 @@ from calib.intrinsics import (
     calibrate_intrinsics,
     initial_intrinsics,
 )
-from tests.helpers import OPENCV_LEFT
+from tests.support.helpers import OPENCV_LEFT
 
 DATA = OPENCV_LEFT
 SIZE = (1280, 960)

@@ -19,7 +19,7 @@ from calib.joint import (
     solve_joint,
 )
 from mocks.posesim import default_cell, robot_poses, sample_camera_poses
-from tests.helpers import assert_pose_close
+from tests.support.helpers import assert_pose_close
 
 BOARD = (11, 8)
 SQUARE = 0.03

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from calib.chain import MAX_MOTION_PAIRS, spread_pairs
 from calib.geometry import invert, make_transform, perturb, pose_error, ur_pose_from_matrix
 from mocks.posesim import Cell, default_cell, robot_poses
-from tests.test_cli_bad_files import MEMORY_LIMIT, run_cli
+from tests.support.cli import MEMORY_LIMIT, run_cli
 
 
 def test_small_sets_use_every_pair():

@@ -25,7 +25,7 @@ from service.cli.main import main
 from service.migrations import SchemaOutdatedError
 from service.store.db import Database
 from service.store.records import Base
-from tests.test_cli_devices import assert_one_line_error
+from tests.support.cli import assert_one_line_error
 
 pytestmark = [pytest.mark.usefixtures("database"), pytest.mark.pg_fast]
 

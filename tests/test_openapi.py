@@ -16,7 +16,7 @@ from pydantic import BaseModel, ValidationError
 from service.api.openapi import ErrorBody
 from service.app import create_app
 from service.schemas import CheckCreate, RunCreate
-from tests.test_service_api import AUTH, settings
+from tests.support.service import AUTH, settings
 
 ERROR_REF = {"$ref": "#/components/schemas/ErrorBody"}
 

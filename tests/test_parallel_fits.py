@@ -8,7 +8,7 @@ import pytest
 
 from calib import parallel as parallel_module
 from calib.parallel import InlineExecutor, fit_pool
-from tests.test_evidence import calibrate
+from tests.support.projected import calibrate
 
 
 def _fingerprint(res) -> dict[str, np.ndarray]:

@@ -2,56 +2,24 @@
 
 from __future__ import annotations
 
-from functools import cache
-
 import numpy as np
 import pytest
 
-from calib.boards import Checkerboard, Detection, board_points, detect_checkerboard
+from calib.boards import Checkerboard, Detection, board_points
 from calib.camera import Pinhole
 from calib.geometry import perturb, pose_error, ur_pose_from_matrix
-from calib.pipeline import PipelineOptions, StationInputs, calibrate_stations
+from calib.pipeline import StationInputs
 from mocks.posesim import default_cell, robot_poses, sample_camera_poses
-from mocks.render import render_board
-from mocks.scene import Noise, camera_pose_for_tcp, default_scene, sample_station_poses
-
-#: The default cell with the robot noise of Strobl & Hirzinger's simulations (0.05 deg, 0.25 mm).
-SCENE = default_scene().model_copy(update={"noise": Noise(
-    robot_rot_deg=0.05, robot_trans_mm=0.25, image_noise=2.0, blur_px=0.7)})
-BOARD = tuple(SCENE.target.inner_corners)
-SQUARE = SCENE.target.square_size_m
-SIZE = tuple(SCENE.camera.image_size)
-
-
-@cache
-def rendered_stations(n: int = 15, seed: int = 5) -> tuple[list[np.ndarray], list[list[float]]]:
-    """n rendered images of the default scene (κ = 1.005, ν = 0.9975) and noisy tcp poses."""
-    rng = np.random.default_rng(seed)
-    P_true = sample_station_poses(SCENE, n, rng)
-    images = [render_board(SCENE, C, rng=np.random.default_rng(seed + k))
-              for k, C in enumerate(camera_pose_for_tcp(SCENE, P_true))]
-    noise = SCENE.noise
-    P = perturb(P_true, np.deg2rad(noise.robot_rot_deg), noise.robot_trans_mm * 1e-3, rng)
-    return images, ur_pose_from_matrix(P).tolist()
-
-
-@cache
-def detections(n: int = 15, seed: int = 5) -> list[Detection]:
-    return [detect_checkerboard(im, BOARD) for im in rendered_stations(n, seed)[0]]
-
-
-TARGET = Checkerboard(BOARD, SQUARE)
-
-
-def calibrate_set(inputs: StationInputs, board: Checkerboard = TARGET, **options):
-    """``calibrate_stations`` with the options as plain arguments."""
-    return calibrate_stations(inputs, board, PipelineOptions(**options))
-
-
-def calibrate(observations, poses, *, intrinsics=None, **options):
-    """``calibrate_set`` on the default board and image size."""
-    return calibrate_set(StationInputs(observations, poses, image_size=SIZE,
-                                       intrinsics=intrinsics), **options)
+from tests.support.stations import (
+    BOARD,
+    SCENE,
+    SIZE,
+    SQUARE,
+    calibrate,
+    calibrate_set,
+    detections,
+    rendered_stations,
+)
 
 
 def test_joint_recovers_nu_and_kappa_and_beats_the_nominal_pipeline():

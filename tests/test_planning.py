@@ -18,7 +18,7 @@ from calib.planning import (
     rough_target_from_image,
 )
 from mocks.scene import default_scene
-from tests.helpers import assert_pose_close
+from tests.support.helpers import assert_pose_close
 
 SCENE = default_scene()
 K = SCENE.camera.k_matrix

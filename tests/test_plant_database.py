@@ -26,18 +26,18 @@ from service.store.records import (
     RunRecord,
     utcnow,
 )
-from tests.test_exports import full_result
-from tests.test_service_api import (
+from tests.support.results import full_result
+from tests.support.service import (
     AUTH,
     finished,
     gated_opener,
     poses,
+    read_events,
     service,
     settings,
     start_run,
     wait_run,
 )
-from tests.test_service_events import read_events
 
 pytestmark = [pytest.mark.usefixtures("database"), pytest.mark.pg_fast,
               pytest.mark.timeout(120)]

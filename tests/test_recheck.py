@@ -28,7 +28,7 @@ from calib import (
 )
 from mocks.render import render_board
 from mocks.scene import camera_pose_for_tcp, sample_station_poses
-from tests.test_pipeline import BOARD, SCENE, SQUARE, calibrate, rendered_stations
+from tests.support.stations import BOARD, SCENE, SQUARE, calibrate, rendered_stations
 
 #: Stations of each calibration and of each check.
 CALIBRATION_STATIONS, CHECK_STATIONS = 12, 5

@@ -5,11 +5,8 @@ from __future__ import annotations
 
 import base64
 import json
-import shutil
 from concurrent.futures import ThreadPoolExecutor
 from html.parser import HTMLParser
-from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
@@ -17,10 +14,9 @@ import pytest
 
 from service.cli.main import main
 from service.results.report import report_plots
-from tests.helpers import SHARED, wait_for
-from tests.test_service_api import client, finished, start_run, wait_run  # noqa: F401
+from tests.support.helpers import wait_for
+from tests.support.service import finished, start_run, wait_run
 
-UR_SET = SHARED / "data" / "ur-kinect-lowR_highT"
 #: Plots a hand-eye result from images always has (``model-selection`` needs the block).
 IMAGE_PLOTS = ("station-errors", "residuals", "coverage", "uncertainty")
 
@@ -68,20 +64,6 @@ def assert_self_contained(html: str) -> _Page:
     return page
 
 
-@pytest.fixture(scope="module")
-def ur_result(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, Any]]:
-    """``cellcal calibrate`` on the real UR set, with one station's image replaced by a blank
-    frame (a station the pipeline must reject with its reason)."""
-    d = tmp_path_factory.mktemp("ur")
-    doc = json.loads((UR_SET / "stations.json").read_text())
-    for s in doc["stations"]:
-        shutil.copy(UR_SET / s["image"], d / s["image"])
-    blank = doc["stations"][4]["image"]
-    cv2.imwrite(str(d / blank), np.full((720, 1280), 128, np.uint8))
-    (d / "stations.json").write_text(json.dumps(doc))
-    out = d / "result.json"
-    assert main(["calibrate", str(d), "--out", str(out)]) in (0, 3)
-    return out, json.loads(out.read_text())
 
 
 def test_report_of_a_real_calibration(ur_result, capsys) -> None:
@@ -147,7 +129,7 @@ def test_intrinsics_only_and_pose_only_results_have_reports(ur_result, tmp_path)
     from mocks.posesim import default_cell, simulate
     from service.results.document import calibration_result_json
     from service.results.report import render_report
-    from tests.test_cli_calibrate import write_station_set
+    from tests.support.stations import write_station_set
 
     _, result = ur_result
     corners = [np.asarray(s["corners_px"]) for s in result["stations"]]
@@ -169,7 +151,7 @@ def test_intrinsics_only_and_pose_only_results_have_reports(ur_result, tmp_path)
 
 
 @pytest.mark.timeout(300)
-def test_rest_report_of_a_capture_run(client) -> None:  # noqa: F811
+def test_rest_report_of_a_capture_run(client) -> None:
     run_id = start_run(client, 8)
     wait_run(client, run_id, finished)
     cal_id = client.post(f"/runs/{run_id}/calibrations", json={}).json()["id"]

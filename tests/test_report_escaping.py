@@ -22,8 +22,7 @@ import pytest
 from service.cli.main import main
 from service.results.report import render_report
 from service.results.schema import parse_result
-from tests.browser import Browser
-from tests.test_report import ur_result  # noqa: F401
+from tests.support.browser import Browser
 
 #: Markup that breaks out of text and of a quoted attribute, each way it could run.
 ATTACK = ("\"'><script>window.pwned=1</script><img src=x onerror=\"window.pwned=2\">"
@@ -129,7 +128,7 @@ def assert_inert(html: str) -> None:
 
 
 @pytest.mark.timeout(300)
-def test_markup_in_any_field_is_text_or_refused(ur_result, tmp_path: Path,  # noqa: F811
+def test_markup_in_any_field_is_text_or_refused(ur_result, tmp_path: Path,
                                                  capsys: pytest.CaptureFixture[str]) -> None:
     _, result = ur_result
     doc, taken, refusing = attacked(result)

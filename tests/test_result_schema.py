@@ -14,11 +14,10 @@ from fastapi.testclient import TestClient
 from service.app import create_app
 from service.results.document import calibration_result_json
 from service.results.schema import Result, parse_result
-from tests.helpers import undeclared_fields
-from tests.test_export_consumers import intrinsics_only_result
-from tests.test_exports import full_result, pose_only_result
-from tests.test_pipeline import calibrate, detections
-from tests.test_service_api import settings
+from tests.support.helpers import undeclared_fields
+from tests.support.results import full_result, intrinsics_only_result, pose_only_result
+from tests.support.service import settings
+from tests.support.stations import calibrate, detections
 
 
 def test_a_real_intrinsics_only_result_validates_with_every_field_declared() -> None:

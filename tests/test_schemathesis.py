@@ -22,8 +22,8 @@ from schemathesis.config import SchemathesisConfig
 from schemathesis.python.asgi import shutdown_lifespans
 
 from service.app import create_app
-from tests.test_service_api import AUTH
-from tests.test_service_api import settings as service_settings
+from tests.support.service import AUTH
+from tests.support.service import settings as service_settings
 
 #: Generated requests per operation and phase; the document has about 30 operations.
 MAX_EXAMPLES = 5

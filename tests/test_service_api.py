@@ -7,12 +7,8 @@ app on the same database while the first one's capture thread is held mid-statio
 from __future__ import annotations
 
 import re
-import socket
 import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
-from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -20,106 +16,52 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from calib.geometry import ur_pose_from_matrix
 from drivers.base import Camera, Robot
 from drivers.errors import CameraError, RobotConnectionError
-from mocks.scene import default_scene, sample_station_poses
+from mocks.scene import default_scene
 from service.app import create_app
-from service.cell.devices import DeviceOpener, settings_opener
+from service.cell.devices import settings_opener
 from service.results.schema import parse_result
 from service.settings import Settings
-from tests.helpers import undeclared_fields
+from tests.support.helpers import undeclared_fields
+from tests.support.service import (
+    AUTH,
+    KEY,
+    finished,
+    gated_opener,
+    poses,
+    service,
+    settings,
+    start_run,
+    wait_run,
+)
 
 pytestmark = pytest.mark.usefixtures("database")
 
-KEY = "test-key-0123456789abcdef"
-#: The cell of the services here (the default CELLCAL_CELL).
-CELL = socket.gethostname()
-AUTH = {"Authorization": f"Bearer {KEY}"}
 
 
-@cache
-def _poses(n: int) -> tuple[tuple[float, ...], ...]:
-    T = sample_station_poses(default_scene(), n, np.random.default_rng(3))
-    return tuple(tuple(p) for p in ur_pose_from_matrix(T).tolist())
 
 
-def poses(n: int) -> list[list[float]]:
-    """``n`` valid stations of the default mock cell (the board is in view in each)."""
-    return [list(p) for p in _poses(n)]
 
 
-def settings(tmp_path: Path, **overrides: Any) -> Settings:
-    return Settings(data_dir=tmp_path, api_key=KEY, **overrides)
 
 
-@contextmanager
-def service(tmp_path: Path, open_devices: DeviceOpener | None = None) -> Iterator[TestClient]:
-    """An authorised client of a service on ``tmp_path`` (its database and images), with the
-    mock devices of ``settings(tmp_path)`` unless ``open_devices`` says otherwise."""
-    with TestClient(create_app(settings(tmp_path), open_devices=open_devices)) as c:
-        c.headers.update(AUTH)
-        yield c
 
 
-@pytest.fixture
-def client(tmp_path: Path) -> Iterator[TestClient]:
-    with service(tmp_path) as c:
-        yield c
 
 
-def wait_run(client: TestClient, run_id: str, until: Callable[[dict[str, Any]], bool],
-             timeout: float = 60.0) -> dict[str, Any]:
-    """Poll ``GET /runs/{id}`` until ``until(run)``; ``timeout`` only catches a stuck run
-    (generous: a loaded machine captures several times slower)."""
-    deadline = time.monotonic() + timeout
-    while True:
-        run = client.get(f"/runs/{run_id}").json()
-        if until(run):
-            return run
-        assert time.monotonic() < deadline, f"run stuck: {run}"
-        time.sleep(0.05)
 
 
-def finished(run: dict[str, Any]) -> bool:
-    return run["state"] != "capturing"
 
 
-def start_run(client: TestClient, n: int) -> str:
-    r = client.post("/runs", json={"poses": poses(n)})
-    assert r.status_code == 201, r.text
-    return r.json()["id"]
 
 
 def station_indices(client: TestClient, run_id: str) -> list[int]:
     return [s["index"] for s in client.get(f"/runs/{run_id}/stations").json()]
 
 
-def gated_opener(tmp_path: Path, index: int, gate: threading.Event) -> DeviceOpener:
-    """The mock devices of ``settings(tmp_path)`` with the camera held at grab ``index``."""
-    mocks = settings_opener(settings(tmp_path))
-
-    def gated() -> tuple[Robot, Camera]:
-        robot, camera = mocks()
-        return robot, GatedCamera(camera, index, gate)  # type: ignore[return-value]
-
-    return gated
 
 
-class GatedCamera:
-    """A camera whose grabs after the first ``free`` wait for ``gate`` (a hung device)."""
-
-    def __init__(self, camera: Camera, free: int, gate: threading.Event) -> None:
-        self.camera, self.free, self.gate = camera, free, gate
-
-    def grab(self, *, timeout: float = 2.0) -> np.ndarray:
-        self.free -= 1
-        if self.free < 0:
-            assert self.gate.wait(20.0)
-        return self.camera.grab(timeout=timeout)
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.camera, name)
 
 
 # ---- auth, health, validation, not found -----------------------------------------------------

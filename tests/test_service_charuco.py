@@ -25,9 +25,13 @@ from mocks.scene import StationSpread, charuco_scene, sample_station_poses
 from service.app import create_app
 from service.cli.main import main
 from service.serving.local import ServeOptions, local_service
-from tests.test_service_api import AUTH, finished, settings
-from tests.test_service_external import wait_calibration
-from tests.test_service_stationset import assert_same_calibration
+from tests.support.service import (
+    AUTH,
+    assert_same_calibration,
+    finished,
+    settings,
+    wait_calibration,
+)
 
 SCENE = charuco_scene()
 BOARD = board_from_target(SCENE.nominal_target())

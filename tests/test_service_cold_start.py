@@ -12,7 +12,7 @@ from calib import pose_error, ur_pose_from_matrix
 from mocks.blindcells import random_blind_scene
 from service.app import create_app
 from service.settings import Settings
-from tests.helpers import wait_for
+from tests.support.helpers import wait_for
 
 pytestmark = pytest.mark.usefixtures("database")
 

@@ -25,7 +25,7 @@ from service.app import create_app
 from service.serving.local import ServeOptions, local_service
 from service.settings import Settings
 from service.store import queries
-from tests.helpers import wait_for
+from tests.support.helpers import wait_for
 
 KEY = "outage-key-0123456789abcdef"
 LOCK_S = float(os.environ.get("CELLCAL_TEST_DB_LOCK_S", "5"))

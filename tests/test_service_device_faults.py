@@ -38,9 +38,9 @@ from service.cell.devices import settings_opener
 from service.serving.local import LocalService, ServeOptions, listening_socket, local_service
 from service.settings import Settings
 from service.store.records import RunRecord, StationRecord
-from tests.helpers import wait_for
-from tests.test_pipeline import rendered_stations
-from tests.test_service_api import CELL
+from tests.support.helpers import wait_for
+from tests.support.service import CELL
+from tests.support.stations import rendered_stations
 
 KEY = "faults-key-0123456789abcdef"
 AUTH = {"Authorization": f"Bearer {KEY}"}

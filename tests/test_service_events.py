@@ -5,9 +5,7 @@
 from __future__ import annotations
 
 import datetime as dt
-import json
 import threading
-from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -22,11 +20,13 @@ from service.store.records import (
     StationRecord,
     ValidationRecord,
 )
-from tests.test_exports import full_result
-from tests.test_service_api import (
+from tests.support.results import full_result
+from tests.support.service import (
     CELL,
+    Event,
     finished,
     gated_opener,
+    read_events,
     service,
     start_run,
     wait_run,
@@ -34,40 +34,9 @@ from tests.test_service_api import (
 
 pytestmark = pytest.mark.usefixtures("database")
 
-Event = tuple[int, str, dict[str, Any]]
 
 
-@pytest.fixture
-def client(tmp_path: Path) -> Iterator[TestClient]:
-    with service(tmp_path) as c:
-        yield c
 
-
-def read_events(client: TestClient, run_id: str, *,
-                last_event_id: str | bytes | None = None,
-                until: Callable[[list[Event]], bool] = lambda events: False,
-                path: str = "/runs/{}/events") -> list[Event]:
-    """Events ``(id, type, data)`` of the stream at ``path`` (a run's by default) until it
-    ends or ``until(events)``, then disconnect."""
-    headers = {} if last_event_id is None else {"Last-Event-ID": last_event_id}
-    events: list[Event] = []
-    fields: dict[str, str] = {}
-    with client.stream("GET", path.format(run_id), headers=headers) as r:
-        assert r.status_code == 200
-        for line in r.iter_lines():
-            if line.startswith(":"):
-                continue
-            if line:
-                key, _, value = line.partition(": ")
-                fields[key] = value
-                continue
-            if not fields:  # the blank line that ends a keep-alive comment
-                continue
-            events.append((int(fields["id"]), fields["event"], json.loads(fields["data"])))
-            fields = {}
-            if until(events):
-                break
-    return events
 
 
 def stations_of(events: list[Event]) -> list[int]:

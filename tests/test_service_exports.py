@@ -7,18 +7,15 @@ each case is fast and its result document known.
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
 
-from service.app import create_app
 from service.exports import FORMATS, ExportNames, export
 from service.store.records import CalibrationRecord, RunRecord
-from tests.test_exports import full_result, pose_only_result
-from tests.test_service_api import AUTH, CELL, settings
+from tests.support.results import full_result, pose_only_result
+from tests.support.service import CELL
 
 pytestmark = [pytest.mark.timeout(20), pytest.mark.usefixtures("database")]
 
@@ -26,12 +23,6 @@ MEDIA = {"json": "application/json", "opencv-yaml": "application/yaml",
          "ros-camera-info": "application/yaml", "urdf": "application/xml",
          "ur-pose": "text/plain", "ros2-static-tf": "text/x-python"}
 
-
-@pytest.fixture
-def client(tmp_path: Path) -> Iterator[TestClient]:
-    with TestClient(create_app(settings(tmp_path))) as c:
-        c.headers.update(AUTH)
-        yield c
 
 
 def add_calibration(client: TestClient, state: str = "done",

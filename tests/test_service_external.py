@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import struct
-import time
 import zlib
 from collections.abc import Iterator
 from pathlib import Path
@@ -25,8 +24,17 @@ from fastapi.testclient import TestClient
 from drivers.errors import RobotError
 from service.app import create_app
 from service.cli.main import main
-from tests.helpers import SHARED
-from tests.test_service_api import AUTH, finished, settings, wait_run
+from tests.support.helpers import SHARED
+from tests.support.service import (
+    AUTH,
+    external_run,
+    finished,
+    post,
+    robot_pose,
+    settings,
+    wait_calibration,
+    wait_run,
+)
 
 pytestmark = pytest.mark.usefixtures("database")
 
@@ -40,22 +48,10 @@ def client(tmp_path: Path) -> Iterator[TestClient]:
         yield c
 
 
-def external_run(client: TestClient, **body: Any) -> str:
-    r = client.post("/runs", json={"mode": "external", **body})
-    assert r.status_code == 201, r.text
-    return r.json()["id"]
 
 
-def post(client: TestClient, run_id: str, *, pose: Any = None, joints: Any = None,
-         image: bytes | None = None) -> Any:
-    """POST a station; form fields only for what is given (a bare POST for nothing)."""
-    data = {k: json.dumps(v) for k, v in (("pose", pose), ("joints", joints)) if v is not None}
-    files = None if image is None else {"image": ("station.png", image, "image/png")}
-    return client.post(f"/runs/{run_id}/stations", data=data or None, files=files)
 
 
-def robot_pose(client: TestClient) -> list[float]:
-    return client.get("/devices").json()["robot"]["tcp_pose"]
 
 
 def png(image: np.ndarray) -> bytes:
@@ -69,12 +65,6 @@ def png_header(width: int, height: int) -> bytes:
             + struct.pack(">I", zlib.crc32(ihdr)))
 
 
-def wait_calibration(client: TestClient, cal_id: str, timeout: float = 120.0) -> dict[str, Any]:
-    deadline = time.monotonic() + timeout
-    while (cal := client.get(f"/calibrations/{cal_id}").json())["state"] == "running":
-        assert time.monotonic() < deadline, "calibration did not finish"
-        time.sleep(0.1)
-    return cal
 
 
 # ---- the acceptance check on real data -------------------------------------------------------

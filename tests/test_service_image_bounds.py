@@ -25,8 +25,7 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.serving.local import local_service
-from tests.test_service_api import AUTH, settings
-from tests.test_service_external import external_run, post, robot_pose
+from tests.support.service import AUTH, external_run, post, robot_pose, settings
 
 KEY = "image-bounds-key-0123456789"
 

@@ -24,9 +24,17 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from tests.helpers import wait_for
-from tests.test_service_api import AUTH, finished, poses, settings, start_run, wait_run
-from tests.test_service_events import Event, read_events
+from tests.support.helpers import wait_for
+from tests.support.service import (
+    AUTH,
+    Event,
+    finished,
+    poses,
+    read_events,
+    settings,
+    start_run,
+    wait_run,
+)
 
 #: The service's SQLite busy timeout and write retry budget in this test, seconds.
 BUSY_S, RETRY_S = 0.5, 2.0

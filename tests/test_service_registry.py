@@ -8,28 +8,19 @@ with creation times set, so the order is known.
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
 
-from service.app import create_app
 from service.store.records import CalibrationRecord, RunRecord
-from tests.test_exports import full_result, pose_only_result
-from tests.test_service_api import AUTH, CELL, settings
+from tests.support.results import full_result, pose_only_result
+from tests.support.service import CELL
 
 pytestmark = [pytest.mark.timeout(20), pytest.mark.usefixtures("database")]
 
 T0 = dt.datetime(2026, 1, 5, 8, 0, tzinfo=dt.UTC)
 
-
-@pytest.fixture
-def client(tmp_path: Path) -> Iterator[TestClient]:
-    with TestClient(create_app(settings(tmp_path))) as c:
-        c.headers.update(AUTH)
-        yield c
 
 
 def add_run(client: TestClient, *, setup: str = "eye_in_hand", robot: str = "mock://",

@@ -8,7 +8,6 @@ import json
 import threading
 import zipfile
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
@@ -17,32 +16,24 @@ from fastapi.testclient import TestClient
 from calib import CheckerboardTarget, Station, Stations
 from service.cli.main import main
 from service.stationsets.format import load_station_set, write_station_set
-from tests.test_service_api import (  # noqa: F401 (client: the fixture)
-    client,
+from tests.support.service import (
+    assert_same_calibration,
     finished,
     gated_opener,
     service,
     start_run,
+    wait_calibration,
     wait_run,
 )
-from tests.test_service_external import wait_calibration
 
 pytestmark = pytest.mark.usefixtures("database")
 
 
-def assert_same_calibration(a: dict[str, Any], b: dict[str, Any], atol: float = 1e-9) -> None:
-    """Two result documents agree on the camera, κ, ν, the hand-eye and the target pose."""
-    for key in ("K", "dist"):
-        np.testing.assert_allclose(a["camera"][key], b["camera"][key], rtol=0, atol=atol)
-    for key in ("kappa", "nu"):
-        assert a["target"][key] == pytest.approx(b["target"][key], rel=0, abs=atol)
-    for key in ("hand_eye", "target_pose"):
-        np.testing.assert_allclose(a[key]["matrix"], b[key]["matrix"], rtol=0, atol=atol)
 
 
 @pytest.mark.timeout(300)
 def test_cellcal_calibrate_on_an_exported_run_gives_the_service_result(
-        client: TestClient, tmp_path: Path) -> None:  # noqa: F811
+        client: TestClient, tmp_path: Path) -> None:
     run_id = start_run(client, 10)
     assert wait_run(client, run_id, finished)["state"] == "done"
     r = client.post(f"/runs/{run_id}/calibrations", json={})

@@ -27,9 +27,18 @@ from mocks.scene import default_scene
 from service.app import create_app
 from service.cell.devices import settings_opener
 from service.store.records import CalibrationRecord, RunRecord, ValidationRecord
-from tests.test_exports import full_result
-from tests.test_service_api import AUTH, CELL, GatedCamera, finished, poses, settings, wait_run
-from tests.test_service_events import Event, read_events
+from tests.support.results import full_result
+from tests.support.service import (
+    AUTH,
+    CELL,
+    Event,
+    GatedCamera,
+    finished,
+    poses,
+    read_events,
+    settings,
+    wait_run,
+)
 
 pytestmark = pytest.mark.usefixtures("module_database")
 

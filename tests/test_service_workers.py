@@ -20,7 +20,7 @@ import numpy as np
 from calib.geometry import ur_pose_from_matrix
 from mocks.scene import default_scene, sample_station_poses
 from service.serving.local import LocalService, ServeOptions, local_service
-from tests.helpers import wait_for
+from tests.support.helpers import wait_for
 
 KEY = "orphan-key-0123456789abcdef"
 #: Issue 11 acceptance: no orphan 15 s after the kill.

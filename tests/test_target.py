@@ -10,7 +10,7 @@ from calib.boards import board_points, detect_checkerboard, order_corners
 from calib.geometry import make_transform
 from mocks.render import RenderParams, render_board
 from mocks.scene import MockScene, camera_pose_for_tcp, default_scene, sample_station_poses
-from tests.helpers import OPENCV_LEFT
+from tests.support.helpers import OPENCV_LEFT
 
 LEFT_IMAGES = sorted(OPENCV_LEFT.glob("left*.jpg"))
 SCENE = default_scene()

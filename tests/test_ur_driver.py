@@ -17,12 +17,6 @@ from contextlib import contextmanager
 
 import numpy as np
 import pytest
-from ur_emulator_fixture import (
-    EmulatorProcess,
-    free_host,
-    running_emulator,
-    wait_ports,
-)
 
 from calib.geometry import matrix_from_ur_pose, pose_error
 from drivers.base import Robot
@@ -34,7 +28,13 @@ from drivers.errors import (
 )
 from drivers.ur import URRobot
 from mocks.ur_kinematics import fk_pose
-from tests.helpers import ends_with_this_process
+from tests.support.helpers import ends_with_this_process
+from tests.support.ur_emulator import (
+    EmulatorProcess,
+    free_host,
+    running_emulator,
+    wait_ports,
+)
 
 FAST = {"speed": 1.0, "acceleration": 4.0}
 

@@ -16,7 +16,7 @@ from calib.validation import (
     reprojection_rms,
 )
 from mocks.posesim import default_cell, robot_poses, sample_camera_poses
-from tests.helpers import exact_stations
+from tests.support.helpers import exact_stations
 
 
 @pytest.fixture(params=["eye_in_hand", "eye_to_hand"])

@@ -25,7 +25,7 @@ from service.jobs.validation_run import (
     run_dot_hit,
     tcp_pose_for_probe,
 )
-from tests.helpers import assert_pose_close, random_transforms
+from tests.support.helpers import assert_pose_close, random_transforms
 
 SCENE = default_scene()
 X_TRUE = SCENE.hand_eye_matrix

@@ -1,6 +1,6 @@
 """The web page at ``/`` and the API docs at ``/docs`` and ``/redoc`` work without any other
 host: every asset they reference is served by cellcal itself, without the API key (the data
-calls still need it). A headless chromium (``tests.browser``, the DevTools protocol) clicks
+calls still need it). A headless chromium (``tests.support.browser``, the DevTools protocol) clicks
 through the page against ``cellcal serve --mock``: key, run, calibration, report, export.
 
 ``CELLCAL_SCREENSHOTS=docs pytest tests/test_web_page.py`` refreshes the screenshots in docs/.
@@ -22,8 +22,8 @@ from fastapi.testclient import TestClient
 from service.app import create_app
 from service.serving.local import LocalService, local_service
 from service.web import STATIC_DIR
-from tests.browser import Browser
-from tests.test_service_api import AUTH, KEY, settings
+from tests.support.browser import Browser
+from tests.support.service import AUTH, KEY, settings
 
 #: src / href attribute values in HTML.
 _REFS = re.compile(r"""(?:src|href)\s*=\s*["']([^"']+)["']""")

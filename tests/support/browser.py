@@ -25,7 +25,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from tests.helpers import ends_with_this_process, wait_for
+from tests.support.helpers import ends_with_this_process, wait_for
 
 #: Deadline of one wait (s): a guard against a hang, not a speed requirement.
 WAIT_S = 120.0

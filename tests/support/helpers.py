@@ -65,7 +65,7 @@ def wait_for(what: str, condition: Callable[[], T], timeout: float = 120.0) -> T
 
 
 #: ``../shared`` beside the repository (CI and developers have it there), e.g. the real images.
-SHARED = Path(os.environ.get("CELLCAL_SHARED", Path(__file__).resolve().parents[2] / "shared"))
+SHARED = Path(os.environ.get("CELLCAL_SHARED", Path(__file__).resolve().parents[3] / "shared"))
 OPENCV_LEFT = SHARED / "data" / "opencv-left"
 
 
