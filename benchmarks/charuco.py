@@ -68,7 +68,9 @@ from mocks.scene import MockScene, StationSpread, camera_pose_for_tcp, charuco_s
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-OUT = Path(__file__).parent / "results"
+from benchmarks import results_dir
+
+OUT = results_dir()
 BOARD = Charuco((12, 9), 0.03, 0.022, "DICT_5X5_100")
 SIZE = (1920, 1200)
 PX = 100  # print pixels per square

@@ -68,7 +68,9 @@ from mocks.blindcells import CornerCell, Shot, random_blind_scene
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-OUT = Path(__file__).parent / "results"
+from benchmarks import results_dir
+
+OUT = results_dir()
 TOL_DEG, TOL_MM, MAX_STATIONS = 0.05, 0.5, 40
 #: Honest σ computed once the planner's formal σ is within this factor of the tolerance.
 HONEST_GATE = 1.3

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 import cv2
 import matplotlib
@@ -38,8 +37,10 @@ from mocks.posesim import default_cell, simulate
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
+from benchmarks import results_dir
+
 OPENCV = [m for m in POSE_METHODS if m not in ("sm", "refine")]
-OUT = Path(__file__).parent / "results"
+OUT = results_dir()
 
 
 def noisy_motion(T: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:

@@ -65,7 +65,9 @@ from service.cli.main import main as cellcal
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-OUT = Path(__file__).parent / "results"
+from benchmarks import results_dir
+
+OUT = results_dir()
 ROBOT_ROT, ROBOT_TRANS = np.deg2rad(0.05), 0.25e-3
 CV_METHODS = list(OPENCV_HAND_EYE_METHODS)
 

@@ -31,6 +31,7 @@ run a user makes after measuring the board — the measured square size (to the 
 ``kappa 'fixed'`` — and its hand-eye against the default's.
 
     python -m benchmarks.real_cv            # about 2 min on 2 idle cores
+    python -m benchmarks.real_cv --quick    # one UR set and opencv-left
 
 Prints a table and writes ``benchmarks/results/real_cv.png`` and ``real_cv.md``.
 """
@@ -57,8 +58,10 @@ from calib.stations import StationInputs
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
+from benchmarks import results_dir
+
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
-OUT = Path(__file__).parent / "results"
+OUT = results_dir()
 UR_SETS = ("ur-kinect-highR_highT", "ur-kinect-lowR_highT")
 PEERS = ("park", "tsai", "daniilidis")
 K_FOLDS = 5
@@ -380,10 +383,12 @@ def plot(results: dict[str, dict], path: Path) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sets", nargs="+", default=[*UR_SETS, "opencv-left"])
+    parser.add_argument("--quick", action="store_true",
+                        help="one UR set and opencv-left (a smoke run)")
     args = parser.parse_args(argv)
     methods = ["cellcal", *(f"opencv-{m}" for m in PEERS)]
     results = {}
-    for name in args.sets:
+    for name in [UR_SETS[0], "opencv-left"] if args.quick else args.sets:
         data = load_opencv_left() if name == "opencv-left" else load_ur_set(name)
         results[name] = run_set(data, methods if data.T_base_tcp is not None
                                 else ["cellcal", "opencv-calibrateCamera"])

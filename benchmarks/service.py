@@ -64,9 +64,11 @@ from mocks.scene import default_scene, sample_station_poses
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
+from benchmarks import results_dir
+
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
-OUT = HERE / "results"
+OUT = results_dir()
 TARGET_RATE = 10.0  # stations per second, end to end
 TARGET_P99_MS = 50.0  # GET /runs/{id} while capturing
 STARTUP_TIMEOUT_S = 30.0
@@ -384,7 +386,7 @@ def main() -> int:
     path = OUT / "service.png"
     plot(http, stages, args.hz, path)
     print(f"CPU used by other processes after the end: {machine_busy():.0%}")
-    print(f"\nwrote {path.relative_to(REPO)}")
+    print(f"\nwrote {path}")
     return 0
 
 

@@ -56,7 +56,9 @@ from service.store.records import (
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-OUT = Path(__file__).resolve().parent / "results"
+from benchmarks import results_dir
+
+OUT = results_dir()
 TARGET_P99_MS = 50.0
 TARGET_GROWTH = 1.2
 CLIENTS, LISTENERS, CELLS = 20, 5, 20

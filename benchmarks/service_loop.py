@@ -28,7 +28,7 @@ from unittest import mock
 import cv2
 import numpy as np
 
-from calib import detect_checkerboard
+from calib import Checkerboard, detect_checkerboard
 from mocks.scene import default_scene
 
 #: Run states after which a run changes no more.
@@ -117,7 +117,7 @@ def time_get_run(jobs: Any, run_id: str, reps: int = TIME_GET_REPS) -> HandlerTi
             dict(s.execute(select(StationRecord.state, func.count()).where(
                 StationRecord.run_id == run_id).group_by(StationRecord.state)).all())
             s.scalars(select(StationRecord.index).where(StationRecord.run_id == run_id,
-                                                  StationRecord.error.is_not(None))).all()
+                                                        StationRecord.error.is_not(None))).all()
             del run
 
     full_gcs: list[float] = []
@@ -170,7 +170,8 @@ class Stages:
 
 def stage_breakdown(poses: list[list[float]], warmup: list[list[float]], timeout: float,
                     keep: int) -> Stages:
-    """Time the stages of the service's own capture loop, then profile it."""
+    """Time the stages of the service's own capture loop, then profile it (the default scene's
+    board is a ``Checkerboard``: its ``detect`` is what the capture worker calls)."""
     import mocks.camera as camera_mod
     import service.runs.capture as capture_mod
     from service.runs.capture import Capture
@@ -203,8 +204,8 @@ def stage_breakdown(poses: list[list[float]], warmup: list[list[float]], timeout
                     mock.patch.object(capture_mod, "capture_station",
                                       timed("capture", capture_mod.capture_station)), \
                     mock.patch.object(camera_mod, "render_board", timed("render", render)), \
-                    mock.patch.object(capture_mod, "detect_checkerboard",
-                                      timed("detect", capture_mod.detect_checkerboard)), \
+                    mock.patch.object(Checkerboard, "detect",
+                                      timed("detect", Checkerboard.detect)), \
                     mock.patch.object(capture_mod, "write_png",
                                       timed("png", capture_mod.write_png)):
                 run_id, wall = capture_in_process(jobs, poses, timeout)

@@ -40,7 +40,9 @@ from mocks.scene import MockScene, load_scene
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-OUT = Path(__file__).parent / "results"
+from benchmarks import results_dir
+
+OUT = results_dir()
 SCENE = Path(__file__).resolve().parents[1] / "mocks" / "scenes" / "ur5e_kinematic_errors.json"
 PIXEL_NOISE = 0.15
 #: The σ's compared: reported, formal, fold jackknife.

@@ -1,0 +1,53 @@
+"""Benchmarks that cannot rot: each one imports and offers ``--quick`` (fast suite), and each
+``--quick`` run completes and writes its figure (slow suite, ``make test-slow``), into a
+temporary directory so the recorded figures stay as they are (``CELLCAL_BENCH_OUT``)."""
+
+from __future__ import annotations
+
+import importlib
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+#: Each benchmark (``python -m benchmarks.NAME``) and the figure its run writes.
+BENCHMARKS = {
+    "charuco": "charuco.png",
+    "cold_start": "cold_start.png",
+    "handeye_accuracy": "handeye_accuracy.png",
+    "kappa_nu": "kappa_nu.png",
+    "real_cv": "real_cv.png",
+    "service": "service.png",
+    "uncertainty": "uncertainty.png",
+}
+
+
+def test_every_benchmark_module_is_listed() -> None:
+    found = {p.stem for p in (ROOT / "benchmarks").glob("*.py")
+             if "\ndef main(" in p.read_text()}
+    assert found == set(BENCHMARKS)
+
+
+@pytest.mark.parametrize("name", sorted(BENCHMARKS))
+def test_benchmark_imports_and_offers_quick(name: str, monkeypatch: pytest.MonkeyPatch,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    module = importlib.import_module(f"benchmarks.{name}")
+    monkeypatch.setattr(sys, "argv", [name, "--help"])
+    with pytest.raises(SystemExit) as exit_:
+        module.main()
+    assert exit_.value.code == 0
+    assert "--quick" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+@pytest.mark.parametrize("name", sorted(BENCHMARKS))
+def test_quick_benchmark_run_writes_its_figure(name: str, tmp_path: Path) -> None:
+    env = {**os.environ, "CELLCAL_BENCH_OUT": str(tmp_path), "OPENBLAS_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "-m", f"benchmarks.{name}", "--quick"], cwd=ROOT,
+                          env=env, capture_output=True, text=True, timeout=1700)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert (tmp_path / BENCHMARKS[name]).stat().st_size > 0
