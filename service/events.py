@@ -21,7 +21,7 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
-from service.store import queries
+from service.store import queries, writes
 from service.store.db import Database
 from service.store.event_relay import EventRelay, announce
 from service.store.records import FINAL_JOB_STATES, FINAL_RUN_STATES, Topic
@@ -78,7 +78,7 @@ class EventBus:
         publish at a time, so every listener receives the events in id order."""
         with self._lock:
             with self.db.session() as s:
-                event = {**event, "id": queries.add_event(s, topic=topic, event=event)}
+                event = {**event, "id": writes.add_event(s, topic=topic, event=event)}
                 announce(s, topic=topic, event_id=event["id"], instance_id=self.instance_id)
             self._fan_out(topic, event)
 

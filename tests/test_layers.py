@@ -115,3 +115,24 @@ def test_calib_is_used_through_its_public_surface() -> None:
     inner = {(m, d) for m, deps in _graph().items() if _package(m) != "calib"
              for d in deps if _package(d) == "calib" and d != "calib"}
     assert not inner, sorted(inner)
+
+
+#: The one module that adds, merges or deletes rows (docs/architecture.md).
+WRITER = ROOT / "service" / "store" / "writes.py"
+
+
+def _session_writes(path: Path) -> list[str]:
+    """``s.add(...)``, ``session.merge(...)`` and the like in ``path``: calls of a session's
+    writing methods on a name that holds a session (``s``, ``session``)."""
+    return [f"{path.relative_to(ROOT)}:{node.lineno}"
+            for node in ast.walk(ast.parse(path.read_text(), str(path)))
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+            and node.func.attr in ("add", "add_all", "merge", "delete")
+            and isinstance(node.func.value, ast.Name) and node.func.value.id in ("s", "session")]
+
+
+def test_only_the_writer_adds_merges_or_deletes_rows() -> None:
+    found = [hit for p in sorted((ROOT / "service").rglob("*.py")) if p != WRITER
+             for hit in _session_writes(p)]
+    assert not found, found
+    assert _session_writes(WRITER), "the checker sees no write in the writer"

@@ -78,11 +78,11 @@ def add_calibrations(client: TestClient, cell: str, n: int) -> list[str]:
     """``n`` finished calibrations of one run of ``cell``; their ids."""
     with client.app.state.db.session() as s:
         run = RunRecord(cell=cell, robot="mock://", state="done", setup="eye_in_hand",
-                  target=BOARD, poses=[])
+                        target=BOARD, poses=[])
         s.add(run)
         s.flush()
         cals = [CalibrationRecord(cell=cell, run_id=run.id, state="done", options={},
-                            result=full_result()) for _ in range(n)]
+                                  result=full_result()) for _ in range(n)]
         s.add_all(cals)
         s.commit()
         return [cal.id for cal in cals]
@@ -132,11 +132,12 @@ def test_a_restart_recovers_only_its_cells_dead_work(tmp_path: Path) -> None:
     with services(tmp_path, "press-a") as (a,):
         with a.app.state.db.session() as s:
             dead = InstanceRecord(cell="press-a", host="elsewhere", port=8000, pid=1,
-                            heartbeat_at=utcnow() - dt.timedelta(minutes=5))
+                                  heartbeat_at=utcnow() - dt.timedelta(minutes=5))
             s.add(dead)
             s.flush()
             orphan = RunRecord(cell="press-a", robot="mock://9", state="capturing", owner="x",
-                         instance_id=dead.id, setup="eye_in_hand", target=BOARD, poses=poses(2))
+                               instance_id=dead.id, setup="eye_in_hand", target=BOARD,
+                               poses=poses(2))
             s.add(orphan)
             s.commit()
         live = a.post("/runs", json={"mode": "external"}).json()["id"]

@@ -242,14 +242,14 @@ def test_run_list_takes_a_fixed_number_of_queries(tmp_path):
             with db.session() as s:
                 for k in range(total_runs - s.query(RunRecord).count()):
                     run = RunRecord(cell=CELL, robot=f"mock://{k}", state="done",
-                              setup="eye_in_hand",
-                              target={"inner_corners": [11, 8], "square_size_m": 0.03},
-                              poses=[[0.3, 0.0, 0.4, 3.14, 0.0, 0.0]] * 2)
+                                    setup="eye_in_hand",
+                                    target={"inner_corners": [11, 8], "square_size_m": 0.03},
+                                    poses=[[0.3, 0.0, 0.4, 3.14, 0.0, 0.0]] * 2)
                     s.add(run)
                     s.flush()
                     s.add(StationRecord(run_id=run.id, index=0, state="skipped", error="x",
-                                  error_code="not_detected", commanded_tcp_pose=run.poses[0],
-                                  attempts=2))
+                                        error_code="not_detected", commanded_tcp_pose=run.poses[0],
+                                        attempts=2))
                 s.commit()
             statements.clear()
             listed = client.get("/runs", params={"limit": 500}).json()

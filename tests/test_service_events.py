@@ -181,13 +181,13 @@ def add_rows(client: TestClient) -> None:
     """Two runs with stations and five calibrations with known durations and results."""
     with client.app.state.db.session() as s:
         hand = RunRecord(cell=CELL, robot="mock://", state="done", setup="eye_in_hand",
-                   mode="robot", target={}, poses=[])
+                         mode="robot", target={}, poses=[])
         fixed = RunRecord(cell=CELL, robot="mock://", state="capturing", setup="eye_to_hand",
-                    mode="external", target={}, poses=[])
+                          mode="external", target={}, poses=[])
         s.add_all([hand, fixed])
         s.flush()
         s.add_all([StationRecord(run_id=hand.id, index=k, state="captured" if k < 3 else "skipped",
-                           commanded_tcp_pose=[0.0] * 6, tcp_pose=None) for k in range(4)])
+                                 commanded_tcp_pose=[0.0] * 6, tcp_pose=None) for k in range(4)])
         for run, minutes, seconds, state, result in [
                 (hand, 0, 10.0, "done", evidence_result("eye_in_hand", cv_rms_px=0.31,
                                                         verdict="pass")),

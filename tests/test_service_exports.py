@@ -29,12 +29,12 @@ def add_calibration(client: TestClient, state: str = "done",
                     result: dict[str, Any] | None = None) -> str:
     """Store a run and a calibration of it in ``state``; the calibration id."""
     run = RunRecord(cell=CELL, robot="mock://", state="done", setup="eye_in_hand",
-              target={"inner_corners": [11, 8], "square_size_m": 0.03}, poses=[])
+                    target={"inner_corners": [11, 8], "square_size_m": 0.03}, poses=[])
     with client.app.state.db.session() as s:
         s.add(run)
         s.flush()
         cal = CalibrationRecord(cell=CELL, run_id=run.id, state=state, options={}, result=result,
-                          error="boom" if state == "failed" else None)
+                                error="boom" if state == "failed" else None)
         s.add(cal)
         s.commit()
     return cal.id

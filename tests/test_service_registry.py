@@ -26,7 +26,7 @@ T0 = dt.datetime(2026, 1, 5, 8, 0, tzinfo=dt.UTC)
 def add_run(client: TestClient, *, setup: str = "eye_in_hand", robot: str = "mock://",
             cell: str = CELL) -> str:
     run = RunRecord(cell=cell, robot=robot, state="done", setup=setup,
-              target={"inner_corners": [11, 8], "square_size_m": 0.03}, poses=[])
+                    target={"inner_corners": [11, 8], "square_size_m": 0.03}, poses=[])
     with client.app.state.db.session() as s:
         s.add(run)
         s.commit()
@@ -41,7 +41,7 @@ def add_calibration(client: TestClient, run_id: str, *, minute: int, state: str 
               "error": "boom" if state == "failed" else None,
               "result": full_result() if state == "done" else None, **columns}
     cal = CalibrationRecord(run_id=run_id, state=state,
-                      created_at=T0 + dt.timedelta(minutes=minute), **values)
+                            created_at=T0 + dt.timedelta(minutes=minute), **values)
     with client.app.state.db.session() as s:
         s.add(cal)
         s.commit()

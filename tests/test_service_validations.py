@@ -178,7 +178,8 @@ def test_the_robot_does_one_motion_job_at_a_time(app_on: Client,
     client = app_on(open_devices=hanging)
     cal_id = calibrated[2]
     interrupted = RunRecord(cell=CELL, robot="mock://", state="interrupted", setup="eye_in_hand",
-                      target={"inner_corners": [11, 8], "square_size_m": 0.03}, poses=poses(2))
+                            target={"inner_corners": [11, 8], "square_size_m": 0.03},
+                            poses=poses(2))
     with client.app.state.db.session() as s:
         s.add(interrupted)
         s.commit()
@@ -300,7 +301,7 @@ def test_a_validation_cut_by_a_restart_is_failed(app_on: Client,
     client = app_on()
     with client.app.state.db.session() as s:  # a validation of a service that died
         val = ValidationRecord(cell=CELL, robot="mock://", calibration_id=calibrated[2],
-                         kind="dot_hit", state="running")
+                               kind="dot_hit", state="running")
         s.add(val)
         s.commit()
     after = app_on().get(f"/validations/{val.id}").json()

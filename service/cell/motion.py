@@ -26,7 +26,7 @@ from service.cell.devices import Devices
 from service.errors import ConflictError
 from service.events import EventBus
 from service.settings import Settings
-from service.store import queries
+from service.store import queries, writes
 from service.store.db import Database
 from service.store.instances import describe
 from service.store.records import RunRecord, ValidationRecord
@@ -57,11 +57,11 @@ class Motion:
 
     @contextlib.contextmanager
     def claim(self, job: str, *, check: bool = True) -> Iterator[Session]:
-        """A session whose transaction holds the robot's claim (``queries.claim_robot``) until
+        """A session whose transaction holds the robot's claim (``writes.claim_robot``) until
         the block, which stores the claiming row ``job`` names, commits; first check that the
         robot is free (409 if not) unless the block makes its own checks (``check=False``)."""
         with self.db.session() as s:
-            queries.claim_robot(s, cell=self.settings.cell, robot=self.settings.robot, job=job,
+            writes.claim_robot(s, cell=self.settings.cell, robot=self.settings.robot, job=job,
                               instance_id=self.instance_id)
             if check:
                 self.check_free(s)

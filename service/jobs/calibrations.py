@@ -33,7 +33,7 @@ from service.jobs.workers import WorkerPool, report_progress
 from service.results.report_cache import Reports
 from service.schemas import CalibrationOptions
 from service.settings import Settings
-from service.store import queries
+from service.store import queries, writes
 from service.store.db import Database
 from service.store.records import CalibrationRecord, Topic
 from service.store.stations import captured_station_set
@@ -101,10 +101,9 @@ class Calibrations:
                 raise UnprocessableError(
                     f"Run {run_id} has {len(stations.stations)} captured stations; a "
                     f"calibration needs at least {MIN_IMAGES}.", code="too_few_stations")
-            cal = CalibrationRecord(run_id=run_id, cell=run.cell, instance_id=self.instance_id,
-                              state="running", options=options.model_dump())
-            s.add(cal)
-            s.commit()
+            cal = writes.add_calibration(s, run_id=run_id, cell=run.cell,
+                                         instance_id=self.instance_id, state="running",
+                                         options=options.model_dump())
             payload = {"cal_id": cal.id, "run_id": run_id, "stations": stations,
                        "options": options.model_dump()}
         return cal, payload

@@ -31,7 +31,7 @@ from sqlalchemy.orm.attributes import set_committed_value
 
 from service.events import EventBus
 from service.settings import Settings
-from service.store import queries
+from service.store import writes
 from service.store.db import Database, DatabaseUnavailableError, retry_transient
 from service.store.records import CalibrationRecord, Topic, ValidationRecord, utcnow
 
@@ -83,9 +83,9 @@ class Outcomes:
     def _store(self, topic: Topic, values: dict[str, Any]) -> None:
         with self.db.session() as s:
             if topic.kind == "calibration":
-                queries.finish_calibration(s, cal_id=topic.id, **values)
+                writes.finish_calibration(s, cal_id=topic.id, **values)
             else:
-                queries.finish_validation(s, val_id=topic.id, **values)
+                writes.finish_validation(s, val_id=topic.id, **values)
 
     def _publish(self, topic: Topic) -> None:
         """The final ``state`` event; retried, and left to the drain thread if it fails."""

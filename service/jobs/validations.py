@@ -42,7 +42,7 @@ from service.jobs.validation_run import (
 )
 from service.results.document import stored_cell
 from service.schemas import CheckCreate, ValidationCreate
-from service.store import queries
+from service.store import queries, writes
 from service.store.db import TRANSIENT_ERRORS
 from service.store.records import Topic, ValidationRecord, new_id
 from service.store.stations import run_target
@@ -101,11 +101,10 @@ class Validations(MotionJobs):
         """Store a running validation of ``kind`` and run ``work`` (its report) in a thread."""
         val_id = new_id()
         with self.motion.claim(f"validation {val_id}") as s:
-            val = ValidationRecord(id=val_id, cell=self.settings.cell, robot=self.settings.robot,
-                             instance_id=self.motion.instance_id, calibration_id=cal_id,
-                             kind=kind, state="running")
-            s.add(val)
-            s.commit()
+            val = writes.add_validation(s, id=val_id, cell=self.settings.cell,
+                                        robot=self.settings.robot,
+                                        instance_id=self.motion.instance_id,
+                                        calibration_id=cal_id, kind=kind, state="running")
         self.motion.start(val.id, self._validate, val.id, work,
                           name=f"{kind}-{val.id[:8]}")
         return val

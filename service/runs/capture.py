@@ -35,7 +35,6 @@ from typing import Any, TypeVar
 
 import cv2
 import numpy as np
-from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from calib import Board, ChecksConfiguration, Station, board_from_target
@@ -52,9 +51,9 @@ from drivers.errors import (
 from drivers.stall import STALL_AFTER
 from service.cell.motion import Motion
 from service.events import EventBus, run_state_event
-from service.store import queries
+from service.store import queries, writes
 from service.store.db import DatabaseUnavailableError, retry_transient
-from service.store.records import RunRecord, StationRecord, Topic
+from service.store.records import RunRecord, Topic
 from service.store.stations import row_values, run_target
 from service.store.storage import StorageError, storage_error
 
@@ -172,7 +171,7 @@ class Capture:
         thread (if the service stops first, its next start marks the run ``interrupted``).
         """
         try:
-            changed = self._in_session(lambda s: queries.finish_run(
+            changed = self._in_session(lambda s: writes.finish_run(
                 s, run_id=self.run_id, token=self.token, state=state, error=error,
                 error_code=code),
                 f"ending run {self.run_id} as {state}", budget_s=math.inf)
@@ -229,7 +228,7 @@ class Capture:
             self._worker = pool
             complete = self._visit(todo, poses)
         if self.motion.stopping.is_set():
-            self.finish("interrupted", queries.INTERRUPTED, "interrupted")
+            self.finish("interrupted", writes.INTERRUPTED, "interrupted")
         elif complete:
             counts = self._in_session(lambda s: queries.run_counts(
                 s, run=queries.get_run(s, run_id=self.run_id)), "counting stations")
@@ -410,7 +409,7 @@ class Capture:
         """Commit one station (image file first) unless the run is no longer ours; True if
         it was stored. ``code`` names the reason of a rejected station.
 
-        Ownership is claimed in the same transaction as the insert (``queries.claim_run`` locks
+        Ownership is claimed in the same transaction as the insert (``writes.claim_run`` locks
         the run row), so a station is never committed after a cancel, a pause or a takeover
         has been committed.
         """
@@ -427,19 +426,12 @@ class Capture:
         row = row_values(station)
 
         def commit(s: Session) -> bool:
-            if not queries.claim_run(s, run_id=self.run_id, token=self.token):
+            if not writes.claim_run(s, run_id=self.run_id, token=self.token):
                 return False
-            s.add(StationRecord(run_id=self.run_id, index=shot.index,
-                             commanded_tcp_pose=shot.pose,
-                             joint_positions=shot.joints,
-                             image_path=None if rel is None else rel.as_posix(),
-                             error_code=code, attempts=shot.tries, **row))
-            try:
-                s.commit()
-            except IntegrityError:  # another owner stored this index
-                s.rollback()
-                return False
-            return True
+            return writes.add_station(s, run_id=self.run_id, index=shot.index,
+                                      commanded_tcp_pose=shot.pose, joint_positions=shot.joints,
+                                      image_path=None if rel is None else rel.as_posix(),
+                                      error_code=code, attempts=shot.tries, **row)
 
         stored = False
         try:

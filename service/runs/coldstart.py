@@ -43,7 +43,7 @@ from calib import (
 )
 from drivers.errors import WorkspaceError
 from service.runs.capture import ATTEMPTS, STORED, Capture
-from service.store import queries
+from service.store import queries, writes
 from service.store.records import RunRecord
 from service.store.stations import run_target, station_of
 
@@ -71,7 +71,7 @@ class ColdStartCapture(Capture):
         good = self._replay(planner, stored)
         reason = self._loop(planner, plan, good, next_index=len(stored))
         if self.motion.stopping.is_set():
-            self.finish("interrupted", queries.INTERRUPTED, "interrupted")
+            self.finish("interrupted", writes.INTERRUPTED, "interrupted")
         elif reason is not None:
             self._update(stop_reason=reason)
             if not good:
@@ -95,7 +95,7 @@ class ColdStartCapture(Capture):
     def _update(self, **values: Any) -> None:
         """Merge ``values`` into the run's ``cold_start`` record (while the run is ours)."""
         def write(s: Session) -> None:
-            if not queries.claim_run(s, run_id=self.run_id, token=self.token):
+            if not writes.claim_run(s, run_id=self.run_id, token=self.token):
                 return
             run = s.get(RunRecord, self.run_id)
             assert run is not None
@@ -107,7 +107,7 @@ class ColdStartCapture(Capture):
     def _append_pose(self, pose: list[float]) -> None:
         """Record a commanded pose in the run's poses before the robot goes there."""
         def write(s: Session) -> None:
-            if queries.claim_run(s, run_id=self.run_id, token=self.token):
+            if writes.claim_run(s, run_id=self.run_id, token=self.token):
                 run = s.get(RunRecord, self.run_id)
                 assert run is not None
                 run.poses = [*run.poses, pose]

@@ -14,7 +14,7 @@ from service.runs.coldstart import ColdStartCapture
 from service.runs.external import ExternalStations
 from service.runs.planning import check_poses, cold_start_plan, informed_backend, plan_poses
 from service.schemas import RunCreate
-from service.store import queries
+from service.store import queries, writes
 from service.store.records import RunRecord, Topic, new_id
 from service.store.stations import target_json
 
@@ -49,17 +49,15 @@ class RunManager(MotionJobs):
                     self.motion, target=target, stations=body.stations,
                     stop_rule=None if rule is None else rule.model_dump())
         token = new_id()
-        run = RunRecord(id=new_id(), cell=self.settings.cell, robot=self.settings.robot,
-                  state="capturing", owner=token, instance_id=self.motion.instance_id,
-                  setup=setup,
-                  target=target_json(target), poses=poses, mode=body.mode,
-                  cold_start=cold_start)
-        with self.motion.claim(f"run {run.id}") as s:
-            s.add(run)
+        run_id = new_id()
+        with self.motion.claim(f"run {run_id}") as s:
             try:
-                s.commit()
+                run = writes.add_run(s, id=run_id, cell=self.settings.cell,
+                                     robot=self.settings.robot, state="capturing", owner=token,
+                                     instance_id=self.motion.instance_id, setup=setup,
+                                     target=target_json(target), poses=poses, mode=body.mode,
+                                     cold_start=cold_start)
             except IntegrityError:
-                s.rollback()
                 raise self.motion.busy() from None
         if run.mode == "robot":
             self._start_capture(run.id, token, cold=cold_start is not None)
@@ -93,7 +91,7 @@ class RunManager(MotionJobs):
             if queries.running_validation(s, cell=run.cell, robot=run.robot) is not None:
                 raise self.motion.busy(s)
             try:
-                changed = queries.move_run(s, run_id=run_id, from_state=run.state,
+                changed = writes.move_run(s, run_id=run_id, from_state=run.state,
                                          state="capturing", owner=token, error=None,
                                          error_code=None, instance_id=self.motion.instance_id)
             except IntegrityError:
@@ -128,7 +126,7 @@ class RunManager(MotionJobs):
                 raise ConflictError(f"Run {run_id} is {run.state}; it cannot become {target}.",
                                     code="invalid_state")
             owner = run.owner
-            changed = queries.move_run(s, run_id=run_id, from_state=run.state, state=target,
+            changed = writes.move_run(s, run_id=run_id, from_state=run.state, state=target,
                                      owner=None)
         if not changed:
             raise ConflictError(f"Run {run_id} changed state meanwhile; read it and retry.",

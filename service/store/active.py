@@ -12,7 +12,7 @@ from sqlalchemy.orm import Session
 
 from service.errors import ConflictError, NotFoundError
 from service.schemas import ActivationPublic
-from service.store import queries
+from service.store import queries, writes
 from service.store.records import ActivationRecord
 
 
@@ -24,7 +24,7 @@ def activate(s: Session, *, cal_id: str) -> tuple[str, str]:
         raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished calibration "
                             "can be activated.", code="invalid_state")
     run = queries.get_run(s, run_id=cal.run_id)
-    queries.activate(s, cal_id=cal_id, cell=cal.cell, setup=run.setup, robot=run.robot)
+    writes.activate(s, cal_id=cal_id, cell=cal.cell, setup=run.setup, robot=run.robot)
     return cal.cell, run.setup
 
 

@@ -18,7 +18,7 @@ import socket
 import threading
 
 from service.settings import Settings
-from service.store import queries
+from service.store import queries, writes
 from service.store.db import Database
 from service.store.records import InstanceRecord, utcnow
 
@@ -34,10 +34,9 @@ class InstanceLease:
         self.lease = dt.timedelta(seconds=settings.lease_s)
         self.host = socket.gethostname()
         self.row = InstanceRecord(cell=settings.cell, host=self.host, port=settings.port,
-                            pid=os.getpid())
+                                  pid=os.getpid())
         with db.session() as s:
-            s.add(self.row)
-            s.commit()
+            writes.add_instance(s, self.row)
         self.id: str = self.row.id
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
@@ -52,12 +51,12 @@ class InstanceLease:
         self._thread.start()
 
     def recover(self) -> tuple[int, int, int]:
-        """Fail or interrupt the work of this cell's dead instances (``queries.recover``);
+        """Fail or interrupt the work of this cell's dead instances (``writes.recover``);
         forget those instances. How many runs, calibrations and validations."""
         with self.db.session() as s:
             live = self.live_instances(s)
-            counts = queries.recover(s, cell=self.cell, live=live)
-            queries.forget_instances(s, cell=self.cell, live=live)
+            counts = writes.recover(s, cell=self.cell, live=live)
+            writes.forget_instances(s, cell=self.cell, live=live)
         if any(counts):
             log.warning("recovered the work of stopped services of cell %s: %d run(s) "
                         "interrupted, %d calibration(s) and %d validation(s) failed",
@@ -78,12 +77,11 @@ class InstanceLease:
         while not self._stop.wait(self.lease.total_seconds() / 3):
             try:
                 with self.db.session() as s:
-                    if not queries.renew_instance(s, instance_id=self.id):
+                    if not writes.renew_instance(s, instance_id=self.id):
                         log.error("this service's instance %s was taken for dead by another "
                                   "(no heartbeat for %s); registering again", self.id,
                                   self.lease)
-                        s.merge(self.row)
-                        s.commit()
+                        writes.restore_instance(s, self.row)
                 self.recover()
             except Exception as exc:  # a database outage: try again at the next beat
                 log.warning("heartbeat: %s", exc)
@@ -94,7 +92,7 @@ class InstanceLease:
         if self._thread.is_alive():
             self._thread.join(10.0)
         with self.db.session() as s:
-            queries.forget_instances(s, cell=self.cell, live=set(), only={self.id})
+            writes.forget_instances(s, cell=self.cell, live=set(), only={self.id})
 
 
 def describe(row: InstanceRecord) -> str:
