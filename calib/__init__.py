@@ -35,7 +35,7 @@ from calib.bounds import cramer_rao_bound
 from calib.camera import Pinhole, image_corner_error, solve_pnp
 from calib.chain import (
     SETUPS,
-    Motions,
+    MotionPairs,
     RobotNoise,
     camera_from_robot,
     check_setup,
@@ -99,7 +99,7 @@ from calib.planning import (
 from calib.recheck import CheckVerdict, Expected, StationCheck, StoredCell, check_verdict
 from calib.refine import RefineOptions
 from calib.screw import solve_sm
-from calib.selection import KAPPA_MODES, Candidate, Selection
+from calib.selection import KAPPA_MODES, ModelCandidate, Selection
 from calib.selection import RULE as SELECTION_RULE
 from calib.stations import Station, StationInputs, Stations
 from calib.validation import dot_hit, leave_one_out, motion_residuals, reprojection_rms
@@ -121,7 +121,6 @@ __all__ = [
     "BoardTarget",
     "Bootstrap",
     "CalibrationResult",
-    "Candidate",
     "CellGuess",
     "CellParameters",
     "Charuco",
@@ -142,7 +141,8 @@ __all__ = [
     "IntrinsicsResult",
     "JointOptions",
     "JointResult",
-    "Motions",
+    "ModelCandidate",
+    "MotionPairs",
     "NuSearch",
     "Pinhole",
     "PipelineOptions",

@@ -119,7 +119,7 @@ def hand_eye_from_station(T_base_tcp: np.ndarray, target_pose: np.ndarray,
 
 
 @dataclass(frozen=True)
-class Motions:
+class MotionPairs:
     """Motion pairs between stations ``i < j``: ``A X = X B`` (see docs/conventions.md)."""
 
     A: np.ndarray  # shape (m, 4, 4), robot chain motions inv(P_i) P_j
@@ -153,7 +153,7 @@ def spread_pairs(n: int, max_pairs: int = MAX_MOTION_PAIRS) -> tuple[np.ndarray,
 
 def station_motions(P: np.ndarray, C: np.ndarray, *,
                     min_rotation_deg: float = MIN_MOTION_ROTATION_DEG,
-                    max_pairs: int = MAX_MOTION_PAIRS) -> Motions:
+                    max_pairs: int = MAX_MOTION_PAIRS) -> MotionPairs:
     """Station pairs (``spread_pairs``: all up to 200 stations) whose rotation defines a screw axis.
 
     A pair is used when both its robot and camera rotation angles lie in ``(m, 180 deg - m)``
@@ -169,11 +169,11 @@ def station_motions(P: np.ndarray, C: np.ndarray, *,
     margin = max(np.deg2rad(min_rotation_deg), 5.0 * noise)
     lo, hi = margin, np.pi - margin
     ok = (ang_a > lo) & (ang_a < hi) & (ang_b > lo) & (ang_b < hi)
-    return Motions(A=A[ok], B=B[ok], pairs=np.stack([i[ok], j[ok]], axis=1),
+    return MotionPairs(A=A[ok], B=B[ok], pairs=np.stack([i[ok], j[ok]], axis=1),
                    skipped=int((~ok).sum()))
 
 
-def tool_side_motions(T_base_tcp: np.ndarray, C: np.ndarray, setup: str) -> Motions:
+def tool_side_motions(T_base_tcp: np.ndarray, C: np.ndarray, setup: str) -> MotionPairs:
     """Motion pairs whose robot side is a tcp-frame motion ``inv(P_i) P_j`` (P = T_base_tcp).
 
     Eye-in-hand their unknown is the hand-eye; eye-to-hand (camera pose replaced by its inverse)
@@ -184,7 +184,7 @@ def tool_side_motions(T_base_tcp: np.ndarray, C: np.ndarray, setup: str) -> Moti
     return station_motions(T_base_tcp, C if check_setup(setup) == "eye_in_hand" else invert(C))
 
 
-def check_motion_diversity(motions: Motions, *,
+def check_motion_diversity(motions: MotionPairs, *,
                            min_spread_deg: float = MIN_AXIS_SPREAD_DEG) -> None:
     """Raise ``ValueError`` if the motions cannot determine X (Chen: two non-parallel axes)."""
     if len(motions.A) < 2:

@@ -29,8 +29,8 @@ from calib.joint import CellParameters, JointResult
 from calib.jointfit import JointData, JointModel
 from calib.quality import Quality, QualityInputs, assess, irreconcilable
 from calib.refine import RefineOptions, scale_translations
-from calib.selection import Candidate, Modes, Selection, select_joint_model
-from calib.uncertainty import Uncertainty, honest
+from calib.selection import ModelCandidate, Modes, Selection, select_joint_model
+from calib.uncertainty import UncertaintyEstimate, honest
 
 #: Leading names of the pose-only candidates (``calib.handeye`` methods).
 POSE_CANDIDATES = ("sm", "refine")
@@ -42,7 +42,7 @@ class Trust:
 
     cross_validation: CrossValidation | None
     model_selection: Selection | None
-    uncertainty: Uncertainty | None
+    uncertainty: UncertaintyEstimate | None
     quality: Quality
 
 
@@ -52,7 +52,7 @@ class JointChoice:
 
     result: JointResult
     selection: Selection
-    uncertainty: Uncertainty
+    uncertainty: UncertaintyEstimate
 
 
 def choose_joint(data: JointData, station_ids: Sequence[str], base: JointModel,
@@ -118,7 +118,7 @@ def choose_pose_only(stations: PoseStations, station_ids: Sequence[str], *, meth
     if method == "refine":
         never_worse = (cvs["refine"].trans_m or 0.0) <= (cvs["sm"].trans_m or 0.0)
         chosen = "refine" if never_worse else "sm"
-        candidates = tuple(Candidate(name=n, cv=cvs[n]) for n in names)
+        candidates = tuple(ModelCandidate(name=n, cv=cvs[n]) for n in names)
         verdict = "no worse" if never_worse else "worse"
         selection = Selection(candidates=candidates, chosen=candidates[names.index(chosen)],
                               decisions=(f"pose-only: {chosen} (the refinement predicts "

@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calib.chain import (
-    Motions,
+    MotionPairs,
     check_motion_diversity,
     hand_eye_from_station,
     robot_chain,
@@ -85,7 +85,7 @@ def average_transform(Ts: np.ndarray) -> np.ndarray:
 
 
 def solve_screw(T_base_tcp: np.ndarray, C: np.ndarray, setup: str,
-                motions: Motions) -> tuple[np.ndarray, np.ndarray]:
+                motions: MotionPairs) -> tuple[np.ndarray, np.ndarray]:
     """X and Y by SM on the tool-side motions; the other unknown from the averaged loop."""
     length = float(np.median(np.linalg.norm(motions.A[:, :3, 3], axis=1))) or 1.0
     Z = solve_sm(motions.A, motions.B, length_scale=length)

@@ -50,7 +50,7 @@ SEVERITIES = ("info", "warn", "fail")
 
 
 @dataclass(frozen=True)
-class Finding:
+class QualityFinding:
     """One finding: a stable ``code``, its severity, a message for people, and its figures."""
 
     code: str
@@ -61,7 +61,7 @@ class Finding:
 
 @dataclass(frozen=True)
 class Quality:
-    findings: tuple[Finding, ...]
+    findings: tuple[QualityFinding, ...]
 
     @property
     def verdict(self) -> str:
@@ -108,11 +108,11 @@ def irreconcilable(corrections: np.ndarray) -> bool:
     return bool(rot > MISMATCH_ROT_RAD or trans > MISMATCH_TRANS_M)
 
 
-def _setup_mismatch(ev: QualityInputs) -> Finding | None:
+def _setup_mismatch(ev: QualityInputs) -> QualityFinding | None:
     if ev.corrections is None or not irreconcilable(ev.corrections):
         return None
     rot, trans = (float(v) for v in np.median(ev.corrections, axis=0))
-    return Finding("setup_mismatch", "fail", (
+    return QualityFinding("setup_mismatch", "fail", (
         f"robot poses and images cannot be reconciled: the readings need a median correction "
         f"of {np.degrees(rot):.1f} deg / {trans * 1e3:.0f} mm to fit the images (a robot is "
         f"accurate to about 0.1 deg / 1 mm). Check the setup (now {ev.setup}; eye_in_hand: "
@@ -122,7 +122,7 @@ def _setup_mismatch(ev: QualityInputs) -> Finding | None:
          "setup": ev.setup})
 
 
-def _board_scale(ev: QualityInputs) -> Finding | None:
+def _board_scale(ev: QualityInputs) -> QualityFinding | None:
     if ev.kappa_sigma is None or not np.isfinite(ev.kappa_sigma):
         return None
     off = abs(ev.kappa - 1.0)
@@ -133,7 +133,7 @@ def _board_scale(ev: QualityInputs) -> Finding | None:
     what = ("the board is" if measured is None else
             f"the board's squares measure {measured * 1e3:.2f} mm, not the {size * 1e3:g} mm "
             f"entered,")
-    return Finding("board_scale", "warn", (
+    return QualityFinding("board_scale", "warn", (
         f"{what} {100 * (ev.kappa - 1):+.1f} % off its nominal size (kappa {ev.kappa:.4f} ± "
         f"{ev.kappa_sigma:.4f}). The result is corrected for it; to make it exact, measure the "
         f"printed squares (e.g. 10 squares with a calliper), enter the true square size and "
@@ -142,17 +142,17 @@ def _board_scale(ev: QualityInputs) -> Finding | None:
          "square_size_m": size, "measured_square_size_m": measured})
 
 
-def _few_stations(ev: QualityInputs) -> Finding | None:
+def _few_stations(ev: QualityInputs) -> QualityFinding | None:
     n = len(ev.T_base_tcp if ev.T_base_tcp is not None else ev.corners or ())
     if n >= FEW_STATIONS:
         return None
-    return Finding("few_stations", "warn", (
+    return QualityFinding("few_stations", "warn", (
         f"only {n} usable stations: the estimate and its check (leave-one-out) rest on few "
         f"views; capture at least {FEW_STATIONS}, better 15-25."),
         {"stations": n, "recommended": FEW_STATIONS})
 
 
-def _weak_rotation(ev: QualityInputs) -> Finding | None:
+def _weak_rotation(ev: QualityInputs) -> QualityFinding | None:
     """Spread of the tool orientations about their mean: principal angles (deg)."""
     if ev.T_base_tcp is None:
         return None
@@ -161,7 +161,7 @@ def _weak_rotation(ev: QualityInputs) -> Finding | None:
     spread = np.degrees(np.sqrt(np.linalg.eigvalsh(np.cov(dev.T) + 1e-18)[::-1]))
     if spread[0] >= WEAK_ROTATION_DEG and spread[1] >= WEAK_SECOND_AXIS_DEG:
         return None
-    return Finding("weak_rotation", "warn", (
+    return QualityFinding("weak_rotation", "warn", (
         f"the tool orientations vary little (spread {spread[0]:.1f} / {spread[1]:.1f} / "
         f"{spread[2]:.1f} deg about their principal axes): the hand-eye rotation and its "
         f"translation are poorly determined. Tilt the tool 15-35 deg about at least two "
@@ -169,7 +169,7 @@ def _weak_rotation(ev: QualityInputs) -> Finding | None:
         {"orientation_spread_rad": np.deg2rad(spread).tolist()})
 
 
-def _poor_coverage(ev: QualityInputs) -> Finding | None:
+def _poor_coverage(ev: QualityInputs) -> QualityFinding | None:
     if ev.corners is None or ev.image_size is None:
         return None
     w, h = ev.image_size
@@ -182,14 +182,14 @@ def _poor_coverage(ev: QualityInputs) -> Finding | None:
     empty_corners = int(4 - hit[0, 0] - hit[0, -1] - hit[-1, 0] - hit[-1, -1])
     if fraction >= MIN_COVERAGE and empty_corners == 0:
         return None
-    return Finding("poor_coverage", "warn", (
+    return QualityFinding("poor_coverage", "warn", (
         f"the corners cover {100 * fraction:.0f} % of the image ({g}x{g} cells) and "
         f"{empty_corners} of its 4 corner regions are empty: lens distortion there is "
         f"extrapolated. Add stations that put the board near the image corners and edges."),
         {"covered_fraction": fraction, "empty_image_corners": empty_corners})
 
 
-def _outliers(ev: QualityInputs) -> Finding | None:
+def _outliers(ev: QualityInputs) -> QualityFinding | None:
     ids = [sid for sid, reason in ev.rejected if "robot pose inconsistent" in reason]
     if ev.cv is not None:
         err = ev.cv.station_errors()
@@ -200,14 +200,14 @@ def _outliers(ev: QualityInputs) -> Finding | None:
     ids = list(dict.fromkeys(ids))  # a dropped station is also in the cross-validation
     if not ids:
         return None
-    return Finding("outlier_stations", "warn", (
+    return QualityFinding("outlier_stations", "warn", (
         f"stations {', '.join(ids)} disagree with the others (dropped, or predicted more than "
         f"{OUTLIER_FACTOR:g}x worse than the median): check their images and poses (motion "
         f"blur, robot not settled, board moved)."),
         {"stations": ids})
 
 
-def _high_prediction_error(ev: QualityInputs) -> Finding | None:
+def _high_prediction_error(ev: QualityInputs) -> QualityFinding | None:
     if ev.cv is None or ev.cv.rms_px is None or ev.sigma_px is None:
         return None
     px = ev.cv.rms_px
@@ -216,7 +216,7 @@ def _high_prediction_error(ev: QualityInputs) -> Finding | None:
     metric = ev.cv.rms_m
     within = metric is not None and metric <= ROBOT_ACCURACY_M
     mm = metric * 1e3 if metric is not None else float("nan")
-    return Finding("high_prediction_error", "info" if within else "warn", (
+    return QualityFinding("high_prediction_error", "info" if within else "warn", (
         f"held-out stations are predicted from their robot poses to {px:.2f} px "
         f"({mm:.2f} mm at the board), {px / ev.sigma_px:.0f}x the corner noise: the robot's "
         f"own accuracy limits the result. Expect errors of this size in use" + (

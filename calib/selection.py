@@ -46,7 +46,7 @@ NOT_WARRANTED = ("estimating it neither predicts clearly better nor finds it sig
 
 
 @dataclass(frozen=True)
-class Candidate:
+class ModelCandidate:
     """One model tried: its cross-validation and, for joint models, the model and its fit on
     all stations (None for the pose-only candidates)."""
 
@@ -60,8 +60,8 @@ class Candidate:
 class Selection:
     """All candidates (``candidates[0]`` the base), the chosen one, and why."""
 
-    candidates: tuple[Candidate, ...]
-    chosen: Candidate
+    candidates: tuple[ModelCandidate, ...]
+    chosen: ModelCandidate
     decisions: tuple[str, ...]
 
 
@@ -87,7 +87,7 @@ def clearly_lower(rich: np.ndarray, simple: np.ndarray) -> bool:
     return bool(drop >= MIN_IMPROVEMENT and d.mean() > MIN_SIGNIFICANCE * se)
 
 
-def _estimate_reason(rich: Candidate, simple: Candidate, name: str) -> str | None:
+def _estimate_reason(rich: ModelCandidate, simple: ModelCandidate, name: str) -> str | None:
     """Why to estimate ``name`` (κ or ν) rather than hold it at 1, or None: not warranted.
 
     Estimated when that predicts the held-out corners clearly better. κ also when it predicts
@@ -159,7 +159,7 @@ def select_joint_model(data: JointData, station_ids: Sequence[str], base: JointM
         models.append(replace(base, name="robot noise estimated", estimate_noise=True))
     with fit_pool() as pool:
 
-        def run(models: Sequence[JointModel]) -> list[Candidate]:
+        def run(models: Sequence[JointModel]) -> list[ModelCandidate]:
             return _run_candidates(_Start(data, tuple(station_ids), base, start), models, pool)
 
         tried = dict(zip((m.name for m in models), run(models), strict=True))
@@ -211,7 +211,7 @@ class _Start:
 
 
 def _run_candidates(start: _Start, models: Sequence[JointModel],
-                    pool: Executor) -> list[Candidate]:
+                    pool: Executor) -> list[ModelCandidate]:
     """Each of ``models`` fitted on all stations (from the base solution, with κ, ν at 1
     where the model holds them and the base does not) and cross-validated from that fit, its
     folds fitted at its assumed or estimated noise levels; every fit a task of ``pool``."""
@@ -225,5 +225,5 @@ def _run_candidates(start: _Start, models: Sequence[JointModel],
         job = JointFolds(replace(data, sigma_px=fit.sigma_px), start.station_ids,
                          replace(model, noise=fit.noise, estimate_noise=False), fit.cell)
         pending.append((model, fit, submit_joint_folds(job, pool)))
-    return [Candidate(name=model.name, cv=folds.result(), model=model, fit=fit)
+    return [ModelCandidate(name=model.name, cv=folds.result(), model=model, fit=fit)
             for model, fit, folds in pending]

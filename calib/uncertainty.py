@@ -38,7 +38,7 @@ POSE_SIGMAS = ("hand_eye_rot_rad", "hand_eye_trans_m", "target_pose_rot_rad",
 
 
 @dataclass(frozen=True)
-class Uncertainty:
+class UncertaintyEstimate:
     """Reported σ per parameter, the two figures it was taken from, and which one won.
 
     ``sigmas`` holds floats (κ, ν, camera) and arrays (3,) (``POSE_SIGMAS``); ``formal`` and
@@ -105,7 +105,7 @@ def jackknife_sigmas(estimates: Sequence[FoldEstimate], reference: FoldEstimate
 
 
 def honest(formal: dict[str, float | np.ndarray], estimates: Sequence[FoldEstimate],
-           reference: FoldEstimate) -> Uncertainty:
+           reference: FoldEstimate) -> UncertaintyEstimate:
     """Reported σ: the larger of ``formal`` and the fold jackknife, the jackknife counting only
     beyond ``JACKKNIFE_NOISE`` (vectors as a block, see the module docstring).
 
@@ -122,5 +122,5 @@ def honest(formal: dict[str, float | np.ndarray], estimates: Sequence[FoldEstima
         sigmas[name] = (np.asarray(s_f) * (size_jk / size_f) if np.ndim(s_f) else size_jk) \
             if wider else s_f
         source[name] = "jackknife" if wider else "formal"
-    return Uncertainty(sigmas=sigmas, formal=dict(formal), jackknife=jk, source=source,
+    return UncertaintyEstimate(sigmas=sigmas, formal=dict(formal), jackknife=jk, source=source,
                        folds=len(estimates) if jk else 0)

@@ -12,9 +12,9 @@ from calib import (
     CAMERA_PARAMS,
     SELECTION_RULE,
     CalibrationResult,
-    Candidate,
     CrossValidation,
     HandEyeResult,
+    ModelCandidate,
     PoseError,
     Selection,
     StationReport,
@@ -223,7 +223,7 @@ def cv_dropped_clause(cv: dict[str, Any]) -> str:
             f"outliers: {', '.join(dropped)}")
 
 
-def _candidate_json(c: Candidate, chosen: Candidate) -> dict[str, Any]:
+def _candidate_json(c: ModelCandidate, chosen: ModelCandidate) -> dict[str, Any]:
     cv = c.cv
     out: dict[str, Any] = {"name": c.name, "chosen": c is chosen, "cv_rms_px": cv.rms_px,
                            "cv_rms_mm": None if cv.rms_m is None else 1e3 * cv.rms_m,
