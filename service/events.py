@@ -21,6 +21,7 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
+from service.serving.logs import log_state_event
 from service.store import queries, writes
 from service.store.db import Database
 from service.store.event_relay import EventRelay, announce
@@ -81,6 +82,8 @@ class EventBus:
                 event = {**event, "id": writes.add_event(s, topic=topic, event=event)}
                 announce(s, topic=topic, event_id=event["id"], instance_id=self.instance_id)
             self._fan_out(topic, event)
+        if event["type"] == "state":
+            log_state_event(topic.kind, topic.id, event)
 
     def _fan_out(self, topic: Topic, event: dict[str, Any]) -> None:
         for loop, queue in self._listeners.get(topic, ()):

@@ -33,6 +33,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="serve on the listening TCP socket inherited as file descriptor FD "
                              "instead of binding --host/--port (socket activation: the parent "
                              "holds the port, so no other process can take it meanwhile)")
+    parser.add_argument("--log-format", choices=("text", "json"), default="text",
+                        help="the log on stderr: text lines, or one JSON object per line "
+                             "(access lines and the lifecycle of runs, calibrations and "
+                             "re-checks, with their ids, states and error codes as keys)")
     parser.add_argument("--graceful-timeout", type=_seconds, default=None, metavar="S",
                         help="on SIGTERM or SIGINT the robot stops at once; then the running "
                              "jobs, event streams and connections get S seconds in all to end "
@@ -52,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
         limit_connection_logs,
         raise_fd_limit,
     )
+    from service.serving.logs import configure_logging
     from service.serving.server import GRACEFUL_TIMEOUT_S, CellServer
     from service.settings import Settings, is_loopback
 
@@ -79,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
                             http=guarded_protocol(limits), backlog=ACCEPT_BURST,
                             timeout_keep_alive=settings.keep_alive_s)  # type: ignore[arg-type]
     limit_connection_logs()  # uvicorn's logging is configured now
+    configure_logging(args.log_format)
     limits.cap = connection_cap(raise_fd_limit(), settings.max_connections)
     grace = GRACEFUL_TIMEOUT_S if args.graceful_timeout is None else args.graceful_timeout
     CellServer(config, app, graceful_timeout=grace).run(

@@ -32,6 +32,7 @@ from service.jobs.outcomes import Outcomes
 from service.jobs.workers import WorkerPool, report_progress
 from service.results.report_cache import Reports
 from service.schemas import CalibrationOptions
+from service.serving.logs import lifecycle
 from service.settings import Settings
 from service.store import queries, writes
 from service.store.db import Database
@@ -73,6 +74,8 @@ class Calibrations:
             self._release()
             raise
         future.add_done_callback(lambda f: self._done(cal.id, f))
+        lifecycle("started", "calibration", cal.id, run_id=run_id,
+                  method=options.method, stations=len(payload["stations"].stations))
         return cal
 
     def _reserve(self) -> None:

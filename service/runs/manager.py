@@ -14,6 +14,7 @@ from service.runs.coldstart import ColdStartCapture
 from service.runs.external import ExternalStations
 from service.runs.planning import check_poses, cold_start_plan, informed_backend, plan_poses
 from service.schemas import RunCreate
+from service.serving.logs import lifecycle
 from service.store import queries, writes
 from service.store.records import RunRecord, Topic, new_id
 from service.store.stations import target_json
@@ -59,6 +60,7 @@ class RunManager(MotionJobs):
                                      cold_start=cold_start)
             except IntegrityError:
                 raise self.motion.busy() from None
+        lifecycle("created", "run", run.id, mode=run.mode, stations_planned=len(poses) or None)
         if run.mode == "robot":
             self._start_capture(run.id, token, cold=cold_start is not None)
         return run
