@@ -35,7 +35,16 @@ from calib.chain import camera_from_robot
 from calib.coldstart import GOOD_FIT_PX, Bootstrap, Guess, View, bootstrap, refit
 from calib.geometry import make_transform
 from calib.so3 import exp as so3_exp
-from calib.viewselect import CAMERA_MARGIN_M, Choice, History, Reach, Scene, choose_view, start_roll
+from calib.viewselect import (
+    CAMERA_MARGIN_M,
+    Choice,
+    History,
+    Reach,
+    Scene,
+    choose_view,
+    image_margin,
+    start_roll,
+)
 
 #: Exploration: tool rotation per move, and the most exploratory moves before planning.
 EXPLORE_ROT_DEG = 5.0
@@ -221,7 +230,16 @@ class ColdStart:
                      max_roll_deg=min(90.0, 15.0 + 8.0 * k),
                      step=(np.deg2rad(s * min(60.0, 10.0 + 5.0 * k)),
                            s * min(0.4, 0.05 + 0.03 * k)),
-                     margin_frac=max(0.04, 0.15 - 0.01 * k), camera_margin=self._camera_margin())
+                     margin_frac=max(0.04, 0.15 - 0.01 * k),
+                     camera_margin=self._camera_margin())
+
+    def _relaxed(self, reach: Reach) -> Reach:
+        """``reach`` asking no more image border than most of what the last good view left:
+        a board jogged near the image edge must not rule out every view near it."""
+        assert self.estimate is not None
+        last = _view(self._last_good, self.estimate, self.scene.setup)
+        now = float(image_margin(last[None], self.estimate.cell, self.scene)[0])
+        return replace(reach, margin_frac=min(reach.margin_frac, max(0.005, 0.8 * now)))
 
     def _camera_margin(self) -> float:
         """The camera's margin inside the box: a base margin plus three times the estimate's
@@ -237,7 +255,11 @@ class ColdStart:
                           last_good=self._last_good,
                           failed=np.array(self.log.failed).reshape(-1, 4, 4))
         while True:
-            choice = choose_view(self.estimate.cell, self.scene, self.reach(), history, self.rng)
+            reach = self.reach()
+            choice = choose_view(self.estimate.cell, self.scene, reach, history, self.rng)
+            if choice is None:
+                choice = choose_view(self.estimate.cell, self.scene, self._relaxed(reach),
+                                     history, self.rng)
             if choice is not None or self.scale <= MIN_SCALE:
                 return choice
             self.scale = max(MIN_SCALE, 0.5 * self.scale)

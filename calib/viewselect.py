@@ -225,16 +225,26 @@ def _feasible(P: np.ndarray, cell: CellParameters, scene: Scene, reach: Reach,
 def _board_in_view(C: np.ndarray, cell: CellParameters, scene: Scene,
                    margin_frac: float) -> np.ndarray:
     """Whether the board's outline projects inside the image by the margin, (k,)."""
+    front = (_outline_in_camera(C, scene)[..., 2] > 0.02).all(axis=1)
+    facing = C[:, 2, 2] > np.cos(np.deg2rad(60.0))
+    return front & facing & (image_margin(C, cell, scene) >= margin_frac)
+
+
+def _outline_in_camera(C: np.ndarray, scene: Scene) -> np.ndarray:
+    """The board outline in the camera frames of views C (k, 4, 4), shape (k, n, 3)."""
     outline = scene.board.outline()
-    p = np.einsum("kij,nj->kni", C[:, :3, :3], outline) + C[:, None, :3, 3]
-    front = (p[..., 2] > 0.02).all(axis=1)
-    w, h = scene.image_size
-    m = margin_frac * min(w, h)
+    return np.einsum("kij,nj->kni", C[:, :3, :3], outline) + C[:, None, :3, 3]
+
+
+def image_margin(C: np.ndarray, cell: CellParameters, scene: Scene) -> np.ndarray:
+    """The free border around the board's projected outline in views C (k, 4, 4), as a
+    fraction of the smaller image side (negative: the board leaves the image), (k,)."""
+    p = _outline_in_camera(C, scene)
     uv = Pinhole(cell.K, cell.dist).project(np.where(p[..., 2:] > 0.02, p, 1.0).reshape(-1, 3))
     uv = uv.reshape(len(C), -1, 2)
-    inside = ((uv >= m) & (uv <= [w - m, h - m])).all(axis=(1, 2))
-    facing = C[:, 2, 2] > np.cos(np.deg2rad(60.0))
-    return front & inside & facing
+    w, h = scene.image_size
+    gap = np.minimum(uv, np.array([w, h]) - uv).min(axis=(1, 2))
+    return gap / min(w, h)
 
 
 def _camera_path_inside(P: np.ndarray, start: np.ndarray, hand_eye: np.ndarray,
