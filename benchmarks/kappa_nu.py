@@ -8,9 +8,7 @@
     rendered scenes (kappa = 1.005, nu = 0.9975), RMS over many seeds, with the Cramer-Rao lower
     bound of the same measurement model (``calib.bounds.cramer_rao_bound``) and our reported
     sigmas against the Monte-Carlo spread.
-(c) Speed: ``cellcal calibrate`` (including its 5-fold cross-validation and model selection)
-    on 20 rendered 1280x1024 images against the OpenCV pipeline (detection + calibrateCamera +
-    calibrateHandEye) on the same files, and on 200 stations.
+Speed, timed as whole processes, is ``benchmarks/end_to_end.py``.
 
     python -m benchmarks.kappa_nu            # full run (about 10 min on 2 cores)
     python -m benchmarks.kappa_nu --quick    # smoke run
@@ -21,10 +19,7 @@ Prints tables and writes benchmarks/results/kappa_nu.png.
 from __future__ import annotations
 
 import argparse
-import tempfile
-import time
 from collections.abc import Sequence
-from pathlib import Path
 
 import cv2
 import matplotlib
@@ -47,7 +42,6 @@ from calib import (
     cramer_rao_bound,
     detect_checkerboard,
     make_transform,
-    matrix_from_ur_pose,
     perturb,
     pose_error,
     ur_pose_from_matrix,
@@ -60,7 +54,6 @@ from mocks.scene import (
     default_scene,
     sample_station_poses,
 )
-from service.cli.main import main as cellcal
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -251,72 +244,6 @@ def report_comparison(rows: np.ndarray) -> dict[str, float]:
     return r
 
 
-# ---- (c) speed ----------------------------------------------------------------------------------
-
-def write_set(scene: MockScene, n: int, directory: Path, seed: int) -> None:
-    images, P, _ = rendered_station_set(scene, n, np.random.default_rng(seed))
-    t = scene.target
-    stations = []
-    for k, (im, pose) in enumerate(zip(images, ur_pose_from_matrix(P), strict=True)):
-        cv2.imwrite(str(directory / f"{k:03d}.png"), im)
-        stations.append({"id": f"{k:03d}", "tcp_pose": pose.tolist(), "image": f"{k:03d}.png"})
-    import json
-    (directory / "stations.json").write_text(json.dumps({
-        "format": "cellcal/stations@1", "setup": scene.setup,
-        "target": {"type": "checkerboard", "inner_corners": list(t.inner_corners),
-                   "square_size_m": t.square_size_m}, "stations": stations}))
-
-
-def opencv_pipeline(directory: Path, scene: MockScene) -> None:
-    """What a user would do with OpenCV alone: detect, calibrateCamera, calibrateHandEye."""
-    import json
-    doc = json.loads((directory / "stations.json").read_text())
-    t = scene.target
-    grid = board_points(t.inner_corners, t.square_size_m).astype(np.float32)
-    corners, poses = [], []
-    for st in doc["stations"]:
-        grey = cv2.imread(str(directory / st["image"]), cv2.IMREAD_GRAYSCALE)
-        ok, c = cv2.findChessboardCornersSB(grey, tuple(t.inner_corners))
-        if ok:
-            corners.append(c)
-            poses.append(st["tcp_pose"])
-    _, _, _, rv, tv = cv2.calibrateCamera([grid] * len(corners), corners,
-                                          tuple(scene.camera.image_size), None, None)
-    P = matrix_from_ur_pose(np.array(poses))
-    cv2.calibrateHandEye(list(P[:, :3, :3]), list(P[:, :3, 3:]), [cv2.Rodrigues(r)[0]
-                         for r in rv], list(tv), method=cv2.CALIB_HAND_EYE_PARK)
-
-
-def speed(n_small: int = 20, n_large: int = 200, repeats: int = 3) -> dict[str, float]:
-    scene = bench_scene()
-    out = {}
-    with tempfile.TemporaryDirectory() as tmp:
-        small, large = Path(tmp, "small"), Path(tmp, "large")
-        small.mkdir()
-        large.mkdir()
-        write_set(scene, n_small, small, 1)
-        write_set(scene, n_large, large, 2)
-        for name, fn in [
-                ("cellcal calibrate, 20", lambda: cellcal(["calibrate", str(small), "--out",
-                                                           str(Path(tmp, "r.json"))])),
-                ("OpenCV pipeline, 20", lambda: opencv_pipeline(small, scene))]:
-            times = []
-            for _ in range(repeats):
-                t0 = time.perf_counter()
-                fn()
-                times.append(time.perf_counter() - t0)
-            out[name] = min(times)
-        t0 = time.perf_counter()
-        cellcal(["calibrate", str(large), "--out", str(Path(tmp, "r200.json"))])
-        out[f"cellcal calibrate, {n_large}"] = time.perf_counter() - t0
-    for k, v in out.items():
-        print(f"{k:<28} {v:7.2f} s")
-    print(f"cellcal (with its cross-validation and model selection) / OpenCV on 20 images: "
-          f"{out['cellcal calibrate, 20'] / out['OpenCV pipeline, 20']:.2f} (target <= 1.0); "
-          f"{n_large} stations {out[f'cellcal calibrate, {n_large}']:.1f} s (target < 30 s)")
-    return out
-
-
 def plot(tr: dict[str, np.ndarray], rows: np.ndarray | None) -> None:
     OUT.mkdir(exist_ok=True)
     fig, ax = plt.subplots(2, 3, figsize=(16, 9))
@@ -367,13 +294,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--seeds", type=int, default=60)
-    ap.add_argument("--skip-speed", action="store_true")
-    ap.add_argument("--speed-only", action="store_true", help="only part (c)")
     args = ap.parse_args()
     seeds = 4 if args.quick else args.seeds
-    if args.speed_only:
-        speed(repeats=1 if args.quick else 3, n_large=40 if args.quick else 200)
-        return
     print("# (a) traditional calibration with a wrongly assumed board (truth nu = kappa = 1)")
     tr = trends(3 if args.quick else 10)
     print(f"{'assumed':>8} {'fx %':>8} {'cx %':>8} {'ext t mm':>9} {'ext r deg':>10} "
@@ -385,9 +307,6 @@ def main() -> None:
           f"0.25 mm), {seeds} seeds")
     rows = comparison(seeds)
     report_comparison(rows)
-    if not args.skip_speed:
-        print("\n# (c) speed")
-        speed(repeats=1 if args.quick else 3, n_large=40 if args.quick else 200)
     plot(tr, rows)
 
 
