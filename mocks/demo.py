@@ -279,8 +279,20 @@ def _summary(truth: MockScene, outcome: _Outcome, wall_s: float) -> str:
     lines += ["",
               f"Result: {out / files[0]}",
               f"  exports next to it: {', '.join(files[1:])}",
-              f"Wall time {wall_s:.1f} s"]
+              f"Wall time {wall_s:.1f} s",
+              _verdict_line(result)]
     return "\n".join(lines)
+
+
+def _verdict_line(result: dict[str, Any]) -> str:
+    """The last line: the verdict and, unless it is a pass, why (each finding's message), so
+    a warn is explained where it is read."""
+    quality = result.get("quality") or {"verdict": "pass", "findings": []}
+    findings = [f for f in quality["findings"] if f.get("severity") != "info"] or \
+        quality["findings"]
+    why = "; ".join(f"{f['message']} [{f['code']}]" for f in findings)
+    return f"Verdict {quality['verdict']}" + (f": {why}" if why and quality["verdict"] != "pass"
+                                              else "")
 
 
 # ---- the pose-level comparison -----------------------------------------------------------

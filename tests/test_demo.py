@@ -84,6 +84,13 @@ def test_demo_runs_the_service_flow(tmp_path: Path,
         "calibration.json", "camera_calibration.yaml", "camera_info.yaml",
         "camera_joint.urdf", "camera_static_tf.launch.py", "hand_eye_ur_pose.txt"]
     assert f"Result: {tmp_path / 'out' / 'calibration.json'}" in out
+    # the last line says the verdict and, for a warn, what was found (issue 19)
+    quality = result["quality"]
+    last = out.rstrip().splitlines()[-1]
+    assert last.startswith(f"Verdict {quality['verdict']}"), last
+    for finding in quality["findings"] if quality["verdict"] != "pass" else []:
+        if finding["severity"] != "info":
+            assert f"[{finding['code']}]" in last, last
 
 
 @pytest.mark.timeout(300)
