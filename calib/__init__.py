@@ -96,6 +96,7 @@ from calib.planning import (
     plan_stations,
     rough_target_from_image,
 )
+from calib.quality import COVERAGE_GRID, image_coverage
 from calib.recheck import CheckVerdict, Expected, StationCheck, StoredCell, check_verdict
 from calib.refine import RefineOptions
 from calib.screw import solve_sm
@@ -108,6 +109,7 @@ from calib.viewselect import hand_eye_sigma
 
 __all__ = [
     "CAMERA_PARAMS",
+    "COVERAGE_GRID",
     "KAPPA_MODES",
     "METHODS",
     "MIN_CONTRAST",
@@ -186,6 +188,7 @@ __all__ = [
     "hand_eye_from_station",
     "hand_eye_sigma",
     "image_corner_error",
+    "image_coverage",
     "invert",
     "leave_one_out",
     "look_at_view",

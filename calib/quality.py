@@ -169,17 +169,23 @@ def _weak_rotation(ev: QualityInputs) -> QualityFinding | None:
         {"orientation_spread_rad": np.deg2rad(spread).tolist()})
 
 
+def image_coverage(uv: np.ndarray, image_size: tuple[int, int]) -> tuple[float, int]:
+    """The one coverage figure (verdict, page and report): the fraction of the image's
+    ``COVERAGE_GRID`` x ``COVERAGE_GRID`` cells that hold a detected corner, and how many of
+    its 4 corner cells hold none. ``uv``: (N, 2) pixels; ``image_size``: (width, height)."""
+    w, h = image_size
+    g = COVERAGE_GRID
+    cell = np.clip((np.asarray(uv, float) / [w, h] * g).astype(int), 0, g - 1)
+    hit = np.zeros((g, g), bool)
+    hit[cell[:, 1], cell[:, 0]] = True
+    return float(hit.mean()), int(4 - hit[0, 0] - hit[0, -1] - hit[-1, 0] - hit[-1, -1])
+
+
 def _poor_coverage(ev: QualityInputs) -> QualityFinding | None:
     if ev.corners is None or ev.image_size is None:
         return None
-    w, h = ev.image_size
-    uv = np.concatenate(ev.corners)
     g = COVERAGE_GRID
-    cell = np.clip((uv / [w, h] * g).astype(int), 0, g - 1)
-    hit = np.zeros((g, g), bool)
-    hit[cell[:, 1], cell[:, 0]] = True
-    fraction = float(hit.mean())
-    empty_corners = int(4 - hit[0, 0] - hit[0, -1] - hit[-1, 0] - hit[-1, -1])
+    fraction, empty_corners = image_coverage(np.concatenate(ev.corners), ev.image_size)
     if fraction >= MIN_COVERAGE and empty_corners == 0:
         return None
     return QualityFinding("poor_coverage", "warn", (

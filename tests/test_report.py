@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import base64
 import json
+import re
 from concurrent.futures import ThreadPoolExecutor
 from html.parser import HTMLParser
 
@@ -12,8 +13,10 @@ import cv2
 import numpy as np
 import pytest
 
+from calib import image_coverage
+from service.cli import report as report_cli
 from service.cli.main import main
-from service.results.report import report_plots
+from service.results.report import render_report, report_plots
 from tests.support.helpers import wait_for
 from tests.support.service import finished, start_run, wait_run
 
@@ -107,6 +110,43 @@ def test_report_of_a_real_calibration(ur_result, capsys) -> None:
     chosen = table[table.index("class=\"chosen\""):]
     assert chosen[:chosen.index("</tr>")].count(selection["chosen"]) == 1
     assert all(d in text for d in selection["decisions"]) and selection["rule"] in text
+
+
+def test_one_coverage_figure_and_a_sign_off(ur_result) -> None:
+    """Issue 19: the page (the quality finding) said 89 % and the report 59 %: the report now
+    states the one figure of calib.quality.image_coverage; a sign-off block closes it."""
+    path, result = ur_result
+    html = path.with_suffix(".html").read_text() if path.with_suffix(".html").exists() \
+        else render_report(result)
+    corners = np.concatenate([np.asarray(s["corners_px"]) for s in result["stations"]])
+    fraction, empty = image_coverage(corners, tuple(result["camera"]["image_size"]))
+    assert f"Coverage {fraction:.0%}" in html and f"{empty} of 4 image corners empty" in html
+    for finding in result["quality"]["findings"]:
+        if finding["code"] == "poor_coverage":
+            assert f"{100 * fraction:.0f} % of the image" in finding["message"]
+    sign_off = html[html.index("<h2>Sign-off</h2>"):]
+    for field in ("Name", "Date", "Decision", "Signature", "accepted", "rejected"):
+        assert f">{field}<" in sign_off or field in sign_off
+    assert "@page { size: A4" in html
+
+
+def test_report_prints_to_a_pdf_through_chromium(ur_result, tmp_path, capsys,
+                                                 monkeypatch) -> None:
+    path, _ = ur_result
+    out = tmp_path / "report.html"
+    assert main(["report", str(path), "--out", str(out), "--pdf"]) == 0
+    pdf = out.with_suffix(".pdf")
+    assert f"wrote {pdf}" in capsys.readouterr().err
+    data = pdf.read_bytes()
+    assert data.startswith(b"%PDF-")
+    pages = re.findall(rb"/MediaBox \[0 0 ([\d.]+) ([\d.]+)\]", data)
+    assert pages and all(abs(float(w) - 595.3) < 1 and abs(float(h) - 841.9) < 1
+                         for w, h in pages)  # A4 (210 x 297 mm in points)
+    monkeypatch.setattr(report_cli, "chromium", lambda: None)
+    pdf.unlink()
+    assert main(["report", str(path), "--out", str(out), "--pdf"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--pdf needs chromium" in err and not pdf.exists()
 
 
 def test_bad_report_input_is_one_line(tmp_path, capsys) -> None:

@@ -10,7 +10,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
+import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 
@@ -20,6 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a result written by 'cellcal calibrate --out'")
     parser.add_argument("--out", type=Path, metavar="HTML",
                         help="output file (default: RESULT_JSON with .html)")
+    parser.add_argument("--pdf", action="store_true",
+                        help="also print the report to a PDF (A4) beside the HTML, through "
+                             "headless chromium")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -35,6 +41,36 @@ def run(args: argparse.Namespace) -> int:
     if not isinstance(doc, dict) or doc.get("format") != "cellcal/result@1":
         raise ValueError(f"{args.result}: not a cellcal result (format cellcal/result@1)")
     out = args.out or args.result.with_suffix(".html")
+    if args.pdf and not chromium():
+        print("cellcal: error: --pdf needs chromium (Debian/Ubuntu: apt install chromium); "
+              "the HTML report prints on A4 from any browser", file=sys.stderr)
+        return 1
     out.write_text(render_report(doc))
     print(f"wrote {out}", file=sys.stderr)
+    if args.pdf:
+        pdf = out.with_suffix(".pdf")
+        print_pdf(out, pdf)
+        print(f"wrote {pdf}", file=sys.stderr)
     return 0
+
+
+def chromium() -> str | None:
+    """The chromium executable on PATH, if any."""
+    return next(filter(None, map(shutil.which, ("chromium", "chromium-browser",
+                                                "google-chrome"))), None)
+
+
+def print_pdf(html: Path, pdf: Path) -> None:
+    """Print ``html`` to ``pdf`` with chromium's headless print (A4 from the report's
+    ``@page``); ValueError (one line) when chromium fails."""
+    exe = chromium()
+    assert exe is not None
+    with tempfile.TemporaryDirectory(prefix="cellcal-pdf-") as profile:
+        done = subprocess.run(
+            [exe, "--headless", "--no-sandbox", "--disable-gpu", "--no-pdf-header-footer",
+             f"--user-data-dir={profile}", f"--print-to-pdf={pdf.resolve()}",
+             html.resolve().as_uri()],
+            capture_output=True, text=True, timeout=300, check=False)
+    if done.returncode != 0 or not pdf.exists() or pdf.stat().st_size == 0:
+        last = (done.stderr.strip().splitlines() or ["no output"])[-1]
+        raise ValueError(f"chromium could not print {html} to PDF: {last}")

@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
+from calib import COVERAGE_GRID, image_coverage
+
 Result = Mapping[str, Any]
 log = logging.getLogger("cellcal.service")
 
@@ -166,7 +168,7 @@ def _plot_coverage(result: Result) -> Plot | None:
     ny = max(1, round(nx * h / w))
     counts, _, _ = np.histogram2d(corners[:, 0], corners[:, 1], bins=(nx, ny),
                                   range=((0, w), (0, h)))
-    covered = float(np.mean(counts > 0))
+    covered, empty_corners = image_coverage(corners, (w, h))
     fig, (ax,) = _new_figure(_FIG_WIDTH_IN * h / w + 0.5)
     masked = np.ma.masked_equal(counts.T, 0)
     im = ax.imshow(masked, extent=(0, w, h, 0), cmap="magma_r", interpolation="nearest",
@@ -178,9 +180,11 @@ def _plot_coverage(result: Result) -> Plot | None:
     _image_axes(ax, (w, h))
     return Plot("coverage", "Image coverage",
                 f"Detected corners of all used stations ({len(corners)}) counted in a "
-                f"{nx}x{ny} grid; pink cells hold no corner. {covered:.0%} of the cells are "
-                "covered. Distortion is only determined where corners were seen: fill the "
-                "image corners and edges.", _png(fig))
+                f"{nx}x{ny} grid; pink cells hold no corner. Coverage {covered:.0%} (corners "
+                f"in {covered * COVERAGE_GRID ** 2:.0f} of the image's {COVERAGE_GRID}x"
+                f"{COVERAGE_GRID} cells, the figure the verdict and the page use; "
+                f"{empty_corners} of 4 image corners empty). Distortion is only determined "
+                "where corners were seen: fill the image corners and edges.", _png(fig))
 
 
 def _plot_uncertainty(result: Result) -> Plot | None:

@@ -54,7 +54,14 @@ figcaption { color: #444; font-size: 12px; }
 .kv td:first-child { text-align: left; color: #444; width: 34%; }
 .kv td { text-align: left; }
 .note { color: #555; font-size: 12px; }
-@media print { body { margin: 0; max-width: none; } h2 { break-after: avoid; } }
+.signoff td { height: 26px; }
+.signoff td:first-child { width: 22%; }
+.box { display: inline-block; width: 10px; height: 10px; border: 1px solid #333;
+       margin: 0 4px 0 14px; vertical-align: middle; }
+@page { size: A4; margin: 14mm 12mm; }
+@media print { body { margin: 0; max-width: none; font-size: 11px; }
+               h2 { break-after: avoid; } table, .signoff { break-inside: auto; }
+               tr, .verdict, .signoff-block { break-inside: avoid; } }
 """
 
 
@@ -74,6 +81,7 @@ def render_report(result: Result) -> str:
         _selection_table(result.get("model_selection") or {}),
         _station_table(result),
         _provenance(result),
+        _sign_off(),
     ]
     title = html.escape(f"cellcal calibration report — {result.get('setup', '')}")
     return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
@@ -312,3 +320,15 @@ def _provenance(result: Result) -> str:
             f"<tr><td>command</td><td class=\"code\">{_esc(software.get('command') or '–')}"
             f"</td></tr><tr><td>options</td><td class=\"code\">{_esc(opts or '–')}</td></tr>"
             f"<tr><td>format</td><td>{_esc(result.get('format', '?'))}</td></tr></table>")
+
+
+def _sign_off() -> str:
+    """The block the integrator fills in on paper: who accepted this calibration, when, and
+    the decision."""
+    decisions = "".join(f"<span class=\"box\"></span>{d}" for d in (
+        "accepted", "accepted with reservations", "rejected"))
+    return ("<div class=\"signoff-block\"><h2>Sign-off</h2><table class=\"kv signoff\">"
+            "<tr><td>Name</td><td></td></tr><tr><td>Date</td><td></td></tr>"
+            f"<tr><td>Decision</td><td>{decisions}</td></tr>"
+            "<tr><td>Reservations</td><td></td></tr><tr><td>Signature</td><td></td></tr>"
+            "</table></div>")
