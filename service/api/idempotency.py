@@ -26,15 +26,14 @@ import re
 from collections.abc import Callable
 from typing import Any
 
-from sqlalchemy import delete, select
-from sqlalchemy.exc import IntegrityError
 from starlette.concurrency import run_in_threadpool
 from starlette.responses import Response
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.errors import ConflictError, ServiceError, UnprocessableError
+from service.store import writes
 from service.store.db import Database
-from service.store.records import IdempotencyRecord, utcnow
+from service.store.records import IdempotencyRecord
 
 HEADER = "idempotency-key"
 #: The requests that start work.
@@ -138,22 +137,16 @@ async def _read_body(receive: Receive) -> bytes:
 def _reserve(db: Database, cell: str, key: str, digest: str) -> IdempotencyRecord | None:
     """Reserve ``key`` for this request (None) or return the row of the earlier request with
     it; raises when that one was another request or is still running."""
-    now = utcnow()
-    with db.session() as s:
-        s.execute(delete(IdempotencyRecord).where(IdempotencyRecord.created_at < now - KEEP))
-        s.execute(delete(IdempotencyRecord).where(
-            IdempotencyRecord.cell == cell, IdempotencyRecord.key == key,
-            IdempotencyRecord.status.is_(None), IdempotencyRecord.created_at < now - ABANDONED))
-        s.add(IdempotencyRecord(cell=cell, key=key, request_hash=digest, created_at=now))
-        try:
-            s.commit()
-            return None
-        except IntegrityError:
-            s.rollback()
-        row = s.scalars(select(IdempotencyRecord).where(
-            IdempotencyRecord.cell == cell, IdempotencyRecord.key == key)).one_or_none()
-    if row is None:  # the first request failed and freed the key meanwhile: try once more
-        return _reserve(db, cell, key, digest)
+    for _ in range(2):  # a key freed between the two steps is reserved at the second try
+        with db.session() as s:
+            mine = IdempotencyRecord(cell=cell, key=key, request_hash=digest)
+            if writes.reserve_idempotency_key(s, mine, keep=KEEP, abandoned=ABANDONED):
+                return None
+            row = s.get(IdempotencyRecord, (cell, key))
+        if row is not None:
+            break
+    if row is None:
+        raise InProgressError(f"Idempotency-Key {key} is changing hands; ask again")
     if row.request_hash != digest:
         raise KeyReusedError(f"Idempotency-Key {key} was used for another request "
                              "(other path or body); use a new key for a new request")
@@ -164,16 +157,8 @@ def _reserve(db: Database, cell: str, key: str, digest: str) -> IdempotencyRecor
 
 
 def _settle(db: Database, cell: str, key: str, status: int, body: bytes) -> None:
-    """Keep a 2xx answer with its key; free the key after any other answer."""
     with db.session() as s:
-        row = s.get(IdempotencyRecord, (cell, key))
-        if row is None:
-            return
-        if 200 <= status < 300:
-            row.status, row.body = status, body.decode()
-        else:
-            s.delete(row)
-        s.commit()
+        writes.settle_idempotency_key(s, cell=cell, key=key, status=status, body=body.decode())
 
 
 async def _replay(row: IdempotencyRecord, send: Send) -> None:

@@ -9,6 +9,7 @@ other module adds, merges or deletes a row (``service.store.queries`` reads).
 
 from __future__ import annotations
 
+import datetime as dt
 from typing import Any
 
 from sqlalchemy import delete, update
@@ -22,6 +23,7 @@ from service.store.records import (
     ActiveCalibrationRecord,
     Base,
     CalibrationRecord,
+    IdempotencyRecord,
     InstanceRecord,
     JobEventRecord,
     MotionClaimRecord,
@@ -249,6 +251,37 @@ def restore_instance(s: Session, row: InstanceRecord) -> None:
     """Register this service's instance row again, with its id, after another service took it
     for dead and removed it."""
     s.merge(row)
+    s.commit()
+
+
+def reserve_idempotency_key(s: Session, row: IdempotencyRecord, *, keep: dt.timedelta,
+                            abandoned: dt.timedelta) -> bool:
+    """Reserve an Idempotency-Key for a request with ``row`` (``service.api.idempotency``):
+    True when it is this request's now, False when another row holds it. Rows older than
+    ``keep`` go first, and this key's reservation when its request never finished within
+    ``abandoned``."""
+    now = utcnow()
+    s.execute(delete(IdempotencyRecord).where(IdempotencyRecord.created_at < now - keep))
+    s.execute(delete(IdempotencyRecord).where(
+        IdempotencyRecord.cell == row.cell, IdempotencyRecord.key == row.key,
+        IdempotencyRecord.status.is_(None), IdempotencyRecord.created_at < now - abandoned))
+    row.created_at = now
+    try:
+        _insert(s, row)
+    except IntegrityError:
+        return False
+    return True
+
+
+def settle_idempotency_key(s: Session, *, cell: str, key: str, status: int, body: str) -> None:
+    """Keep a 2xx answer with its key; free the key after any other answer."""
+    row = s.get(IdempotencyRecord, (cell, key))
+    if row is None:
+        return
+    if 200 <= status < 300:
+        row.status, row.body = status, body
+    else:
+        s.delete(row)
     s.commit()
 
 
