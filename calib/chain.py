@@ -85,13 +85,31 @@ def chain_from_camera(T_cam_target: np.ndarray, hand_eye: np.ndarray, target_pos
     return target_pose @ invert(T_cam_target) @ invert(hand_eye)
 
 
+def corrected_readings(T_base_tcp: np.ndarray, robot_map: np.ndarray | None) -> np.ndarray:
+    """Robot readings (..., 4, 4) with their translations mapped ``t + S t`` (S = ``robot_map``
+    (3, 3), base frame; None: unchanged).
+
+    An industrial arm's positions are often off by a linear map of a fraction of a percent
+    (link lengths, joint offsets and base tilt to first order: scale and skew of the workspace)
+    while the orientations are right; ``S`` is that map (``calib.joint``, ``robot_map``).
+    """
+    T_base_tcp = np.asarray(T_base_tcp, dtype=float)
+    if robot_map is None:
+        return T_base_tcp
+    out = T_base_tcp.copy()
+    out[..., :3, 3] += T_base_tcp[..., :3, 3] @ np.asarray(robot_map, dtype=float).T
+    return out
+
+
 def camera_from_robot(T_base_tcp: np.ndarray, hand_eye: np.ndarray, target_pose: np.ndarray,
-                      setup: str) -> np.ndarray:
+                      setup: str, robot_map: np.ndarray | None = None) -> np.ndarray:
     """T_cam_target seen from robot pose(s) T_base_tcp, shapes (..., 4, 4) -> (..., 4, 4).
 
-    Eye-in-hand ``inv(X) inv(T_base_tcp) Y``, eye-to-hand ``inv(X) T_base_tcp Y``.
+    Eye-in-hand ``inv(X) inv(T_base_tcp) Y``, eye-to-hand ``inv(X) T_base_tcp Y``; the
+    readings' translations first mapped by ``robot_map`` (:func:`corrected_readings`).
     """
-    return camera_from_chain(robot_chain(T_base_tcp, setup), hand_eye, target_pose)
+    return camera_from_chain(robot_chain(corrected_readings(T_base_tcp, robot_map), setup),
+                             hand_eye, target_pose)
 
 
 def robot_from_camera(T_cam_target: np.ndarray, hand_eye: np.ndarray, target_pose: np.ndarray,

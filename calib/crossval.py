@@ -309,7 +309,7 @@ def predict_image_station(state: CellParameters, data: JointData, k: int, statio
     """Errors of station ``k``'s corners predicted from its robot reading through ``state``."""
     true = data.stations.board.points(data.stations.ids()[k], kappa=state.kappa, nu=state.nu)
     C = camera_from_robot(data.stations.T_base_tcp[k], state.hand_eye, state.target_pose,
-                          data.setup)
+                          data.setup, state.robot_map)
     K, dist = state.K, np.asarray(state.dist, dtype=float)
     detected = np.asarray(data.stations.image_points[k], dtype=float)
     uv = Pinhole(K, dist).project(true @ C[:3, :3].T + C[:3, 3])

@@ -65,14 +65,18 @@ def choose_joint(data: JointData, station_ids: Sequence[str], base: JointModel,
         # the robot poses contradict the images (calib.quality): no model can be chosen
         # by prediction, and refitting nonsense would only cost time
         selection = select_joint_model(data, station_ids, base, first, Modes(
-            kappa="estimate", nu="estimate", noise="assumed"))
+            kappa="estimate", nu="estimate", noise="assumed", robot_map="off"))
     else:
         selection = select_joint_model(data, station_ids, base, first, Modes(kappa=kappa))
     fit = selection.chosen.fit
     assert fit is not None  # joint candidates always carry their fit
-    # the noise levels the data show: those of the candidate that estimated them
+    # the noise levels the data show: those of the candidate that estimated them for the same
+    # robot model (a robot whose translation map is left out shows that as noise); else the
+    # chosen fit's own residuals give them (JointFit.result)
+    chosen = selection.chosen.model
     estimated = next((c.fit for c in selection.candidates
-                      if c.model is not None and c.model.estimate_noise and c.fit), None)
+                      if c.model is not None and c.model.estimate_noise and c.fit
+                      and chosen is not None and c.model.robot_map == chosen.robot_map), None)
     result = fit.result(first.stations, first.rejected, noise=None if estimated is None else (
         estimated.sigma_px, estimated.noise.rot_rad, estimated.noise.trans_m))
     return JointChoice(result=result, selection=selection,

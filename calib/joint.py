@@ -23,7 +23,10 @@ footnote 5; their Method #1 residuals plus the robot readings as noisy measureme
 Unknowns: ``fx, fy, cx, cy, k1, k2, p1, p2, k3, ν, κ``, X and Y (small left rotations and
 translations about a reference), and 6 per station. Levenberg-Marquardt with the station blocks
 eliminated (``calib.schur``) runs on an analytic Jacobian (one 2 x (23 + 6) block per corner,
-one diagonal entry per prior).
+one diagonal entry per prior). On request (``JointOptions.robot_map``) the robot's translations
+are mapped ``t + S t`` first (``calib.chain.corrected_readings``), S a traceless 3 x 3 matrix
+of 8 more unknowns: an industrial arm's positions off by a linear map of a fraction of a
+percent, which per-station noise cannot describe.
 The covariance of the 23 global parameters comes from the Jacobian at the optimum with the
 station blocks eliminated by a Schur complement, scaled by the residual variance factor.
 
@@ -53,16 +56,30 @@ from calib.schur import BlockSolution, solve_blocks
 
 #: Camera and board parameters, in the order of :attr:`JointResult.covariance`.
 CAMERA_PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "nu", "kappa")
-#: All global parameters: camera, then X and Y as (small left rotation, translation).
+#: The robot translation map S (``calib.chain.corrected_readings``) as coefficients of a basis
+#: (``_MAP_BASIS``): six skews and two traceless scales. Its isotropic scale is left out: it
+#: is κ's (a robot 0.1 % long and a board 0.1 % small give the same images), and with κ held
+#: at 1 it would take up any error of the entered square size.
+MAP_PARAMS = tuple(f"robot_map_{a}" for a in ("xy", "xz", "yx", "yz", "zx", "zy", "xx_yy",
+                                              "yy_zz"))
+#: All global parameters: camera, then X and Y as (small left rotation, translation), then S.
 GLOBAL_PARAMS = (*CAMERA_PARAMS,
                  *(f"hand_eye_{a}" for a in ("rx", "ry", "rz", "tx", "ty", "tz")),
-                 *(f"target_pose_{a}" for a in ("rx", "ry", "rz", "tx", "ty", "tz")))
+                 *(f"target_pose_{a}" for a in ("rx", "ry", "rz", "tx", "ty", "tz")),
+                 *MAP_PARAMS)
 #: Parameters that ``fix=`` may hold at their start values (known intrinsics: the first nine).
 FIXABLE = (*CAMERA_PARAMS,)
 #: Default outlier limit: Mahalanobis distance of a station's robot-pose correction.
 OUTLIER_SIGMA = 5.0
 
 _N_CAM = len(CAMERA_PARAMS)
+_N_POSE = 12
+_N_GLOBAL = _N_CAM + _N_POSE  # the globals before the robot map
+_MAP_BASIS = np.zeros((len(MAP_PARAMS), 3, 3))
+for _k, (_a, _b) in enumerate(((0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1))):
+    _MAP_BASIS[_k, _a, _b] = 1.0
+_MAP_BASIS[6] = np.diag([1.0, -1.0, 0.0])
+_MAP_BASIS[7] = np.diag([0.0, 1.0, -1.0])
 _NU, _KAPPA = CAMERA_PARAMS.index("nu"), CAMERA_PARAMS.index("kappa")
 #: Median of the chi distribution with 2 degrees of freedom (the correction's distance): a
 #: chi-square with 2 degrees of freedom is exponential with mean 2, so its median is 2 ln 2.
@@ -108,7 +125,9 @@ class CellParameters:
     """The global unknowns of the joint model: start values, or the truth for a bound.
 
     ``K`` (3, 3), ``dist`` (5,) ``[k1, k2, p1, p2, k3]``, the board's ``nu`` and ``kappa``,
-    ``hand_eye`` X and ``target_pose`` Y (4, 4) in the frames of the setup (module docstring).
+    ``hand_eye`` X and ``target_pose`` Y (4, 4) in the frames of the setup (module docstring);
+    ``robot_map`` S (3, 3), the linear map of the robot's translations
+    (``calib.chain.corrected_readings``), None where the model has none.
     """
 
     K: np.ndarray
@@ -117,6 +136,7 @@ class CellParameters:
     kappa: float
     hand_eye: np.ndarray
     target_pose: np.ndarray
+    robot_map: np.ndarray | None = field(default=None, kw_only=True)
 
     def camera_vector(self) -> np.ndarray:
         """The values of ``CAMERA_PARAMS``, shape (11,)."""
@@ -133,7 +153,8 @@ class JointOptions:
     ``noise`` the robot reading noise (the prior on δ_i), ``fix`` names from ``FIXABLE`` held at
     their start values, ``outlier_sigma`` the limit beyond which a station's correction drops
     it (in units of the configured robot noise, or of the observed spread when that is larger;
-    None keeps all), ``max_nfev`` the evaluation budget per solve.
+    None keeps all), ``max_nfev`` the evaluation budget per solve. ``robot_map``: estimate the
+    linear map S of the robot's translations (traceless: its scale is κ's).
     """
 
     sigma_px: float
@@ -142,6 +163,7 @@ class JointOptions:
     fix: tuple[str, ...] = ()
     outlier_sigma: float | None = OUTLIER_SIGMA
     max_nfev: int = 100
+    robot_map: bool = False
 
     def __post_init__(self) -> None:
         check_setup(self.setup)
@@ -158,7 +180,7 @@ class JointResult(CellParameters):
 
     Attributes (beyond the estimate)
     --------------------------------
-    covariance : shape (23, 23)
+    covariance : shape (31, 31)
         Over ``GLOBAL_PARAMS``, marginalised over the station corrections; rotations of X and Y
         are small rotations on the left (axes of the frame named first, e.g. tcp for
         T_tcp_cam), translations in metres in that frame. Fixed parameters have zero rows.
@@ -266,11 +288,16 @@ class JointProblem(CachedProblem):
         self.counts, self.starts = counts, np.concatenate([[0], np.cumsum(counts)[:-1]])
         self.station = np.repeat(np.arange(len(counts)), counts)
         self.M = invert(robot_chain(T_base_tcp, options.setup))  # T_tcp_base, or T_base_tcp
+        self.t_read = np.asarray(T_base_tcp, dtype=float)[:, :3, 3]  # readings' translations
+        self.S0 = np.zeros((3, 3)) if start.robot_map is None else np.asarray(start.robot_map)
+        self.has_map = options.robot_map or start.robot_map is not None
         self.eye_in_hand = options.setup == "eye_in_hand"
         self.cam0 = start.camera_vector()
         self.X0 = np.asarray(start.hand_eye, dtype=float)
         self.Y0 = np.asarray(start.target_pose, dtype=float)
-        self.free = np.array([name not in options.fix for name in CAMERA_PARAMS] + [True] * 12)
+        map_free = [options.robot_map] * len(MAP_PARAMS)
+        self.free = np.array([name not in options.fix for name in CAMERA_PARAMS]
+                             + [True] * _N_POSE + map_free)
         self.sigma_px = options.sigma_px
         self.noise = options.noise
         # per component: the angle (length) σ spread over three directions
@@ -291,25 +318,38 @@ class JointProblem(CachedProblem):
         self.n_free_global = nf
 
     def x0(self) -> np.ndarray:
-        g = np.concatenate([self.cam0, np.zeros(12)])
+        g = np.concatenate([self.cam0, np.zeros(_N_POSE + len(MAP_PARAMS))])
         return np.concatenate([g[self.free], np.zeros(6 * self.n_stations)])
 
     def _globals(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        g = np.concatenate([self.cam0, np.zeros(12)])
+        g = np.concatenate([self.cam0, np.zeros(_N_POSE + len(MAP_PARAMS))])
         g[self.free] = x[:self.n_free_global]
         return g, g[_N_CAM:], x[self.n_free_global:].reshape(-1, 6)
 
     def _unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Camera parameters (11,), X, Y (4, 4) and corrections δ (n, 6) of ``x``."""
         g, xy, delta = self._globals(x)
-        X, Y = so3.left_update(self.X0, xy[:6]), so3.left_update(self.Y0, xy[6:])
+        X, Y = so3.left_update(self.X0, xy[:6]), so3.left_update(self.Y0, xy[6:_N_POSE])
         return g[:_N_CAM], X, Y, delta
+
+    def _map(self, x: np.ndarray) -> np.ndarray:
+        """The robot translation map S (3, 3) of ``x``."""
+        _, xy, _ = self._globals(x)
+        return self.S0 + np.einsum("k,kab->ab", xy[_N_POSE:], _MAP_BASIS)
+
+    def _map_link(self, x: np.ndarray) -> np.ndarray:
+        """Translations (n, 3) of the robot link ``M`` with the readings mapped by S."""
+        t = self.t_read + self.t_read @ self._map(x).T
+        if self.eye_in_hand:  # M = inv(T_base_tcp): translation -Rᵀ t
+            return -np.einsum("nij,nj->ni", self.M[:, :3, :3], t)
+        return t
 
     def unpack(self, x: np.ndarray) -> tuple[CellParameters, np.ndarray]:
         """The global parameters of ``x`` and the corrections δ (n, 6)."""
         cam, X, Y, delta = self._unpack(x)
         return CellParameters(K=_camera_matrix(cam), dist=cam[4:9].copy(), nu=float(cam[_NU]),
-                              kappa=float(cam[_KAPPA]), hand_eye=X, target_pose=Y), delta
+                              kappa=float(cam[_KAPPA]), hand_eye=X, target_pose=Y,
+                              robot_map=self._map(x) if self.has_map else None), delta
 
     def _compute(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Normalised residuals (2m + 6n,) and corner blocks (m, 2, n_free + 6)."""
@@ -323,7 +363,8 @@ class JointProblem(CachedProblem):
         # J_l (the left Jacobian of the link's rotation parameters) is None for the readings.
         E_R, E_J = so3.exp(delta[:, :3])[s], so3.left_jacobian(delta[:, :3])[s]
         links = {"Y": (Y[:3, :3], Y[:3, 3], False, so3.left_jacobian(xy[6:9])),
-                 "M": (self.M[s, :3, :3], self.M[s, :3, 3], False, None),
+                 "M": (self.M[s, :3, :3], (self._map_link(x) if self.has_map
+                                            else self.M[:, :3, 3])[s], False, None),
                  "E": (E_R, delta[s, 3:], self.eye_in_hand, E_J),
                  "X": (X[:3, :3], X[:3, 3], True, so3.left_jacobian(xy[0:3]))}
         order = ("Y", "M", "E", "X") if self.eye_in_hand else ("Y", "E", "M", "X")
@@ -342,6 +383,8 @@ class JointProblem(CachedProblem):
         blocks = {}
         for name in reversed(order):
             R, t, inverse, Jl = links[name]
+            if name == "M" and self.has_map:
+                blocks["S"] = self._map_block(H, s)[:, :, self.free[-len(MAP_PARAMS):]]
             Rb = np.broadcast_to(R, (len(p), 3, 3))
             if inverse:
                 HRt = np.einsum("mki,mji->mkj", H, Rb)
@@ -358,11 +401,20 @@ class JointProblem(CachedProblem):
         d_nu = H[:, :, 0] * (kappa * self.obj[:, None, 0])
         d_kappa = H[:, :, 0] * (nu * self.obj[:, None, 0]) + H[:, :, 1] * self.obj[:, None, 1]
         d_glob = np.concatenate([J.intrinsics, J.dist, d_nu[..., None], d_kappa[..., None],
-                                 *blocks["X"], *blocks["Y"]], axis=2)[:, :, self.free]
+                                 *blocks["X"], *blocks["Y"]], axis=2)[:, :, self.free[:_N_GLOBAL]]
+        if "S" in blocks:
+            d_glob = np.concatenate([d_glob, blocks["S"]], axis=2)
         corner = np.concatenate([d_glob, *blocks["E"]], axis=2) / self.sigma_px
         r = np.concatenate([((uv - self.img) / self.sigma_px).ravel(),
                             (delta / self.prior_sigma).ravel()])
         return r, corner
+
+    def _map_block(self, H: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """d uv / d(map coefficients), (m, 2, 8), from ``H`` = d uv / d(output of link M)
+        (m, 2, 3): the link's translation moves by D B_k t, D = -R_M eye-in-hand, I else."""
+        G = np.einsum("mki,mij->mkj", H, -self.M[s, :3, :3]) if self.eye_in_hand else H
+        Bt = np.einsum("kab,mb->mka", _MAP_BASIS, self.t_read[s])  # (m, 8, 3)
+        return np.einsum("mja,mka->mjk", G, Bt)
 
     def jacobian(self, x: np.ndarray) -> csr_matrix:
         corner = self.evaluate(x)[1]
@@ -371,7 +423,7 @@ class JointProblem(CachedProblem):
                           shape=self.shape)
 
     def covariance(self, x: np.ndarray, variance_factor: float) -> np.ndarray:
-        """Covariance (23, 23) over ``GLOBAL_PARAMS``, zero for fixed ones.
+        """Covariance (31, 31) over ``GLOBAL_PARAMS``, zero for fixed ones.
 
         The station blocks are eliminated by a Schur complement: with JᵀJ = [[U, W], [Wᵀ, V]]
         and V block diagonal (6 x 6 per station), cov = s² (U - Σ_i W_i V_i⁻¹ W_iᵀ)⁻¹.

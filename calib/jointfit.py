@@ -45,13 +45,15 @@ class JointModel:
 
     ``fix`` names from ``calib.joint.FIXABLE``, held at their start values; ``noise`` the
     assumed robot reading noise (the prior), re-estimated from the data when
-    ``estimate_noise``.
+    ``estimate_noise``; ``robot_map`` estimates the linear map of the robot's translations
+    (``calib.joint``), else the readings are taken as they are.
     """
 
     name: str
     fix: tuple[str, ...]
     noise: RobotNoise
     estimate_noise: bool = False
+    robot_map: bool = False
 
 
 @dataclass(frozen=True)
@@ -114,13 +116,13 @@ class JointFit:
 def fit_joint(data: JointData, model: JointModel, start: CellParameters, *,
               max_nfev: int = 40) -> JointFit:
     """Fit ``model`` to ``data`` from ``start``; parameters in ``model.fix`` keep their start."""
-    cell = start
+    cell = start if model.robot_map else replace(start, robot_map=None)
     sigmas = [data.sigma_px, model.noise.rot_rad, model.noise.trans_m]
     grids = data.stations.grids()
     for _ in range(NOISE_ROUNDS if model.estimate_noise else 1):
         options = JointOptions(sigma_px=sigmas[0], setup=data.setup,
                                noise=RobotNoise(sigmas[1], sigmas[2]), fix=model.fix,
-                               outlier_sigma=None)
+                               outlier_sigma=None, robot_map=model.robot_map)
         problem = JointProblem(grids, list(data.stations.image_points),
                                data.stations.T_base_tcp, cell, options)
         sol = solve_blocks(problem, problem.x0(), max_nfev=max_nfev)

@@ -118,7 +118,10 @@ class CalibrationResult:
     ``validation`` holds E_R, E_t (eq. 21-22), the leave-one-out prediction errors (eq. 23)
     and the chain reprojection RMS. ``variance_factor`` (joint) is the reduced χ² by which the
     covariance was scaled. ``trust`` holds the cross-validation, model selection, honest
-    uncertainty and verdict (``calib.evidence``); ``sigmas`` are the honest σ.
+    uncertainty and verdict (``calib.evidence``); ``sigmas`` are the honest σ. ``robot_map``
+    (3, 3): the linear map of the robot's translations the chosen model estimated
+    (``calib.chain.corrected_readings``; predictions from robot readings apply it), None when
+    the readings are used as they are.
     """
 
     setup: str
@@ -139,6 +142,7 @@ class CalibrationResult:
     sigma_px: float = float("nan")
     variance_factor: float | None = None
     trust: Trust | None = None
+    robot_map: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -294,7 +298,7 @@ def calibrate_stations(stations: StationInputs, board: Board,
         nu=stage.nu, kappa=stage.kappa, hand_eye=stage.hand_eye, target_pose=stage.target_pose,
         sigmas=stage.sigmas, stations=tuple(reports), rejected=tuple(rejected),
         validation=validation, variance_factor=None if joint is None
-        else joint.variance_factor,
+        else joint.variance_factor, robot_map=None if joint is None else joint.robot_map,
         trust=_trust(stage, measured, station_ids, options, rejected), **common)
 
 
@@ -417,7 +421,8 @@ def _validate(stage: _Stage, stations: CornerStations, ids: list[str], setup: st
     pts, point_ids = kept.image_points, kept.ids()
     true_grids = [kept.board.points(i, kappa=stage.kappa, nu=stage.nu) for i in point_ids]
     chain = reprojection_rms(pts, true_grids, stage.K, stage.dist,
-                             camera_from_robot(P, X, Y, setup))
+                             camera_from_robot(P, X, Y, setup,
+                                               None if joint is None else joint.robot_map))
     held = np.unique(np.linspace(0, len(keep) - 1, min(len(keep), MAX_HELD_OUT)).astype(int))
     loo = leave_one_out(P, Ck, setup=setup, held_out=held)
     motion = motion_residuals(P, Ck, X, setup=setup)

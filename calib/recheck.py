@@ -87,7 +87,9 @@ class StoredCell:
 
     ``hand_eye`` and ``target_pose`` (4, 4) as in the result document (X and Y of
     ``calib.chain``); ``board`` with the calibrated print scale ``kappa`` and aspect ``nu``
-    places the board points (``Board.points``), taken by point id, so partial views work.
+    places the board points (``Board.points``), taken by point id, so partial views work;
+    ``robot_map`` (3, 3) the calibration's map of the robot's translations, if it has one
+    (``calib.chain.corrected_readings``).
     """
 
     setup: str
@@ -98,6 +100,7 @@ class StoredCell:
     board: Board
     kappa: float = 1.0
     nu: float = 1.0
+    robot_map: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         check_setup(self.setup)
@@ -110,7 +113,8 @@ class StoredCell:
                 ids: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """T_cam_target (4, 4) and the pixels (N, 2) of points ``ids`` (all when None) seen
         from ``T_base_tcp``."""
-        C = camera_from_robot(T_base_tcp, self.hand_eye, self.target_pose, self.setup)
+        C = camera_from_robot(T_base_tcp, self.hand_eye, self.target_pose, self.setup,
+                              self.robot_map)
         return C, Pinhole(self.K, self.dist).project(self.points(ids) @ C[:3, :3].T + C[:3, 3])
 
     def observe(self, T_base_tcp: np.ndarray, corners: np.ndarray, *,

@@ -130,11 +130,13 @@ def _rms(errors: np.ndarray) -> float:
 @dataclass(frozen=True)
 class Modes:
     """Which choices are made by prediction (``auto``) and which are forced: ``kappa`` and
-    ``nu`` ``estimate``/``fixed``, ``noise`` ``estimate``/``assumed``."""
+    ``nu`` ``estimate``/``fixed``, ``noise`` ``estimate``/``assumed``, ``robot_map``
+    ``off`` (the robot's translations as read)."""
 
     kappa: str = "auto"
     nu: str = "auto"
     noise: str = "auto"
+    robot_map: str = "auto"
 
     def __post_init__(self) -> None:
         if self.kappa not in KAPPA_MODES:
@@ -157,6 +159,8 @@ def select_joint_model(data: JointData, station_ids: Sequence[str], base: JointM
     models = [base, *(replace(base, name=f"{name} = 1", fix=(*base.fix, name)) for name in held)]
     if noise != "assumed":
         models.append(replace(base, name="robot noise estimated", estimate_noise=True))
+    if modes.robot_map != "off":
+        models.append(replace(base, name="robot translation map", robot_map=True))
     with fit_pool() as pool:
 
         def run(models: Sequence[JointModel]) -> list[ModelCandidate]:
@@ -185,15 +189,25 @@ def select_joint_model(data: JointData, station_ids: Sequence[str], base: JointM
             decisions.append("robot noise: " + ("estimated from the data" if estimate_noise
                                                 else "assumed: estimating it does not predict "
                                                      "clearly better"))
+        robot_map = modes.robot_map != "off" and clearly_better(
+            tried["robot translation map"].cv, base_c.cv)
+        if modes.robot_map != "off":
+            decisions.append("robot translations: " + (
+                "mapped by the estimated linear map (scale and skew of the arm's positions)"
+                if robot_map else "as read: estimating their linear map does not predict "
+                                  "clearly better"))
         fix = tuple(p for p in base.fix if p in chosen_fix) + tuple(
             p for p in ("kappa", "nu") if p in chosen_fix and p not in base.fix)
         chosen = next((c for c in candidates if c.model is not None
                        and set(c.model.fix) == set(fix)
-                       and c.model.estimate_noise == estimate_noise), None)
+                       and c.model.estimate_noise == estimate_noise
+                       and c.model.robot_map == robot_map), None)
         if chosen is None:
-            named = " and ".join(p for p in fix if p in ("kappa", "nu")) + " = 1"
-            model = replace(base, name=named + (", robot noise estimated" if estimate_noise
-                                                else ""), fix=fix, estimate_noise=estimate_noise)
+            parts = [" and ".join(p for p in fix if p in ("kappa", "nu")) + " = 1",
+                     "robot noise estimated" * estimate_noise,
+                     "robot translation map" * robot_map]
+            model = replace(base, name=", ".join(p for p in parts if p not in ("", " = 1")),
+                            fix=fix, estimate_noise=estimate_noise, robot_map=robot_map)
             chosen = run([model])[0]
             candidates.append(chosen)
     return Selection(candidates=tuple(candidates), chosen=chosen, decisions=tuple(decisions))

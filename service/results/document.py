@@ -43,7 +43,9 @@ def stored_cell(result: dict[str, Any], target: Target, *, use: str) -> StoredCe
                       hand_eye=np.asarray(hand_eye["matrix"], dtype=float),
                       target_pose=np.asarray(target_pose["matrix"], dtype=float),
                       board=board_from_target(target), kappa=float(result["target"]["kappa"]),
-                      nu=float(result["target"]["nu"]))
+                      nu=float(result["target"]["nu"]),
+                      robot_map=None if result.get("robot_translation_map") is None
+                      else np.asarray(result["robot_translation_map"], dtype=float))
 
 
 def _transform(T: np.ndarray) -> dict[str, Any]:
@@ -114,6 +116,7 @@ def calibration_result_json(result: CalibrationResult, *,
                    "nu_sigma": result.sigmas.get("nu")},
         "hand_eye": _transform(result.hand_eye) if has_pose else None,
         "target_pose": _transform(result.target_pose) if has_pose else None,
+        "robot_translation_map": result.robot_map,
         "uncertainty": {
             "note": "1-sigma from the Jacobian at the optimum, scaled by variance_factor; "
                     "rotations as small angles (rad) about the axes of the frame named first "

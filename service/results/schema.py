@@ -207,6 +207,11 @@ class Result(_Block):
                     "only")
     target_pose: Transform | None = Field(
         description="base_T_target (eye-in-hand) or tcp_T_target (eye-to-hand)")
+    robot_translation_map: list[list[float]] | None = Field(
+        None, description="S (3x3, base frame): the robot's translation readings t are "
+                          "corrected to t + S t before hand_eye and target_pose apply (scale "
+                          "and skew of an industrial arm's positions, chosen by "
+                          "cross-validation); None: the readings are used as they are")
     uncertainty: Uncertainty | None = None
     noise_estimate: dict[str, float | None] | None = Field(
         None, description="pose-only: the robot noise the refinement estimated")
