@@ -407,7 +407,8 @@ def _trust(stage: _Stage, stations: CornerStations, ids: list[str],
         cv=cv, square_size_m=stations.board.square_size, kappa=stage.kappa,
         kappa_sigma=None if kappa_sigma is None else float(kappa_sigma),
         sigma_px=stage.sigma_px, corners=tuple(data.stations.image_points),
-        image_size=stage.image_size, rejected=tuple(rejected)))
+        image_size=stage.image_size, rejected=tuple(rejected),
+        robot_map=None if stage.joint is None else stage.joint.robot_map))
     return Trust(cross_validation=cv, model_selection=selection, uncertainty=uncertainty,
                  quality=quality)
 

@@ -77,6 +77,7 @@ class QualityInputs:
     ``corrections`` (n, 2): per-station robot correction (rotation angle, translation length)
     the fit needed, or the pose-prediction residuals of a pose-only fit. ``corners`` and
     ``image_size`` are None for pose-only sets. ``kappa_sigma`` None when κ was held.
+    ``robot_map`` (3, 3) the chosen model's map of the robot's translations, if any.
     """
 
     setup: str
@@ -90,6 +91,7 @@ class QualityInputs:
     corners: tuple[np.ndarray, ...] | None = None
     image_size: tuple[int, int] | None = None
     rejected: tuple[tuple[str, str], ...] = ()
+    robot_map: np.ndarray | None = None
 
 
 def assess(ev: QualityInputs) -> Quality:
@@ -97,8 +99,8 @@ def assess(ev: QualityInputs) -> Quality:
     mismatch = _setup_mismatch(ev)
     if mismatch is not None:
         return Quality(findings=(mismatch,))
-    checks = (_board_scale, _few_stations, _weak_rotation, _poor_coverage, _outliers,
-              _high_prediction_error)
+    checks = (_board_scale, _robot_translation_map, _few_stations, _weak_rotation,
+              _poor_coverage, _outliers, _high_prediction_error)
     return Quality(findings=tuple(f for check in checks if (f := check(ev)) is not None))
 
 
@@ -106,6 +108,25 @@ def irreconcilable(corrections: np.ndarray) -> bool:
     """True when the median robot correction (n, 2: angle rad, length m) is beyond any arm."""
     rot, trans = np.median(corrections, axis=0)
     return bool(rot > MISMATCH_ROT_RAD or trans > MISMATCH_TRANS_M)
+
+
+def _robot_translation_map(ev: QualityInputs) -> QualityFinding | None:
+    """The arm's positions are distorted (the chosen model maps them): say by how much over
+    the stations' span, and that hand_eye and target_pose hold for the mapped readings."""
+    if ev.robot_map is None or ev.T_base_tcp is None:
+        return None
+    t = ev.T_base_tcp[:, :3, 3]
+    shift = float(np.linalg.norm((t - t.mean(axis=0)) @ np.asarray(ev.robot_map).T,
+                                 axis=1).max())
+    largest = float(np.abs(ev.robot_map).max())
+    return QualityFinding("robot_translation_map", "info", (
+        f"the arm's positions are off by a linear map (scale and skew up to "
+        f"{100 * largest:.2f} %), {shift * 1e3:.1f} mm at most over the stations' span: "
+        f"predicting held-out stations clearly better with it, the calibration estimated it "
+        f"(robot_translation_map). hand_eye and target_pose hold for readings corrected by "
+        f"it (t + S t); readings used as they are will be off by up to that much. A robot "
+        f"calibration of the arm removes it."),
+        {"largest_entry": largest, "largest_shift_m": shift})
 
 
 def _setup_mismatch(ev: QualityInputs) -> QualityFinding | None:

@@ -14,15 +14,18 @@ from calib import (
     CornerStations,
     JointOptions,
     RobotNoise,
+    StationInputs,
+    calibrate_stations,
     matrix_from_ur_pose,
     solve_joint,
+    ur_pose_from_matrix,
 )
 from calib.crossval import fold_indices
 from calib.jointfit import JointData, JointModel, fit_joint
 from calib.uncertainty import JACKKNIFE_NOISE
 from service.cli.main import main
 from tests.support.helpers import SHARED
-from tests.support.projected import BOARD, calibrate, stations
+from tests.support.projected import BOARD, calibrate, scene, stations
 
 UR_SETS = [SHARED / "data" / name for name in ("ur-kinect-highR_highT", "ur-kinect-lowR_highT")]
 
@@ -97,6 +100,8 @@ def test_a_skewed_robot_gets_its_translation_map_and_a_plain_one_does_not():
     assert np.abs(res.robot_map - S).max() < 1e-3
     plain = next(c for c in res.trust.model_selection.candidates if c.name == "all estimated")
     assert res.trust.cross_validation.rms_px < 0.5 * plain.cv.rms_px
+    (found,) = [f for f in res.trust.quality.findings if f.code == "robot_translation_map"]
+    assert found.severity == "info" and 1e-3 < found.values["largest_shift_m"] < 10e-3
     assert not calibrate(true_kappa=1.0).trust.model_selection.chosen.model.robot_map
 
 
