@@ -97,7 +97,7 @@ def test_a_skewed_robot_gets_its_translation_map_and_a_plain_one_does_not():
                                            image_size=tuple(scene().camera.image_size)), BOARD)
     chosen = res.trust.model_selection.chosen
     assert chosen.model.robot_map and res.robot_map is not None
-    assert np.abs(res.robot_map - S).max() < 1e-3
+    assert np.abs(res.robot_map - S).max() < 2e-3  # 16 stations, 0.25 mm reading noise
     plain = next(c for c in res.trust.model_selection.candidates if c.name == "all estimated")
     assert res.trust.cross_validation.rms_px < 0.5 * plain.cv.rms_px
     (found,) = [f for f in res.trust.quality.findings if f.code == "robot_translation_map"]
