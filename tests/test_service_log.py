@@ -13,7 +13,7 @@ import pytest
 
 from service.serving.local import ServeOptions, local_service
 from service.serving.logs import JSONLines, lifecycle
-from tests.test_service_api import KEY
+from tests.support.service import KEY
 
 
 def _wait_final(url: str, headers: dict[str, str], path: str) -> dict[str, Any]:

@@ -23,8 +23,17 @@ from fastapi.testclient import TestClient
 from service.app import create_app
 from service.runs import capture
 from service.store import storage
-from tests.test_service_api import AUTH, finished, poses, settings, start_run, wait_run
-from tests.test_service_external import external_run, post, robot_pose
+from tests.support.service import (
+    AUTH,
+    external_run,
+    finished,
+    poses,
+    post,
+    robot_pose,
+    settings,
+    start_run,
+    wait_run,
+)
 
 
 @contextmanager
