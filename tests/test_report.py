@@ -211,6 +211,7 @@ def test_rest_report_of_a_capture_run(client) -> None:
     # also several at once, and a rendering in flight is shared
     reports = client.app.state.runtime.calibrations.reports
     cached = reports.cached(cal_id)
+    wait_for("the page to be kept", cached.is_file)  # written as the rendering ends
     assert cached.read_text() == r.text
     cached.write_text(r.text.replace("Calibration report", "Calibration report (cached)"))
     with ThreadPoolExecutor(8) as pool:
@@ -219,4 +220,6 @@ def test_rest_report_of_a_capture_run(client) -> None:
     cached.unlink()
     with ThreadPoolExecutor(8) as pool:
         pages = list(pool.map(lambda _: client.get(f"/calibrations/{cal_id}/report"), range(8)))
-    assert {p.text for p in pages} == {r.text} and cached.read_text() == r.text
+    assert {p.text for p in pages} == {r.text}
+    wait_for("the page to be kept again", cached.is_file)
+    assert cached.read_text() == r.text
