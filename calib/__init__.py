@@ -96,7 +96,7 @@ from calib.planning import (
     plan_stations,
     rough_target_from_image,
 )
-from calib.quality import COVERAGE_GRID, image_coverage
+from calib.quality import COVERAGE_GRID, OUTLIER_FACTOR, image_coverage
 from calib.recheck import CheckVerdict, Expected, StationCheck, StoredCell, check_verdict
 from calib.refine import RefineOptions
 from calib.screw import solve_sm
@@ -116,6 +116,7 @@ __all__ = [
     "MIN_IMAGES",
     "OPENCV_HAND_EYE_METHODS",
     "OPENCV_ROBOT_WORLD_METHODS",
+    "OUTLIER_FACTOR",
     "POSE_METHODS",
     "SELECTION_RULE",
     "SETUPS",

@@ -130,6 +130,28 @@ def test_one_coverage_figure_and_a_sign_off(ur_result) -> None:
     assert "@page { size: A4" in html
 
 
+def test_stations_against_their_thresholds_and_outliers_marked(ur_result) -> None:
+    """Issue 19: per-station residuals in degrees and mm, each against its threshold (the
+    verdict's outlier rule), and the outlier stations highlighted."""
+    _, result = ur_result
+    doc = json.loads(json.dumps(result))
+    first, *others = doc["stations"]
+    held_out = [s["loo_rot_rad"] for s in others if s.get("loo_rot_rad") is not None]
+    assert len(held_out) >= 5
+    first["loo_rot_rad"] = 100 * max(held_out)
+    doc["quality"]["findings"].append({"code": "outlier_stations", "severity": "warn",
+                                       "message": "m", "stations": [first["id"]]})
+    html = render_report(doc)
+    table = html[html.index("<h2>Stations"):html.index("<h2>Provenance")]
+    limit = 4 * np.median([first["loo_rot_rad"], *held_out]) * 180 / np.pi
+    assert f"held-out rot. (°, ≤ {limit:.3f})" in table and "held-out trans. (mm, ≤ " in table
+    (row,) = [r for r in table.split("<tr")
+              if f"<td class=\"l\">{first['id']}</td>" in r]
+    assert row.startswith(" class=\"outlier\">") and "over</span>" in row, row
+    assert row.endswith("<td>outlier</td></tr>")
+    assert table.count("class=\"outlier\"") == 1
+
+
 def test_report_prints_to_a_pdf_through_chromium(ur_result, tmp_path, capsys,
                                                  monkeypatch) -> None:
     path, _ = ur_result

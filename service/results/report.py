@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from calib import OUTLIER_FACTOR
 from service.results.document import cv_dropped_clause
 from service.results.plots import Plot, cv_by_station, report_plots
 from service.results.schema import parse_result
@@ -48,6 +49,8 @@ th { background: #f3f3f3; }
 td.l, th.l { text-align: left; }
 tr.rejected td { color: #8a1c14; background: #fdf1f0; }
 tr.chosen td { font-weight: 700; background: #eef7f0; }
+tr.outlier td { background: #fff3d6; }
+.over { color: #b3261e; font-weight: 700; }
 figure { margin: 12px 0 18px; break-inside: avoid; page-break-inside: avoid; }
 figure img { width: 100%; height: auto; }
 figcaption { color: #444; font-size: 12px; }
@@ -255,14 +258,46 @@ def _figure(plot: Plot) -> str:
             f"{_esc(plot.caption)}</figcaption></figure>")
 
 
+def outlier_ids(result: Result) -> set[str]:
+    """The stations the result calls outliers: those of the ``outlier_stations`` finding and
+    those the cross-validation dropped."""
+    ids = set((result.get("cross_validation") or {}).get("dropped") or [])
+    for finding in (result.get("quality") or {}).get("findings") or []:
+        if finding.get("code") == "outlier_stations":
+            ids |= {str(i) for i in finding.get("stations") or []}
+    return ids
+
+
+def _limits(stations: list[Mapping[str, Any]], keys: tuple[str, str]) -> list[float | None]:
+    """Each per-station residual's threshold: the outlier rule of the verdict
+    (``OUTLIER_FACTOR`` times the median over the stations); None without values."""
+    limits: list[float | None] = []
+    for key in keys:
+        values = [float(s[key]) for s in stations if _is_number(s.get(key))]
+        limits.append(OUTLIER_FACTOR * float(np.median(values)) if values else None)
+    return limits
+
+
 def _station_table(result: Result) -> str:
     stations = result.get("stations") or []
     cv = cv_by_station(result)
     pose_only = not result.get("camera")
-    head = (["station", "rot. residual (°)", "trans. residual (mm)"] if pose_only else
+    keys = ("residual_rot_rad", "residual_trans_m") if pose_only else ("loo_rot_rad",
+                                                                       "loo_trans_m")
+    limits = _limits(stations, keys)
+    limit_text = [("–" if lim is None else f"≤ {lim * scale:{fmt}}")
+                  for lim, scale, fmt in zip(limits, (180 / np.pi, 1e3), (".3f", ".2f"),
+                                             strict=True)]
+    residual_head = [f"{'rot. residual' if pose_only else 'held-out rot.'} (°, "
+                     f"{limit_text[0]})",
+                     f"{'trans. residual' if pose_only else 'held-out trans.'} (mm, "
+                     f"{limit_text[1]})"]
+    head = (["station", *residual_head, "flag"] if pose_only else
             ["station", "corners", "fit RMS (px)", "robot-pose RMS (px)", "CV (px)",
-             "robot correction (°, mm)", "Mahalanobis"])
-    rows = [_station_row(s, cv, pose_only) for s in stations]
+             *residual_head, "robot correction (°, mm)", "Mahalanobis", "flag"])
+    outliers = outlier_ids(result)
+    rows = [_station_row(s, cv, pose_only, (keys, limits), str(s.get("id")) in outliers)
+            for s in stations]
     width = len(head) - 1
     rows += [f"<tr class=\"rejected\"><td class=\"l\">{_esc(r.get('id'))}</td>"
              f"<td class=\"l\" colspan=\"{width}\">rejected: {_esc(r.get('reason'))}</td></tr>"
@@ -296,10 +331,25 @@ def _selection_table(selection: Mapping[str, Any]) -> str:
         f"{_esc(selection.get('rule', ''))}.</p>")
 
 
-def _station_row(s: Mapping[str, Any], cv: Mapping[str, float], pose_only: bool) -> str:
+def _residual_cells(s: Mapping[str, Any],
+                    checks: tuple[tuple[str, str], list[float | None]]) -> list[str]:
+    """A station's rotation (°) and translation (mm) residuals, each marked when over its
+    threshold."""
+    cells = []
+    for key, limit, scale, fmt in zip(*checks, (180 / np.pi, 1e3), (".3f", ".2f"),
+                                      strict=True):
+        value = s.get(key)
+        over = _is_number(value) and limit is not None and float(value) > limit
+        text = _num(value, fmt, scale)
+        cells.append(f"<span class=\"over\">{text} over</span>" if over else text)
+    return cells
+
+
+def _station_row(s: Mapping[str, Any], cv: Mapping[str, float], pose_only: bool,
+                 checks: tuple[tuple[str, str], list[float | None]], outlier: bool) -> str:
+    residuals = _residual_cells(s, checks)
     if pose_only:
-        cells = [_num(s.get("residual_rot_rad"), ".3f", 180 / np.pi),
-                 _num(s.get("residual_trans_m"), ".2f", 1e3)]
+        cells = residuals
     else:
         correction = "–"
         if s.get("correction_rot_rad") is not None:
@@ -307,8 +357,10 @@ def _station_row(s: Mapping[str, Any], cv: Mapping[str, float], pose_only: bool)
                           f"{_num(s.get('correction_trans_m'), '.2f', 1e3)}")
         cells = [_esc(s.get("n_corners", "")), _num(s.get("rms_px"), ".3f"),
                  _num(s.get("chain_rms_px"), ".2f"), _num(cv.get(str(s.get("id"))), ".2f"),
-                 correction, _num(s.get("mahalanobis"), ".1f")]
-    return (f"<tr><td class=\"l\">{_esc(s.get('id'))}</td>"
+                 *residuals, correction, _num(s.get("mahalanobis"), ".1f")]
+    cells.append("outlier" if outlier else "")
+    return (f"<tr class=\"{'outlier' if outlier else ''}\"><td class=\"l\">"
+            f"{_esc(s.get('id'))}</td>"
             + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
 
 
