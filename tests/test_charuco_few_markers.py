@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from calib.boards.charuco import detect_charuco
+from calib.boards.charuco_grid import FEW_MARKERS
 from mocks.render import RenderParams, render_board
 from mocks.scene import camera_pose_for_tcp, charuco_scene, sample_station_poses
 
@@ -56,7 +57,14 @@ def test_grid_that_markers_cannot_place_is_refused_saying_so():
 
 
 def test_a_few_markers_give_no_advice_about_the_layout():
+    """6 markers of 54 decoded: they suggest some layout by chance, which is no reason to
+    question the board. (Whether the exhaustive grid search reads this view whole depends on
+    OpenCV's state from earlier calls; either way the layout is not questioned.)"""
     grey = _blurred(2)
+    _, markers = _opencv_corners(grey)
+    assert 0 < markers < FEW_MARKERS * len(BOARD.opencv_board().getIds())
     det = detect_charuco(grey, BOARD)
-    assert not det.ok
-    assert "squares" not in det.reason and "legacy_pattern" not in det.reason, det.reason
+    if det.ok:
+        assert det.ids.tolist() == BOARD.point_ids.tolist()
+    else:
+        assert "squares" not in det.reason and "legacy_pattern" not in det.reason, det.reason
