@@ -154,11 +154,25 @@ def test_stations_against_their_thresholds_and_outliers_marked(ur_result) -> Non
 
 def test_report_prints_to_a_pdf_through_chromium(ur_result, tmp_path, capsys,
                                                  monkeypatch) -> None:
-    path, _ = ur_result
+    """The report of the real 21-station UR set with its station thumbnails (the blank
+    station rejected): one JPEG per used station with the corners drawn, an outlier framed,
+    under 3 MB, nothing from another host; printed to an A4 PDF."""
+    path, result = ur_result
     out = tmp_path / "report.html"
-    assert main(["report", str(path), "--out", str(out), "--pdf"]) == 0
+    assert main(["report", str(path), "--stations", str(path.parent), "--out", str(out),
+                 "--pdf"]) == 0
     pdf = out.with_suffix(".pdf")
     assert f"wrote {pdf}" in capsys.readouterr().err
+    html = out.read_text()
+    assert len(html.encode()) < 3_000_000 and "http://" not in html and "https://" not in html
+    thumbs = re.findall(r'<figure class="thumb[^"]*"><img alt="station ([^"]+)" '
+                        r'src="data:image/jpeg;base64,([^"]+)"', html)
+    assert [sid for sid, _ in thumbs] == [s["id"] for s in result["stations"]]
+    for _, data in thumbs:
+        image = cv2.imdecode(np.frombuffer(base64.b64decode(data), np.uint8), cv2.IMREAD_COLOR)
+        b, g, r = (image[..., k].astype(int) for k in range(3))
+        assert image.shape[1] == 320 and ((g - r > 80) & (g - b > 80)).sum() > 20  # green dots
+        assert ((r - g > 40) & (r - b > 40)).sum() > 20  # red crosses (JPEG softens them)
     data = pdf.read_bytes()
     assert data.startswith(b"%PDF-")
     pages = re.findall(rb"/MediaBox \[0 0 ([\d.]+) ([\d.]+)\]", data)

@@ -23,6 +23,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a result written by 'cellcal calibrate --out'")
     parser.add_argument("--out", type=Path, metavar="HTML",
                         help="output file (default: RESULT_JSON with .html)")
+    parser.add_argument("--stations", type=Path, metavar="DIR",
+                        help="the station set the result was calibrated from: adds a "
+                             "thumbnail of every station with its detected and reprojected "
+                             "corners")
     parser.add_argument("--pdf", action="store_true",
                         help="also print the report to a PDF (A4) beside the HTML, through "
                              "headless chromium")
@@ -45,13 +49,27 @@ def run(args: argparse.Namespace) -> int:
         print("cellcal: error: --pdf needs chromium (Debian/Ubuntu: apt install chromium); "
               "the HTML report prints on A4 from any browser", file=sys.stderr)
         return 1
-    out.write_text(render_report(doc))
+    images = station_images(args.stations) if args.stations else None
+    out.write_text(render_report(doc, images))
     print(f"wrote {out}", file=sys.stderr)
     if args.pdf:
         pdf = out.with_suffix(".pdf")
         print_pdf(out, pdf)
         print(f"wrote {pdf}", file=sys.stderr)
     return 0
+
+
+def station_images(directory: Path) -> dict[str, Path]:
+    """Station id -> image file of the station set in ``directory`` (its stations.json);
+    ValueError (one line) when it is not one."""
+    index = directory / "stations.json"
+    try:
+        doc = json.loads(index.read_text())
+        return {str(s["id"]): directory / s["image"] for s in doc["stations"] if s.get("image")}
+    except OSError as exc:
+        raise ValueError(f"{index}: cannot read ({exc.strerror or exc})") from None
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{index}: not a station set ({exc})") from None
 
 
 def chromium() -> str | None:

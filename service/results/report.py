@@ -16,6 +16,7 @@ from __future__ import annotations
 import base64
 import html
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -24,6 +25,7 @@ from calib import OUTLIER_FACTOR
 from service.results.document import cv_dropped_clause
 from service.results.plots import Plot, cv_by_station, report_plots
 from service.results.schema import parse_result
+from service.results.thumbnails import thumbnails_section
 
 Result = Mapping[str, Any]
 
@@ -57,6 +59,10 @@ figcaption { color: #444; font-size: 12px; }
 .kv td:first-child { text-align: left; color: #444; width: 34%; }
 .kv td { text-align: left; }
 .note { color: #555; font-size: 12px; }
+.thumbs { display: flex; flex-wrap: wrap; gap: 6px; }
+figure.thumb { width: 32%; margin: 0; }
+figure.thumb figcaption { font-size: 11px; }
+figure.thumb.outlier figcaption { color: #b3261e; font-weight: 700; }
 .signoff td { height: 26px; }
 .signoff td:first-child { width: 22%; }
 .box { display: inline-block; width: 10px; height: 10px; border: 1px solid #333;
@@ -68,12 +74,13 @@ figcaption { color: #444; font-size: 12px; }
 """
 
 
-def render_report(result: Result) -> str:
+def render_report(result: Result, images: Mapping[str, str | Path] | None = None) -> str:
     """The HTML report of a result document, as one self-contained string; ValueError (one
     line) for a document that is not a valid ``cellcal/result@1``.
 
     Every value read from the document is escaped (``_esc``, ``_num``): a hand-edited result
-    may hold markup in any field."""
+    may hold markup in any field. ``images`` (station id -> image file) adds a thumbnail of
+    every used station with its detected and reprojected corners."""
     parse_result(result)
     parts = [
         _header(result),
@@ -83,6 +90,7 @@ def render_report(result: Result) -> str:
         *(_figure(p) for p in report_plots(result)),
         _selection_table(result.get("model_selection") or {}),
         _station_table(result),
+        thumbnails_section(result, images or {}, outlier_ids(result)),
         _provenance(result),
         _sign_off(),
     ]
