@@ -54,15 +54,18 @@ def parse(html: str) -> _Page:
 
 
 def assert_self_contained(html: str) -> _Page:
-    """No external reference of any kind; every image an embedded, decodable PNG."""
+    """No external reference of any kind; every image an embedded, decodable PNG (plots) or
+    JPEG (station thumbnails, 320 px wide)."""
     page = parse(html)
     assert "http://" not in html and "https://" not in html
     assert "<link" not in html and "<script" not in html and "@import" not in html
-    assert page.urls and all(u.startswith("data:image/png;base64,") for u in page.urls)
+    assert page.urls and all(u.startswith(("data:image/png;base64,", "data:image/jpeg;base64,"))
+                             for u in page.urls)
     for src in page.images:
-        png = base64.b64decode(src.split(",", 1)[1], validate=True)
-        image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
-        assert image is not None and image.shape[0] > 150 and image.shape[1] > 400
+        data = base64.b64decode(src.split(",", 1)[1], validate=True)
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        width = 320 if src.startswith("data:image/jpeg") else 400
+        assert image is not None and image.shape[0] > 150 and image.shape[1] >= width
         assert image.std() > 10  # something is drawn
     return page
 
@@ -241,6 +244,8 @@ def test_rest_report_of_a_capture_run(client) -> None:
     page = assert_self_contained(r.text)
     assert set(IMAGE_PLOTS) <= {f.removeprefix("fig-") for f in page.figures}
     assert all(f"<td class=\"l\">{s['id']}</td>" in r.text for s in cal["result"]["stations"])
+    thumbs = re.findall(r'<figure class="thumb[^"]*"><img alt="station ([^"]+)"', r.text)
+    assert thumbs == [s["id"] for s in cal["result"]["stations"]]  # the run's images
     missing = client.get("/calibrations/nope/report")
     assert missing.status_code == 404 and missing.json()["code"] == "not_found"
     # rendered once and kept (issue 22, row 7): the cached page is what later requests get,

@@ -9,7 +9,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Response, status
 from fastapi.responses import FileResponse, HTMLResponse, StreamingResponse
 
-from service.api.deps import CalibrationsDep, EventsDep, SessionDep
+from service.api.deps import CalibrationsDep, EventsDep, SessionDep, SettingsDep
 from service.api.reads import Read, add_reads
 from service.api.streams import LastEventId, event_stream, stream_doc
 from service.errors import ConflictError, UnprocessableError
@@ -80,7 +80,7 @@ def export_calibration(cal_id: str, session: SessionDep,
     200: {"content": {"text/html": {}},
           "description": "one self-contained HTML page (plots embedded, no external links)"},
     409: {"description": "the calibration is running or failed"}})
-def calibration_report(cal_id: str, session: SessionDep,
+def calibration_report(cal_id: str, session: SessionDep, settings: SettingsDep,
                        calibrations: CalibrationsDep) -> Response:
     """The report a person reads, prints and files: verdict, findings, plots, stations.
     Rendered once, in a worker process, then served from the data directory."""
@@ -89,7 +89,10 @@ def calibration_report(cal_id: str, session: SessionDep,
         raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished calibration "
                             "has a report.", code="invalid_state")
     try:
-        page = calibrations.reports.page(cal_id, cal.result)
+        images = {f"{row.index:03d}": str(Path(settings.data_dir) / row.image_path)
+                  for row in queries.list_stations(session, run_id=cal.run_id)
+                  if row.image_path}
+        page = calibrations.reports.page(cal_id, cal.result, images)
     except ValueError as exc:  # a stored result edited by hand
         raise UnprocessableError(str(exc), code="invalid_result") from None
     if isinstance(page, Path):

@@ -28,11 +28,12 @@ from service.settings import Settings
 log = logging.getLogger("cellcal.service")
 
 
-def render(result: Mapping[str, Any]) -> str:
-    """Worker entry: the report of ``result`` (``service.results.report.render_report``)."""
+def render(result: Mapping[str, Any], images: Mapping[str, str] | None = None) -> str:
+    """Worker entry: the report of ``result`` (``service.results.report.render_report``),
+    with the thumbnails of ``images`` (station id -> image file)."""
     from service.results.report import render_report  # matplotlib: only in the worker
 
-    return render_report(result)
+    return render_report(result, images)
 
 
 class Reports:
@@ -44,9 +45,11 @@ class Reports:
         self._lock = threading.Lock()
         self._rendering: dict[str, cf.Future[str]] = {}
 
-    def page(self, cal_id: str, result: Mapping[str, Any]) -> Path | str:
-        """The report of the finished calibration ``cal_id`` (its ``result``): the cached
-        file, or the HTML just rendered. ValueError for a result that is not valid."""
+    def page(self, cal_id: str, result: Mapping[str, Any],
+             images: Mapping[str, str] | None = None) -> Path | str:
+        """The report of the finished calibration ``cal_id`` (its ``result`` and its stations'
+        ``images``): the cached file, or the HTML just rendered. ValueError for a result that
+        is not valid."""
         path = self.cached(cal_id)
         if path.is_file():
             return path
@@ -56,7 +59,7 @@ class Reports:
                 if self._pool is None:
                     # lowest priority: capture's threads get the cores first
                     self._pool = WorkerPool(1, lambda message: None, nice=19)
-                future = self._pool.submit(render, dict(result))
+                future = self._pool.submit(render, dict(result), dict(images or {}))
                 self._rendering[cal_id] = future
                 future.add_done_callback(lambda f: self._keep(cal_id, f))
         return future.result()
