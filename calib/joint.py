@@ -78,8 +78,7 @@ _N_GLOBAL = _N_CAM + _N_POSE  # the globals before the robot map
 _MAP_BASIS = np.zeros((len(MAP_PARAMS), 3, 3))
 for _k, (_a, _b) in enumerate(((0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1))):
     _MAP_BASIS[_k, _a, _b] = 1.0
-_MAP_BASIS[6] = np.diag([1.0, -1.0, 0.0])
-_MAP_BASIS[7] = np.diag([0.0, 1.0, -1.0])
+_MAP_BASIS[6], _MAP_BASIS[7] = np.diag([1.0, -1.0, 0.0]), np.diag([0.0, 1.0, -1.0])
 _NU, _KAPPA = CAMERA_PARAMS.index("nu"), CAMERA_PARAMS.index("kappa")
 #: Median of the chi distribution with 2 degrees of freedom (the correction's distance): a
 #: chi-square with 2 degrees of freedom is exponential with mean 2, so its median is 2 ln 2.
@@ -464,13 +463,12 @@ class JointProblem(CachedProblem):
             rms_px_per_station=np.sqrt(np.add.reduceat(sq, self.starts) / self.counts),
             rms_px=float(np.sqrt(sq.mean())), residuals_px=residuals_px, rejected=rejected,
             sigma_px=self.sigma_px, robot_noise_rot=self.noise.rot_rad,
-            robot_noise_trans=self.noise.trans_m,
-            variance_factor=variance_factor,
+            robot_noise_trans=self.noise.trans_m, variance_factor=variance_factor,
             nfev=int(sol.nfev), converged=bool(sol.status > 0))
 
 
 def sigmas_from_covariance(cov: np.ndarray) -> dict[str, float | np.ndarray]:
-    """``JointResult.sigmas`` of a covariance (23, 23) over ``GLOBAL_PARAMS``."""
+    """``JointResult.sigmas`` of a covariance (31, 31) over ``GLOBAL_PARAMS`` (camera, X, Y)."""
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     sigmas: dict[str, float | np.ndarray] = {
         name: float(sd[i]) for i, name in enumerate(CAMERA_PARAMS)}
