@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -57,12 +58,12 @@ def test_root_leads_to_the_page(client: TestClient) -> None:
     r = client.get("/", follow_redirects=False)
     assert r.status_code in (302, 307) and r.headers["location"] == "/ui/"
     refs = local_refs(client, "/ui/")
-    assert sorted(refs) == ["app.js", "favicon.svg", "style.css"]
+    assert sorted(refs) == ["app.js", "cellwork.js", "favicon.svg", "style.css"]
 
 
 def test_page_assets_name_no_other_host() -> None:
     files = sorted(p.name for p in STATIC_DIR.iterdir())
-    assert files == ["app.js", "favicon.svg", "index.html", "style.css"]
+    assert files == ["app.js", "cellwork.js", "favicon.svg", "index.html", "style.css"]
     for path in STATIC_DIR.iterdir():
         text = path.read_text().replace('xmlns="http://www.w3.org/2000/svg"', "")  # a name
         assert "http://" not in text and "https://" not in text, path.name
@@ -182,6 +183,8 @@ def test_click_through_run_calibrate_report_export(served: LocalService, tmp_pat
 
         activate_asks_first(browser, row, cals[0]["id"])
 
+        whole_calibration(browser, served, run_id)
+
         report = browser.click_to_open_tab(f"{row} a.report")
         browser.wait_for("the report", "document.readyState === 'complete' && "
                          "location.protocol === 'blob:' && document.querySelector('h1')"
@@ -189,7 +192,7 @@ def test_click_through_run_calibrate_report_export(served: LocalService, tmp_pat
         assert text(browser, ".verdict .word", report) == verdict
 
         browser.click(f"{row} a[data-format=opencv-yaml]")
-        exported = browser.downloaded()
+        exported = browser.downloaded(after=1)  # the station set came first
         fs = cv2.FileStorage(str(exported), cv2.FILE_STORAGE_READ)
         K = fs.getNode("camera_matrix").mat()
         fs.release()
@@ -228,6 +231,80 @@ def activate_asks_first(browser: Browser, row: str, cal_id: str) -> None:
                      "td:nth-child(7)')?.textContent === 'active'")
     again = dialog("cancel")
     assert f"It replaces {cal_id[:8]}" in again and "nothing changes" in again
+
+
+def wait_text(browser: Browser, what: str, selector: str, js_test: str) -> str:
+    """Wait until the text of ``selector`` passes ``js_test`` (a JS expression of ``t``)."""
+    try:
+        browser.wait_for(what, f"(t => {js_test})(document.querySelector('{selector}')"
+                         ".textContent)")
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}: {selector} says {text(browser, selector)!r}, the status "
+                             f"{text(browser, '#status')!r}") from None
+    return text(browser, selector)
+
+
+def whole_calibration(browser: Browser, served: LocalService, run_id: str) -> None:
+    """Issue 19: the page runs a whole calibration. Intrinsics and the board pose in the
+    result view; the solve's progress; an older station's image with detected and
+    reprojected corners; the station set download; the re-check and the dot-hit validation of
+    the active calibration; an external run and a run through a list of poses."""
+    figures = text(browser, "#figures")
+    for name in ("focal length fx / fy (px)", "principal point", "distortion k1",
+                 "board pose (base → board) x / y / z (mm)", "board pose rotation vector"):
+        assert name in figures, figures
+    assert text(browser, "#solve-progress") not in ("", "started")
+
+    hit = browser.js("(() => { const r = document.querySelector('#stations tbody tr:first-child')"
+                     ".getBoundingClientRect(); r && document.querySelector('#stations')"
+                     ".scrollIntoView({block: 'center'}); const b = document.querySelector("
+                     "'#stations tbody tr:first-child').getBoundingClientRect();"
+                     " return document.elementFromPoint(b.left + b.width / 2,"
+                     " b.top + b.height / 2)?.closest('#stations') !== null; })()")
+    assert hit, "the first station's row is covered"
+    browser.click("#stations tbody tr:first-child")
+    caption = wait_text(browser, "the first station with both corner sets", "#latest-caption",
+                        "t.startsWith('Station 0') && t.includes('reprojected')")
+    detected = re.search(r"(\d+) corners detected \(green\), (\d+) reprojected", caption)
+    assert detected and detected[1] == detected[2] and int(detected[1]) > 20, caption
+
+    browser.click("#stationset")
+    with zipfile.ZipFile(browser.downloaded()) as stationset:
+        names = stationset.namelist()
+    assert "stations.json" in names and sum(n.endswith(".png") for n in names) == 8, names
+
+    for kind, said in (("check", "cell ok: "), ("dot_hit", "points touched")):
+        browser.click(f"[data-validate={kind}]")
+        state = wait_text(browser, f"the {kind} to end", "#validation-state",
+                          "t === 'done' || t === 'failed'")
+        assert state == "done", text(browser, "#validation-result")
+        assert said in text(browser, "#validation-result")
+        browser.js("document.querySelector('#validation-state').textContent = ''")
+
+    poses = [s["tcp_pose"] for s in httpx.get(f"{served.url}/runs/{run_id}/stations",
+                                              headers=AUTH).json()[:3]]
+    browser.js("document.querySelector('#run-kind').value = 'external';"
+               "document.querySelector('#run-kind').dispatchEvent(new Event('change'))")
+    browser.click("#run-form button")
+    browser.wait_for("the external run", f"currentRun !== '{run_id}' && document"
+                     ".querySelector('#run-state').textContent === 'capturing'")
+    external = browser.js("currentRun")
+    assert httpx.get(f"{served.url}/runs/{external}", headers=AUTH).json()["mode"] == "external"
+    browser.click("[data-action=cancel]")
+    wait_text(browser, "the external run to end", "#run-state", "t === 'cancelled'")
+
+    browser.js("document.querySelector('#run-kind').value = 'poses';"
+               "document.querySelector('#run-kind').dispatchEvent(new Event('change'))")
+    assert not browser.js("document.querySelector('#poses-options').hidden")
+    browser.js(f"document.querySelector('#poses').value = {json.dumps(json.dumps(poses))}")
+    browser.click("#run-form button")
+    browser.wait_for("the pose-list run", f"currentRun !== '{external}' && document"
+                     ".querySelector('#run-state').textContent === 'done'")
+    assert text(browser, "#progress-text") == "3 of 3 stations: 3 captured, 0 skipped"
+    browser.js("document.querySelector('#run-kind').value = 'planned';"
+               "document.querySelector('#run-kind').dispatchEvent(new Event('change'))")
+    browser.click(f"#runs tbody tr[data-id='{run_id}']")
+    browser.wait_for("the first run again", f"currentRun === '{run_id}'")
 
 
 def browser_url(browser: Browser) -> str:

@@ -233,11 +233,17 @@ class Browser:
         self.js(f"document.querySelector({json.dumps(selector)}).select()")
         self.send("Input.insertText", {"text": text})
 
-    def downloaded(self) -> Path:
-        """The file of the first download, once it has completed."""
-        done = wait_for("a download to complete", lambda: self._event(
-            "Browser.downloadProgress", lambda p: p["state"] in ("completed", "canceled")),
-            WAIT_S)
+    def downloaded(self, after: int = 0) -> Path:
+        """The file of the first download (after the first ``after``), once it has
+        completed."""
+        def ended() -> dict[str, Any] | None:
+            with self._cond:
+                done = [e["params"] for e in self.events
+                        if e.get("method") == "Browser.downloadProgress"
+                        and e["params"]["state"] in ("completed", "canceled")]
+            return done[after] if len(done) > after else None
+
+        done = wait_for("a download to complete", ended, WAIT_S)
         assert done["state"] == "completed", done
         begun = self._event("Browser.downloadWillBegin", lambda p: p["guid"] == done["guid"])
         assert begun is not None

@@ -92,6 +92,7 @@ async function openRun(runId) {
   currentRun = runId;
   $("#run-view").hidden = false;
   $("#run-id").textContent = short(runId);
+  await loadRunResult(runId);
   await refreshRun();
   follow(runId);
 }
@@ -132,6 +133,12 @@ async function refreshRun() {
     cell(row, station.index);
     cell(row, station.state, station.state);
     cell(row, station.error ? station.error.detail : "");
+    row.dataset.index = station.index;
+    if (station.image_url) {
+      row.addEventListener("click", () => drawStation(station.index).catch((error) => {
+        setStatus(error.message);
+      }));
+    }
   }
   const last = stations.filter((s) => s.image_url).pop();
   if (last) await drawStation(last.index);
@@ -201,8 +208,13 @@ async function drawStation(index) {
     g.arc(x, y, 3 * g.lineWidth, 0, 2 * Math.PI);
     g.stroke();
   }
+  const shown = drawReprojected(g, index, 4 * g.lineWidth);
+  for (const row of document.querySelectorAll("#stations tbody tr")) {
+    row.classList.toggle("shown", row.dataset.index === String(index));
+  }
   $("#latest-caption").textContent = `Station ${index}: ${station.state}` +
-    (corners.length ? `, ${corners.length} corners` : "") +
+    (corners.length ? `, ${corners.length} corners detected (green)` : "") +
+    (shown ? `, ${shown} reprojected by the calibration (red)` : "") +
     (station.error ? ` (${station.error.detail})` : "");
 }
 
@@ -297,50 +309,6 @@ async function loadCalibrations() {
   }
 }
 
-// Activation changes what the cell controller gets, so the page asks first and shows what
-// would be replaced: the calibration active now for the same cell and setup.
-async function currentlyActive(setup) {
-  const response = await fetch(`/calibrations/active?setup=${setup}`,
-                               { headers: { Authorization: `Bearer ${key}` } });
-  if (response.status === 404) return null;
-  if (!response.ok) throw new Error(`${response.status}: cannot read the active calibration`);
-  return response.json();
-}
-
-function summary(cal) {
-  const r = cal.result ?? {};
-  const pose = r.hand_eye?.pose;
-  const parts = [`${short(cal.id)} (run ${short(cal.run_id)})`,
-                 `verdict ${r.quality?.verdict ?? "–"}`,
-                 `RMS ${r.camera?.rms_px?.toFixed(3) ?? "–"} px`];
-  if (pose) {
-    parts.push(`hand-eye ${pose.slice(0, 3).map((v) => (1e3 * v).toFixed(1)).join(" / ")} mm`);
-  }
-  return parts.join(", ");
-}
-
-async function confirmActivate(cal) {
-  const [full, now] = await Promise.all([json("GET", `/calibrations/${cal.id}`),
-                                         currentlyActive(cal.setup)]);
-  $("#activate-new").textContent = summary(full);
-  $("#activate-old").textContent = now === null
-    ? `nothing: no calibration is active for ${cal.setup} yet`
-    : `${summary(now.calibration)}, active since ${new Date(now.activated_at).toLocaleString()}` +
-      (now.calibration.id === cal.id ? " (the same calibration: nothing changes)" : "");
-  const dialog = $("#activate-dialog");
-  dialog.showModal();
-  const answer = await new Promise((resolve) => {
-    dialog.addEventListener("close", () => resolve(dialog.returnValue), { once: true });
-  });
-  if (answer !== "activate") {
-    setStatus("activation cancelled");
-    return;
-  }
-  await json("POST", `/calibrations/${cal.id}/activate`);
-  await loadCalibrations();
-  setStatus(`activated ${short(cal.id)}`);
-}
-
 async function showCalibration(calId) {
   const cal = await json("GET", `/calibrations/${calId}`);
   $("#calibration-view").hidden = false;
@@ -349,6 +317,9 @@ async function showCalibration(calId) {
   const mm = (values) => values?.map((v) => (1e3 * v).toFixed(2)).join(" / ");
   const deg = (values) => values?.map((v) => (180 / Math.PI * v).toFixed(3)).join(" / ");
   const pose = r.hand_eye?.pose;
+  const K = r.camera?.K;
+  const board = r.target_pose?.pose;
+  const boardFrame = r.setup === "eye_to_hand" ? "tool → board" : "base → board";
   const figures = {
     state: cal.state,
     verdict: r.quality?.verdict,
@@ -361,6 +332,12 @@ async function showCalibration(calId) {
     "hand-eye rotation vector rx / ry / rz (deg)": deg(pose?.slice(3)),
     "hand-eye 1σ x / y / z (mm)": mm(r.uncertainty?.hand_eye_trans_m),
     "hand-eye 1σ rotation (deg)": deg(r.uncertainty?.hand_eye_rot_rad),
+    "image size (px)": r.camera?.image_size?.join(" × "),
+    "focal length fx / fy (px)": K && `${K[0][0].toFixed(2)} / ${K[1][1].toFixed(2)}`,
+    "principal point cx / cy (px)": K && `${K[0][2].toFixed(2)} / ${K[1][2].toFixed(2)}`,
+    "distortion k1 k2 p1 p2 k3": r.camera?.dist?.map((v) => v.toFixed(5)).join(" "),
+    [`board pose (${boardFrame}) x / y / z (mm)`]: mm(board?.slice(0, 3)),
+    "board pose rotation vector rx / ry / rz (deg)": deg(board?.slice(3)),
     error: cal.error,
   };
   const list = $("#figures");
@@ -424,15 +401,37 @@ $("#key-form").addEventListener("submit", (event) => {
   run(loadAll);
 });
 
+// The body of POST /runs for the kind of run chosen: planned (a station count or a
+// tolerance), external (a cell controller posts the stations) or a list of TCP poses.
+function runBody() {
+  const kind = $("#run-kind").value;
+  if (kind === "external") return { mode: "external" };
+  if (kind === "poses") {
+    let poses;
+    try {
+      poses = JSON.parse($("#poses").value);
+    } catch (error) {
+      throw new Error(`poses: not JSON (${error.message})`);
+    }
+    return { poses };
+  }
+  return $("#use-tolerance").checked
+    ? { tolerance_mm: Number($("#tolerance-mm").value),
+        tolerance_deg: Number($("#tolerance-deg").value),
+        max_stations: Number($("#max-stations").value) }
+    : { stations: Number($("#stations").value) };
+}
+
+$("#run-kind").addEventListener("change", () => {
+  const kind = $("#run-kind").value;
+  $("#planned-options").hidden = kind !== "planned";
+  $("#poses-options").hidden = kind !== "poses";
+});
+
 $("#run-form").addEventListener("submit", (event) => {
   event.preventDefault();
   run(async () => {
-    const body = $("#use-tolerance").checked
-      ? { tolerance_mm: Number($("#tolerance-mm").value),
-          tolerance_deg: Number($("#tolerance-deg").value),
-          max_stations: Number($("#max-stations").value) }
-      : { stations: Number($("#stations").value) };
-    const created = await json("POST", "/runs", body);
+    const created = await json("POST", "/runs", runBody(), { "Idempotency-Key": idempotencyKey() });
     await loadRuns();
     await openRun(created.id);
   });
@@ -456,6 +455,7 @@ $("#calibrate").addEventListener("click", () => {
     const created = await json("POST", `/runs/${currentRun}/calibrations`, { options },
                                { "Idempotency-Key": idempotencyKey() });
     setStatus(`calibrating (${short(created.id)})`);
+    showProgress(`/calibrations/${created.id}/events`, "#solve-progress");
     for (;;) {
       const cal = await json("GET", `/calibrations/${created.id}`);
       if (cal.state !== "running") break;
@@ -463,6 +463,7 @@ $("#calibrate").addEventListener("click", () => {
     }
     await loadCalibrations();
     await showCalibration(created.id);
+    await loadRunResult(currentRun);
     setStatus("calibration finished");
   }).finally(() => refreshRun().catch(() => { button.disabled = false; }));
 });
