@@ -227,31 +227,41 @@ async function follow(runId) {
   let lastId = null;
   while (!controller.signal.aborted) {
     try {
-      const headers = { Authorization: `Bearer ${key}` };
-      if (lastId !== null) headers["Last-Event-ID"] = lastId;
-      const response = await fetch(`/runs/${runId}/events`, { headers, signal: controller.signal });
-      const reader = response.body.pipeThrough(new TextDecoderStream()).getReader();
-      let buffer = "";
-      for (;;) {
-        const { value, done } = await reader.read();
-        if (done) return;
-        buffer += value;
-        let end;
-        while ((end = buffer.indexOf("\n\n")) >= 0) {
-          const block = buffer.slice(0, end);
-          buffer = buffer.slice(end + 2);
-          const id = /^id: (.*)$/m.exec(block);
-          if (id) lastId = id[1];
-          if (/^event: /m.test(block)) {
-            await refreshRun();
-            await loadRuns();
-          }
+      const headers = lastId === null ? {} : { "Last-Event-ID": lastId };
+      await readEvents(`/runs/${runId}/events`, async (block) => {
+        const id = /^id: (.*)$/m.exec(block);
+        if (id) lastId = id[1];
+        if (/^event: /m.test(block)) {
+          await refreshRun();
+          await loadRuns();
         }
-      }
+      }, { headers, signal: controller.signal });
+      return;
     } catch (error) {
       if (controller.signal.aborted) return;
       setStatus(`event stream: ${error.message}; reconnecting`);
       await new Promise((resolve) => setTimeout(resolve, 1000));
+    }
+  }
+}
+
+// Read a server-sent event stream with fetch (so the API key goes in the header) until it
+// ends, handing each event's block of lines to onBlock.
+async function readEvents(path, onBlock, { headers = {}, signal } = {}) {
+  const response = await fetch(path, {
+    headers: { Authorization: `Bearer ${key}`, ...headers }, signal });
+  if (!response.ok) return;  // no such stream (any more): nothing to follow
+  const reader = response.body.pipeThrough(new TextDecoderStream()).getReader();
+  let buffer = "";
+  for (;;) {
+    const { value, done } = await reader.read();
+    if (done) return;
+    buffer += value;
+    let end;
+    while ((end = buffer.indexOf("\n\n")) >= 0) {
+      const block = buffer.slice(0, end);
+      buffer = buffer.slice(end + 2);
+      await onBlock(block);
     }
   }
 }

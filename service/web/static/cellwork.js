@@ -8,34 +8,16 @@
 // draw the reprojected corners over each station's image.
 let runResult = null;
 
-// Read a server-sent event stream (fetch, so the API key goes in the header) until it ends;
-// onEvent gets each event's name and parsed data.
-async function readEvents(path, onEvent) {
-  const response = await fetch(path, { headers: { Authorization: `Bearer ${key}` } });
-  if (!response.ok) return;
-  const reader = response.body.pipeThrough(new TextDecoderStream()).getReader();
-  let buffer = "";
-  for (;;) {
-    const { value, done } = await reader.read();
-    if (done) return;
-    buffer += value;
-    let end;
-    while ((end = buffer.indexOf("\n\n")) >= 0) {
-      const block = buffer.slice(0, end);
-      buffer = buffer.slice(end + 2);
-      const name = /^event: (.*)$/m.exec(block);
-      const data = /^data: (.*)$/m.exec(block);
-      if (name && data) onEvent(name[1], JSON.parse(data[1]));
-    }
-  }
-}
-
 // A solve's or a validation's progress: the message of each event, into `selector`.
 function showProgress(path, selector) {
   $(selector).textContent = "started";
-  return readEvents(path, (name, data) => {
-    const text = data.message ?? data.stage ?? data.state ?? name;
-    if (text) $(selector).textContent = `${name}: ${text}`;
+  return readEvents(path, (block) => {
+    const name = /^event: (.*)$/m.exec(block);
+    const data = /^data: (.*)$/m.exec(block);
+    if (!name || !data) return;
+    const event = JSON.parse(data[1]);
+    const text = event.message ?? event.stage ?? event.state ?? name[1];
+    if (text) $(selector).textContent = `${name[1]}: ${text}`;
   }).catch(() => {});
 }
 
