@@ -4,6 +4,7 @@ set and ``GET /calibrations/{id}/report`` after a capture run on the mock cell."
 from __future__ import annotations
 
 import base64
+import hashlib
 import json
 import re
 from concurrent.futures import ThreadPoolExecutor
@@ -176,6 +177,12 @@ def test_report_prints_to_a_pdf_through_chromium(ur_result, tmp_path, capsys,
         b, g, r = (image[..., k].astype(int) for k in range(3))
         assert image.shape[1] == 320 and ((g - r > 80) & (g - b > 80)).sum() > 20  # green dots
         assert ((r - g > 40) & (r - b > 40)).sum() > 20  # red crosses (JPEG softens them)
+    identity = html[html.index("<h2>Cell and inputs</h2>"):html.index("<h2>Sign-off</h2>")]
+    digest = hashlib.sha256((path.parent / "stations.json").read_bytes())
+    for s in json.loads((path.parent / "stations.json").read_text())["stations"]:
+        digest.update((path.parent / s["image"]).read_bytes())
+    assert digest.hexdigest() in identity and "inner_corners" in identity
+    assert f">{result['software']['version']}<" in identity and "robot serial" in identity
     data = pdf.read_bytes()
     assert data.startswith(b"%PDF-")
     pages = re.findall(rb"/MediaBox \[0 0 ([\d.]+) ([\d.]+)\]", data)
@@ -246,6 +253,9 @@ def test_rest_report_of_a_capture_run(client) -> None:
     assert all(f"<td class=\"l\">{s['id']}</td>" in r.text for s in cal["result"]["stations"])
     thumbs = re.findall(r'<figure class="thumb[^"]*"><img alt="station ([^"]+)"', r.text)
     assert thumbs == [s["id"] for s in cal["result"]["stations"]]  # the run's images
+    identity = r.text[r.text.index("<h2>Cell and inputs</h2>"):r.text.index("<h2>Sign-off")]
+    assert f"8 of run {run_id}" in identity and "mock://" in identity
+    assert re.search(r">[0-9a-f]{64}<", identity)
     missing = client.get("/calibrations/nope/report")
     assert missing.status_code == 404 and missing.json()["code"] == "not_found"
     # rendered once and kept (issue 22, row 7): the cached page is what later requests get,

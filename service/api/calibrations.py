@@ -3,6 +3,8 @@ export it in the format a user's stack wants."""
 
 from __future__ import annotations
 
+import hashlib
+import json
 from pathlib import Path
 from typing import Annotated
 
@@ -17,7 +19,7 @@ from service.exports import ExportNames, export
 from service.results.schema import parse_result
 from service.schemas import CalibrationCreate, CalibrationPublic, Created, ExportQuery
 from service.store import queries
-from service.store.records import Topic
+from service.store.records import StationRecord, Topic
 
 router = APIRouter(tags=["calibrations"])
 
@@ -76,6 +78,19 @@ def export_calibration(cal_id: str, session: SessionDep,
                     headers={"Content-Disposition": f'attachment; filename="{filename}"'})
 
 
+def stations_sha256(rows: list[StationRecord], images: dict[str, str]) -> str:
+    """SHA-256 of a run's stations as captured: each station's robot pose and detection
+    outcome (JSON) followed by its image file, in index order."""
+    digest = hashlib.sha256()
+    for row in rows:
+        digest.update(json.dumps([row.index, row.state, row.tcp_pose, row.joint_positions],
+                                 sort_keys=True).encode())
+        path = images.get(f"{row.index:03d}")
+        if path is not None and Path(path).is_file():
+            digest.update(Path(path).read_bytes())
+    return digest.hexdigest()
+
+
 @router.get("/calibrations/{cal_id}/report", response_class=HTMLResponse, responses={
     200: {"content": {"text/html": {}},
           "description": "one self-contained HTML page (plots embedded, no external links)"},
@@ -89,10 +104,15 @@ def calibration_report(cal_id: str, session: SessionDep, settings: SettingsDep,
         raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished calibration "
                             "has a report.", code="invalid_state")
     try:
+        rows = queries.list_stations(session, run_id=cal.run_id)
         images = {f"{row.index:03d}": str(Path(settings.data_dir) / row.image_path)
-                  for row in queries.list_stations(session, run_id=cal.run_id)
-                  if row.image_path}
-        page = calibrations.reports.page(cal_id, cal.result, images)
+                  for row in rows if row.image_path}
+        run = queries.get_run(session, run_id=cal.run_id)
+        identity = {"cell": run.cell, "robot": run.robot, "camera": settings.camera,
+                    "board": json.dumps(run.target, sort_keys=True),
+                    "stations": f"{len(rows)} of run {run.id}",
+                    "input_sha256": stations_sha256(rows, images)}
+        page = calibrations.reports.page(cal_id, cal.result, images, identity)
     except ValueError as exc:  # a stored result edited by hand
         raise UnprocessableError(str(exc), code="invalid_result") from None
     if isinstance(page, Path):

@@ -9,6 +9,7 @@ rejected station with the reason.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import shutil
 import subprocess
@@ -50,7 +51,8 @@ def run(args: argparse.Namespace) -> int:
               "the HTML report prints on A4 from any browser", file=sys.stderr)
         return 1
     images = station_images(args.stations) if args.stations else None
-    out.write_text(render_report(doc, images))
+    identity = station_set_identity(args.stations, images) if args.stations else None
+    out.write_text(render_report(doc, images, identity))
     print(f"wrote {out}", file=sys.stderr)
     if args.pdf:
         pdf = out.with_suffix(".pdf")
@@ -70,6 +72,22 @@ def station_images(directory: Path) -> dict[str, Path]:
         raise ValueError(f"{index}: cannot read ({exc.strerror or exc})") from None
     except (ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"{index}: not a station set ({exc})") from None
+
+
+def station_set_identity(directory: Path, images: dict[str, Path]) -> dict[str, str]:
+    """The board, the station count and the SHA-256 of the station set: its stations.json
+    followed by each image file in the order stations.json names them."""
+    index = directory / "stations.json"
+    digest = hashlib.sha256(index.read_bytes())
+    for path in images.values():
+        try:
+            digest.update(path.read_bytes())
+        except OSError:
+            digest.update(b"missing:" + path.name.encode())
+    doc = json.loads(index.read_text())
+    return {"board": json.dumps(doc.get("target"), sort_keys=True),
+            "stations": f"{len(doc.get('stations') or [])} in {directory}",
+            "input_sha256": digest.hexdigest()}
 
 
 def chromium() -> str | None:

@@ -74,13 +74,15 @@ figure.thumb.outlier figcaption { color: #b3261e; font-weight: 700; }
 """
 
 
-def render_report(result: Result, images: Mapping[str, str | Path] | None = None) -> str:
+def render_report(result: Result, images: Mapping[str, str | Path] | None = None,
+                  identity: Mapping[str, Any] | None = None) -> str:
     """The HTML report of a result document, as one self-contained string; ValueError (one
     line) for a document that is not a valid ``cellcal/result@1``.
 
     Every value read from the document is escaped (``_esc``, ``_num``): a hand-edited result
     may hold markup in any field. ``images`` (station id -> image file) adds a thumbnail of
-    every used station with its detected and reprojected corners."""
+    every used station with its detected and reprojected corners; ``identity`` names the
+    cell and the inputs (``IDENTITY_FIELDS``)."""
     parse_result(result)
     parts = [
         _header(result),
@@ -92,6 +94,7 @@ def render_report(result: Result, images: Mapping[str, str | Path] | None = None
         _station_table(result),
         thumbnails_section(result, images or {}, outlier_ids(result)),
         _provenance(result),
+        _identity(result, identity or {}),
         _sign_off(),
     ]
     title = html.escape(f"cellcal calibration report — {result.get('setup', '')}")
@@ -392,3 +395,21 @@ def _sign_off() -> str:
             f"<tr><td>Decision</td><td>{decisions}</td></tr>"
             "<tr><td>Reservations</td><td></td></tr><tr><td>Signature</td><td></td></tr>"
             "</table></div>")
+
+
+#: The cell and the inputs a signed report names: key of ``identity`` and its label.
+IDENTITY_FIELDS = (("cell", "cell"), ("robot", "robot"), ("robot_serial", "robot serial"),
+                   ("controller_version", "controller version"), ("camera", "camera"),
+                   ("board", "board"), ("stations", "stations"),
+                   ("input_sha256", "input checksum (SHA-256 of the station set)"))
+
+
+def _identity(result: Result, identity: Mapping[str, Any]) -> str:
+    """What was calibrated with what: each field, or "not known" where the source does not
+    say (a robot driver that reports no serial, a result file without its station set)."""
+    software = result.get("software") or {}
+    rows = [("cellcal version", software.get("version") or "not known"),
+            *((label, identity.get(key) or "not known") for key, label in IDENTITY_FIELDS)]
+    body = "".join(f"<tr><td>{_esc(label)}</td><td class=\"code\">{_esc(value)}</td></tr>"
+                   for label, value in rows)
+    return f"<h2>Cell and inputs</h2><table class=\"kv\">{body}</table>"

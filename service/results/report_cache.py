@@ -28,12 +28,13 @@ from service.settings import Settings
 log = logging.getLogger("cellcal.service")
 
 
-def render(result: Mapping[str, Any], images: Mapping[str, str] | None = None) -> str:
+def render(result: Mapping[str, Any], images: Mapping[str, str] | None = None,
+           identity: Mapping[str, str] | None = None) -> str:
     """Worker entry: the report of ``result`` (``service.results.report.render_report``),
     with the thumbnails of ``images`` (station id -> image file)."""
     from service.results.report import render_report  # matplotlib: only in the worker
 
-    return render_report(result, images)
+    return render_report(result, images, identity)
 
 
 class Reports:
@@ -46,7 +47,8 @@ class Reports:
         self._rendering: dict[str, cf.Future[str]] = {}
 
     def page(self, cal_id: str, result: Mapping[str, Any],
-             images: Mapping[str, str] | None = None) -> Path | str:
+             images: Mapping[str, str] | None = None,
+             identity: Mapping[str, str] | None = None) -> Path | str:
         """The report of the finished calibration ``cal_id`` (its ``result`` and its stations'
         ``images``): the cached file, or the HTML just rendered. ValueError for a result that
         is not valid."""
@@ -59,7 +61,8 @@ class Reports:
                 if self._pool is None:
                     # lowest priority: capture's threads get the cores first
                     self._pool = WorkerPool(1, lambda message: None, nice=19)
-                future = self._pool.submit(render, dict(result), dict(images or {}))
+                future = self._pool.submit(render, dict(result), dict(images or {}),
+                                           dict(identity or {}))
                 self._rendering[cal_id] = future
                 future.add_done_callback(lambda f: self._keep(cal_id, f))
         return future.result()
