@@ -86,7 +86,7 @@ def station_set_identity(directory: Path, images: dict[str, Path]) -> dict[str, 
             digest.update(b"missing:" + path.name.encode())
     doc = json.loads(index.read_text())
     return {"board": json.dumps(doc.get("target"), sort_keys=True),
-            "stations": f"{len(doc.get('stations') or [])} in {directory}",
+            "stations": f"{len(doc.get('stations') or [])} in {directory.resolve()}",
             "input_sha256": digest.hexdigest()}
 
 
