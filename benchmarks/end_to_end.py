@@ -32,6 +32,7 @@ import cv2
 import matplotlib
 import numpy as np
 
+from benchmarks import results_dir
 from benchmarks.kappa_nu import bench_scene, rendered_station_set
 from calib import ur_pose_from_matrix
 
@@ -39,7 +40,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "benchmarks" / "results"
+OUT = results_dir()
 DATA = ROOT.parent / "shared" / "data"
 CELLCAL = str(Path(sys.executable).with_name("cellcal"))
 REAL_SETS = ("rwhe-kuka_1", "ur-kinect-highR_highT", "ur-kinect-lowR_highT")

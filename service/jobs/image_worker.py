@@ -60,6 +60,12 @@ class Developed:
     out_of_memory: bool = False
 
 
+#: How OpenCV says an allocation failed (under the worker's address-space limit): its
+#: allocator's message, or the assertion ``u != 0`` in ``UMat::create`` when the allocator
+#: returned nothing; which one depends on where the search ran out.
+OPENCV_OUT_OF_MEMORY = ("Insufficient memory", "Failed to allocate", "u != 0")
+
+
 def check_pixels(data: bytes, max_pixels: int) -> None:
     """Refuse (413 ``image_too_large``) an image whose header announces more than
     ``max_pixels``; unreadable headers are left to the decoder, which says why."""
@@ -89,7 +95,7 @@ def develop(data: bytes, target: dict[str, Any], max_pixels: int, cpu_s: float) 
     except MemoryError:
         return Developed(out_of_memory=True)
     except cv2.error as exc:
-        if "Insufficient memory" in str(exc):
+        if any(sign in str(exc) for sign in OPENCV_OUT_OF_MEMORY):
             return Developed(out_of_memory=True)
         raise
 
