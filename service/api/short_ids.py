@@ -25,8 +25,8 @@ from service.store.records import CalibrationRecord, RunRecord, ValidationRecord
 
 #: The collection of each kind of id, and the table that holds it.
 RECORDS = {"runs": RunRecord, "calibrations": CalibrationRecord, "validations": ValidationRecord}
-#: Ids are 32 lowercase hex digits (``uuid4().hex``); a prefix needs at least 4 of them.
-FULL_LENGTH = 32
+#: Ids are 32 lowercase hex digits (``uuid4().hex``); a prefix is 4 to 31 of them (a full id
+#: needs no lookup).
 _PREFIX = re.compile(r"[0-9a-f]{4,31}")
 #: How many candidates an ambiguous answer names at most.
 MAX_CANDIDATES = 10
