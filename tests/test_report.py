@@ -18,6 +18,7 @@ from calib import image_coverage
 from service.cli import report as report_cli
 from service.cli.main import main
 from service.results.report import render_report, report_plots
+from service.results.schema import parse_result
 from tests.support.helpers import wait_for
 from tests.support.service import finished, start_run, wait_run
 
@@ -81,7 +82,7 @@ def test_report_of_a_real_calibration(ur_result, capsys) -> None:
     html = out.read_text()
     page = assert_self_contained(html)
     text = " ".join(page.text)
-    assert page.figures == [f"fig-{p.key}" for p in report_plots(result)]
+    assert page.figures == [f"fig-{p.key}" for p in report_plots(parse_result(result))]
     assert set(IMAGE_PLOTS) <= {f.removeprefix("fig-") for f in page.figures}
     if "model_selection" in result:
         assert "fig-model-selection" in page.figures

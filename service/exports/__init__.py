@@ -49,7 +49,7 @@ def export(result: Result | Mapping[str, Any], fmt: str,
     names = names or ExportNames()
     if fmt not in FORMATS:
         raise ValueError(f"unknown export format '{fmt}': choose one of {', '.join(FORMATS)}")
-    doc = result if isinstance(result, Result) else parse_result(result)
+    doc = parse_result(result)
     if fmt == "json":
         return doc.model_dump_json(indent=2, exclude_unset=True) + "\n", "application/json", \
             "calibration.json"

@@ -4,6 +4,7 @@ stored result read back as the cell it describes (:func:`stored_cell`)."""
 from __future__ import annotations
 
 import datetime as dt
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -25,6 +26,7 @@ from calib import (
     ur_pose_from_matrix,
 )
 from service.errors import UnprocessableError
+from service.results.schema import CrossValidationBlock
 from service.version import software_version
 
 
@@ -214,16 +216,9 @@ def cross_validation_json(cv: CrossValidation) -> dict[str, Any]:
     }
 
 
-def cv_dropped_clause(cv: dict[str, Any]) -> str:
-    """What a cross-validation block's headline hides without it: the figure over the kept
-    stations and the ids the fit dropped, e.g. ``"; 0.48 px over the 19 kept stations,
-    dropped as outliers: 04, 11"``; empty when none was dropped."""
-    dropped = cv.get("dropped") or []
-    if not dropped or cv.get("kept_rms_px") is None:
-        return ""
-    kept = len(cv.get("stations") or []) - len(dropped)
-    return (f"; {cv['kept_rms_px']:.2f} px over the {kept} kept stations, dropped as "
-            f"outliers: {', '.join(dropped)}")
+def cv_dropped_clause(cv: Mapping[str, Any] | CrossValidationBlock) -> str:
+    """``CrossValidationBlock.dropped_clause`` of a cross-validation block or its JSON."""
+    return CrossValidationBlock.model_validate(cv).dropped_clause()
 
 
 def _candidate_json(c: ModelCandidate, chosen: ModelCandidate) -> dict[str, Any]:

@@ -2,7 +2,7 @@
 bytes.
 
 Per-station errors, residual vectors over the image, corner coverage, hand-eye and κ / ν
-uncertainty, and the model selection, each from a result document (``cellcal/result@1``) and
+uncertainty, and the model selection, each from a typed result (``cellcal/result@1``) and
 only when the result holds what it needs.
 """
 
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import io
 import logging
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,8 +18,8 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from calib import COVERAGE_GRID, image_coverage
+from service.results.schema import BoardScale, Result
 
-Result = Mapping[str, Any]
 log = logging.getLogger("cellcal.service")
 
 #: Figure width (inches) and resolution: sharp on paper, a few tens of kB per PNG.
@@ -59,9 +59,8 @@ def _drawn(make: Callable[[Result], Plot | None], result: Result) -> Plot | None
 
 def cv_by_station(result: Result) -> dict[str, float]:
     """Cross-validated pixel error per station id (image stations only)."""
-    cv = result.get("cross_validation") or {}
-    return {str(s["id"]): float(s["rms_px"]) for s in cv.get("stations") or []
-            if s.get("rms_px") is not None}
+    cv = result.cross_validation
+    return {} if cv is None else {s.id: s.rms_px for s in cv.stations if s.rms_px is not None}
 
 
 # ---- plots ---------------------------------------------------------------------------------
@@ -79,16 +78,15 @@ def _new_figure(height_in: float, ncols: int = 1) -> tuple[Figure, Sequence[Any]
 
 
 def _plot_station_errors(result: Result) -> Plot | None:
-    stations = result.get("stations") or []
-    if not stations or not result.get("camera"):
+    stations = result.stations or []
+    if not stations or result.camera is None:
         return None
-    ids = [str(s["id"]) for s in stations]
+    ids = [s.id for s in stations]
     cv = cv_by_station(result)
-    series = [("fit (model with robot correction)", [s.get("rms_px") for s in stations],
-               "#4c72b0")]
-    if any(s.get("chain_rms_px") is not None for s in stations):
+    series = [("fit (model with robot correction)", [s.rms_px for s in stations], "#4c72b0")]
+    if any(s.chain_rms_px is not None for s in stations):
         series.append(("predicted from robot pose (all stations in the fit)",
-                       [s.get("chain_rms_px") for s in stations], "#dd8452"))
+                       [s.chain_rms_px for s in stations], "#dd8452"))
     if cv:
         series.append(("cross-validated (station held out)", [cv.get(i) for i in ids],
                        "#c44e52"))
@@ -114,11 +112,11 @@ def _plot_station_errors(result: Result) -> Plot | None:
 def _corner_arrays(result: Result) -> tuple[np.ndarray, np.ndarray] | None:
     """All stations' detected corners and residuals, each (M, 2), or None if not stored."""
     corners, residuals = [], []
-    for s in result.get("stations") or []:
-        if s.get("corners_px") is not None:
-            corners.append(np.asarray(s["corners_px"], dtype=float))
-            if s.get("residuals_px") is not None:
-                residuals.append(np.asarray(s["residuals_px"], dtype=float))
+    for s in result.stations or []:
+        if s.corners_px is not None:
+            corners.append(np.asarray(s.corners_px, dtype=float))
+            if s.residuals_px is not None:
+                residuals.append(np.asarray(s.residuals_px, dtype=float))
     if not corners:
         return None
     c = np.concatenate(corners)
@@ -135,11 +133,11 @@ def _image_axes(ax: Any, size: Sequence[int]) -> None:
 
 
 def _plot_residuals(result: Result) -> Plot | None:
-    arrays, camera = _corner_arrays(result), result.get("camera")
-    if arrays is None or not camera or np.isnan(arrays[1]).all():
+    arrays, camera = _corner_arrays(result), result.camera
+    if arrays is None or camera is None or np.isnan(arrays[1]).all():
         return None
     corners, res = arrays
-    size = camera["image_size"]
+    size = camera.image_size
     length = np.linalg.norm(res, axis=1)
     # Arrows scaled so the 95th-percentile residual spans 4 % of the image width.
     ref = float(np.percentile(length, 95)) or 1.0
@@ -159,11 +157,11 @@ def _plot_residuals(result: Result) -> Plot | None:
 
 
 def _plot_coverage(result: Result) -> Plot | None:
-    arrays, camera = _corner_arrays(result), result.get("camera")
-    if arrays is None or not camera:
+    arrays, camera = _corner_arrays(result), result.camera
+    if arrays is None or camera is None:
         return None
     corners = arrays[0]
-    w, h = camera["image_size"]
+    w, h = camera.image_size
     nx = _COVERAGE_COLS
     ny = max(1, round(nx * h / w))
     counts, _, _ = np.histogram2d(corners[:, 0], corners[:, 1], bins=(nx, ny),
@@ -188,15 +186,16 @@ def _plot_coverage(result: Result) -> Plot | None:
 
 
 def _plot_uncertainty(result: Result) -> Plot | None:
-    unc = result.get("uncertainty") or {}
-    if result.get("hand_eye") is None or unc.get("hand_eye_trans_m") is None:
+    unc = result.uncertainty
+    if result.hand_eye is None or unc is None or unc.hand_eye_trans_m is None:
         return None
     fig, axes = _new_figure(2.6, ncols=3)
-    spread = unc.get("jackknife") or {}
+    spread = unc.jackknife or {}
     axis_names = ["x", "y", "z"]
-    for ax, key, scale, unit in ((axes[0], "hand_eye_trans_m", 1e3, "mm"),
-                                 (axes[1], "hand_eye_rot_rad", 180 / np.pi, "deg")):
-        reported = np.asarray(unc[key], dtype=float) * scale
+    for ax, key, reported_m, scale, unit in (
+            (axes[0], "hand_eye_trans_m", unc.hand_eye_trans_m, 1e3, "mm"),
+            (axes[1], "hand_eye_rot_rad", unc.hand_eye_rot_rad, 180 / np.pi, "deg")):
+        reported = np.asarray(reported_m, dtype=float) * scale
         x = np.arange(3)
         ax.bar(x - 0.2, reported, 0.4, label="reported 1σ", color="#4c72b0")
         if spread.get(key) is not None:
@@ -207,7 +206,7 @@ def _plot_uncertainty(result: Result) -> Plot | None:
                      fontsize=9)
         ax.grid(axis="y", alpha=0.3)
         ax.legend(fontsize=7)
-    _kappa_nu_axes(axes[2], result.get("target") or {})
+    _kappa_nu_axes(axes[2], result.target)
     return Plot("uncertainty", "Hand-eye and board uncertainty",
                 "Left, middle: the hand-eye's 1σ per axis (translation in mm, rotation in "
                 "degrees) as reported" + (" and as spread between calibrations on subsets of "
@@ -217,10 +216,10 @@ def _plot_uncertainty(result: Result) -> Plot | None:
                 "the size entered.", _png(fig))
 
 
-def _kappa_nu_axes(ax: Any, target: Mapping[str, Any]) -> None:
-    names = [n for n in ("kappa", "nu") if target.get(n) is not None]
-    dev = [100 * (float(target[n]) - 1) for n in names]
-    err = [300 * float(target.get(f"{n}_sigma") or 0.0) for n in names]
+def _kappa_nu_axes(ax: Any, target: BoardScale) -> None:
+    names = ["kappa", "nu"]
+    dev = [100 * (target.kappa - 1), 100 * (target.nu - 1)]
+    err = [300 * (target.kappa_sigma or 0.0), 300 * (target.nu_sigma or 0.0)]
     ax.errorbar(range(len(names)), dev, yerr=err, fmt="o", capsize=5, color="#c44e52")
     for k, d in enumerate(dev):
         ax.annotate(f"{d:+.2f} %", (k, d), textcoords="offset points", xytext=(8, 0),
@@ -233,14 +232,14 @@ def _kappa_nu_axes(ax: Any, target: Mapping[str, Any]) -> None:
 
 
 def _plot_model_selection(result: Result) -> Plot | None:
-    selection = result.get("model_selection") or {}
-    candidates = [c for c in selection.get("candidates") or []
-                  if c.get("cv_rms_px") is not None]
-    if not candidates:
+    selection = result.model_selection
+    candidates = [] if selection is None else [c for c in selection.candidates
+                                               if c.cv_rms_px is not None]
+    if selection is None or not candidates:
         return None
-    chosen = selection.get("chosen")
-    names = [str(c.get("name")) for c in candidates]
-    values = [float(c["cv_rms_px"]) for c in candidates]
+    chosen = selection.chosen
+    names = [c.name for c in candidates]
+    values = [c.cv_rms_px for c in candidates]
     fig, (ax,) = _new_figure(0.5 + 0.32 * len(names))
     colours = ["#1b7a3a" if n == chosen else "#9aa7b8" for n in names]
     y = np.arange(len(names))

@@ -7,8 +7,9 @@ selection) and the station table with every rejected station and its reason. Plo
 matplotlib PNGs embedded as base64 ``data:`` URIs and the style is inline, so the file needs
 nothing else: no network, no other file. Units for people: mm, degrees, pixels.
 
-It reads the result's ``quality``, ``cross_validation``, ``model_selection`` and
-``uncertainty`` blocks when they are there and says so when they are not (older results).
+It reads the typed result (``service.results.schema.Result``): its ``quality``,
+``cross_validation``, ``model_selection`` and ``uncertainty`` blocks when they are there, and
+says so when they are not (older results).
 """
 
 from __future__ import annotations
@@ -21,13 +22,18 @@ from typing import Any
 
 import numpy as np
 
-from calib import OUTLIER_FACTOR
-from service.results.document import cv_dropped_clause
+from calib import OUTLIER_FACTOR, ur_pose_from_matrix
 from service.results.plots import Plot, cv_by_station, report_plots
-from service.results.schema import parse_result
+from service.results.schema import (
+    CrossValidationBlock,
+    ModelSelection,
+    QualityBlock,
+    Result,
+    StationFit,
+    Transform,
+    parse_result,
+)
 from service.results.thumbnails import thumbnails_section
-
-Result = Mapping[str, Any]
 
 _VERDICT_COLOURS = {"pass": "#1b7a3a", "warn": "#b26a00", "fail": "#b3261e"}
 _SEVERITY_ORDER = {"fail": 0, "error": 0, "warn": 1, "warning": 1, "info": 2}
@@ -74,30 +80,32 @@ figure.thumb.outlier figcaption { color: #b3261e; font-weight: 700; }
 """
 
 
-def render_report(result: Result, images: Mapping[str, str | Path] | None = None,
+def render_report(result: Result | Mapping[str, Any],
+                  images: Mapping[str, str | Path] | None = None,
                   identity: Mapping[str, Any] | None = None) -> str:
-    """The HTML report of a result document, as one self-contained string; ValueError (one
-    line) for a document that is not a valid ``cellcal/result@1``.
+    """The HTML report of a result (or its JSON document, validated first), as one
+    self-contained string; ValueError (one line) for a document that is not a valid
+    ``cellcal/result@1``.
 
-    Every value read from the document is escaped (``_esc``, ``_num``): a hand-edited result
-    may hold markup in any field. ``images`` (station id -> image file) adds a thumbnail of
-    every used station with its detected and reprojected corners; ``identity`` names the
+    Every value read from the result is escaped (``_esc``, ``_num``): a hand-edited result
+    may hold markup in any text field. ``images`` (station id -> image file) adds a thumbnail
+    of every used station with its detected and reprojected corners; ``identity`` names the
     cell and the inputs (``IDENTITY_FIELDS``)."""
-    parse_result(result)
+    result = parse_result(result)
     parts = [
         _header(result),
-        _verdict(result.get("quality"), result.get("cross_validation")),
+        _verdict(result.quality, result.cross_validation),
         _summary(result),
         "<h2>Plots</h2>",
         *(_figure(p) for p in report_plots(result)),
-        _selection_table(result.get("model_selection") or {}),
+        _selection_table(result.model_selection),
         _station_table(result),
         thumbnails_section(result, images or {}, outlier_ids(result)),
         _provenance(result),
         _identity(result, identity or {}),
         _sign_off(),
     ]
-    title = html.escape(f"cellcal calibration report — {result.get('setup', '')}")
+    title = html.escape(f"cellcal calibration report — {result.setup}")
     return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             f"<title>{title}</title><style>{_CSS}</style></head><body>\n"
             + "\n".join(parts) + "\n</body></html>\n")
@@ -109,6 +117,11 @@ def _esc(value: Any) -> str:
     """Any value as HTML text: every value from the result passes here or ``_num`` (a
     hand-edited result may hold markup anywhere, numbers' places included)."""
     return html.escape(str(value))
+
+
+def _or(value: Any, missing: str) -> str:
+    """``value`` as escaped text, ``missing`` where the result has none."""
+    return missing if value is None else _esc(value)
 
 
 def _is_number(value: Any) -> bool:
@@ -124,68 +137,55 @@ def _num(value: Any, fmt: str, scale: float = 1.0) -> str:
     return format(float(value) * scale, fmt) if _is_number(value) else _esc(value)
 
 
-def _pair(value: Any) -> bool:
-    return isinstance(value, list | tuple) and len(value) == 2
-
-
 def _header(result: Result) -> str:
-    software = result.get("software") or {}
-    camera = result.get("camera") or {}
-    size = camera.get("image_size")
-    n_used, n_rej = len(result.get("stations") or []), len(result.get("rejected") or [])
+    size = result.camera.image_size if result.camera else None
     facts = [
-        f"setup <b>{_esc(result.get('setup', '?'))}</b>",
-        f"method <b>{_esc(result.get('method', '?'))}</b>",
-        f"{n_used} stations used, {n_rej} rejected",
-        f"image {_esc(size[0])}×{_esc(size[1])} px" if _pair(size)
-        else "pose-only (no camera model)",
-        f"created {_esc(result.get('created', '?'))}",
-        f"cellcal {_esc(software.get('version', '?'))}",
+        f"setup <b>{_esc(result.setup)}</b>",
+        f"method <b>{_or(result.method, '?')}</b>",
+        f"{len(result.stations or [])} stations used, {len(result.rejected or [])} rejected",
+        f"image {size[0]}×{size[1]} px" if size else "pose-only (no camera model)",
+        f"created {_or(result.created, '?')}",
+        f"cellcal {_or(result.software.version if result.software else None, '?')}",
     ]
     return ("<h1>Calibration report</h1>"
             f"<p class=\"sub\">{' · '.join(facts)}</p>")
 
 
-def _verdict(quality: Mapping[str, Any] | None, cv: Mapping[str, Any] | None) -> str:
-    if not quality:
+def _verdict(quality: QualityBlock | None, cv: CrossValidationBlock | None) -> str:
+    if quality is None:
         return ("<div class=\"verdict\" style=\"border-color:#888\"><span class=\"word\">"
                 "no verdict</span><p class=\"finding\">This result carries no quality "
                 "assessment (made by an older cellcal); judge it by the figures below.</p>"
                 "</div>")
-    verdict = str(quality.get("verdict", "?"))
-    colour = _VERDICT_COLOURS.get(verdict, "#555")
-    findings = sorted(quality.get("findings") or [],
-                      key=lambda f: _SEVERITY_ORDER.get(str(f.get("severity")), 3))
+    colour = _VERDICT_COLOURS[quality.verdict]
+    findings = sorted(quality.findings, key=lambda f: _SEVERITY_ORDER.get(f.severity, 3))
     items = "".join(
         f"<p class=\"finding\"><span class=\"sev\" style=\"color:"
-        f"{_VERDICT_COLOURS.get(_verdict_of(f.get('severity')), '#555')}\">"
-        f"{_esc(f.get('severity', ''))}</span> {_esc(f.get('message', ''))} "
-        f"<span class=\"code\">[{_esc(f.get('code', ''))}]</span></p>" for f in findings)
+        f"{_VERDICT_COLOURS.get(_verdict_of(f.severity), '#555')}\">"
+        f"{_esc(f.severity)}</span> {_esc(f.message)} "
+        f"<span class=\"code\">[{_esc(f.code)}]</span></p>" for f in findings)
     if not findings:
         items = "<p class=\"finding\">No findings: every check passed.</p>"
     headline = ""
-    if cv and cv.get("rms_px") is not None:
-        mm = ("" if cv.get("rms_mm") is None
-              else f" ({_num(cv['rms_mm'], '.2f')} mm at the board)")
+    if cv is not None and cv.rms_px is not None:
+        mm = "" if cv.rms_mm is None else f" ({_num(cv.rms_mm, '.2f')} mm at the board)"
         headline = (f"<span class=\"headline\">stations left out of the calibration are "
-                    f"predicted to {_num(cv['rms_px'], '.2f')} px{mm}, "
-                    f"{_esc(cv.get('kind', ''))} over "
-                    f"{len(cv.get('stations') or [])} stations{_esc(cv_dropped_clause(cv))}"
-                    f"</span>")
+                    f"predicted to {_num(cv.rms_px, '.2f')} px{mm}, {_esc(cv.kind)} over "
+                    f"{len(cv.stations)} stations{_esc(cv.dropped_clause())}</span>")
     return (f"<div class=\"verdict\" style=\"border-color:{colour}\">"
-            f"<span class=\"word\" style=\"color:{colour}\">{_esc(verdict)}</span>{headline}"
-            f"{items}</div>")
+            f"<span class=\"word\" style=\"color:{colour}\">{_esc(quality.verdict)}</span>"
+            f"{headline}{items}</div>")
 
 
-def _verdict_of(severity: Any) -> str:
+def _verdict_of(severity: str) -> str:
     return {"fail": "fail", "error": "fail", "warn": "warn", "warning": "warn"}.get(
-        str(severity), "pass")
+        severity, "pass")
 
 
 def _summary(result: Result) -> str:
     rows = _camera_rows(result) + _pose_rows(result) + _error_rows(result)
     body = "".join(f"<tr><td>{_esc(k)}</td><td>{v}</td></tr>" for k, v in rows)
-    note = (result.get("uncertainty") or {}).get("note")
+    note = result.uncertainty.note if result.uncertainty else None
     return ("<h2>Result</h2><table class=\"kv\">" + body + "</table>"
             + (f"<p class=\"note\">Uncertainty: {_esc(note)}</p>" if note else ""))
 
@@ -199,39 +199,42 @@ def _pm(value: Any, sigma: Any, fmt: str = ".3f", scale: float = 1.0) -> str:
 
 
 def _camera_rows(result: Result) -> list[tuple[str, str]]:
-    camera = result.get("camera")
+    camera, target = result.camera, result.target
     rows: list[tuple[str, str]] = []
     if camera:
-        K = np.asarray(camera["K"])
-        cs = ((result.get("uncertainty") or {}).get("camera")) or {}
-        rows.append(("focal length fx, fy (px)", f"{_pm(K[0, 0], cs.get('fx'), '.2f')}, "
-                                                 f"{_pm(K[1, 1], cs.get('fy'), '.2f')}"))
-        rows.append(("principal point cx, cy (px)", f"{_pm(K[0, 2], cs.get('cx'), '.2f')}, "
-                                                    f"{_pm(K[1, 2], cs.get('cy'), '.2f')}"))
+        K = np.asarray(camera.K)
+        sigmas = (result.uncertainty.camera if result.uncertainty else None) or {}
+        fx, fy, cx, cy = (sigmas.get(k) for k in ("fx", "fy", "cx", "cy"))
+        rows.append(("focal length fx, fy (px)",
+                     f"{_pm(K[0, 0], fx, '.2f')}, {_pm(K[1, 1], fy, '.2f')}"))
+        rows.append(("principal point cx, cy (px)",
+                     f"{_pm(K[0, 2], cx, '.2f')}, {_pm(K[1, 2], cy, '.2f')}"))
         rows.append(("distortion k1 k2 p1 p2 k3",
-                     " ".join(_num(v, ".5f") for v in camera["dist"])))
-    target = result.get("target") or {}
-    if "kappa" in target:
-        rows.append(("board scale κ (true / nominal square)",
-                     _pm(target["kappa"], target.get("kappa_sigma"), ".5f")))
-    if "nu" in target:
-        rows.append(("board aspect ν", _pm(target["nu"], target.get("nu_sigma"), ".5f")))
+                     " ".join(_num(v, ".5f") for v in camera.dist)))
+    rows.append(("board scale κ (true / nominal square)",
+                 _pm(target.kappa, target.kappa_sigma, ".5f")))
+    rows.append(("board aspect ν", _pm(target.nu, target.nu_sigma, ".5f")))
     return rows
+
+
+#: How ``hand_eye`` and ``target_pose`` read in each setup (docs/conventions.md).
+_FRAMES = {"eye_in_hand": ("T_tcp_cam", "T_base_target"),
+           "eye_to_hand": ("T_base_cam", "T_tcp_target")}
 
 
 def _pose_rows(result: Result) -> list[tuple[str, str]]:
     rows = []
-    frames = {"eye_in_hand": ("tcp_T_cam", "base_T_target"),
-              "eye_to_hand": ("base_T_cam", "tcp_T_target")}.get(result.get("setup", ""),
-                                                                 ("hand_eye", "target_pose"))
-    unc = result.get("uncertainty") or {}
-    for key, frame in zip(("hand_eye", "target_pose"), frames, strict=True):
-        block = result.get(key)
-        if not block:
+    unc = result.uncertainty
+    blocks: tuple[Transform | None, Transform | None] = (result.hand_eye, result.target_pose)
+    sigmas = ((None, None), (None, None)) if unc is None else (
+        (unc.hand_eye_trans_m, unc.hand_eye_rot_rad),
+        (unc.target_pose_trans_m, unc.target_pose_rot_rad))
+    for block, frame, (t_sd, r_sd) in zip(blocks, _FRAMES[result.setup], sigmas,
+                                         strict=True):
+        if block is None:
             continue
-        pose = np.asarray(block["pose"], dtype=float)
-        t_sd = unc.get(f"{key}_trans_m")
-        r_sd = unc.get(f"{key}_rot_rad")
+        pose = np.asarray(block.pose if block.pose is not None
+                          else ur_pose_from_matrix(np.asarray(block.matrix)), dtype=float)
         t_txt = ", ".join(_pm(v, s, ".2f", 1e3)
                           for v, s in zip(pose[:3], t_sd or [None] * 3, strict=True))
         rows.append((f"{frame}: translation x, y, z (mm)", t_txt))
@@ -245,20 +248,17 @@ def _pose_rows(result: Result) -> list[tuple[str, str]]:
 
 def _error_rows(result: Result) -> list[tuple[str, str]]:
     rows = []
-    camera = result.get("camera") or {}
-    if "rms_px" in camera:
-        rows.append(("reprojection RMS of the fit (px)", _num(camera['rms_px'], ".3f")))
-    cv = result.get("cross_validation") or {}
-    if cv.get("rms_px") is not None:
-        mm = cv.get("rms_mm")
-        rows.append((f"cross-validated prediction error ({cv.get('folds', '?')} folds)",
-                     f"{_num(cv['rms_px'], '.3f')} px" + (f" ≈ {_num(mm, '.2f')} mm at the board"
-                                                 if mm is not None else "")
-                     + _esc(cv_dropped_clause(cv))))
-    validation = result.get("validation") or {}
-    if validation.get("chain_rms_px") is not None:
+    if result.camera is not None:
+        rows.append(("reprojection RMS of the fit (px)", _num(result.camera.rms_px, ".3f")))
+    cv = result.cross_validation
+    if cv is not None and cv.rms_px is not None:
+        mm = ("" if cv.rms_mm is None else f" ≈ {_num(cv.rms_mm, '.2f')} mm at the board")
+        rows.append((f"cross-validated prediction error ({cv.folds} folds)",
+                     f"{_num(cv.rms_px, '.3f')} px{mm}{_esc(cv.dropped_clause())}"))
+    chain_rms_px = (result.validation or {}).get("chain_rms_px")
+    if chain_rms_px is not None:
         rows.append(("prediction from the robot poses, all stations (px)",
-                     _num(validation['chain_rms_px'], ".3f")))
+                     _num(chain_rms_px, ".3f")))
     return rows
 
 
@@ -272,27 +272,27 @@ def _figure(plot: Plot) -> str:
 def outlier_ids(result: Result) -> set[str]:
     """The stations the result calls outliers: those of the ``outlier_stations`` finding and
     those the cross-validation dropped."""
-    ids = set((result.get("cross_validation") or {}).get("dropped") or [])
-    for finding in (result.get("quality") or {}).get("findings") or []:
-        if finding.get("code") == "outlier_stations":
-            ids |= {str(i) for i in finding.get("stations") or []}
+    ids = set(result.cross_validation.dropped or []) if result.cross_validation else set()
+    for finding in result.quality.findings if result.quality else []:
+        if finding.code == "outlier_stations":
+            ids |= {str(i) for i in getattr(finding, "stations", None) or []}
     return ids
 
 
-def _limits(stations: list[Mapping[str, Any]], keys: tuple[str, str]) -> list[float | None]:
+def _limits(stations: list[StationFit], keys: tuple[str, str]) -> list[float | None]:
     """Each per-station residual's threshold: the outlier rule of the verdict
     (``OUTLIER_FACTOR`` times the median over the stations); None without values."""
     limits: list[float | None] = []
     for key in keys:
-        values = [float(s[key]) for s in stations if _is_number(s.get(key))]
+        values = [v for v in (getattr(s, key) for s in stations) if v is not None]
         limits.append(OUTLIER_FACTOR * float(np.median(values)) if values else None)
     return limits
 
 
 def _station_table(result: Result) -> str:
-    stations = result.get("stations") or []
+    stations = result.stations or []
     cv = cv_by_station(result)
-    pose_only = not result.get("camera")
+    pose_only = result.camera is None
     keys = ("residual_rot_rad", "residual_trans_m") if pose_only else ("loo_rot_rad",
                                                                        "loo_trans_m")
     limits = _limits(stations, keys)
@@ -307,12 +307,12 @@ def _station_table(result: Result) -> str:
             ["station", "corners", "fit RMS (px)", "robot-pose RMS (px)", "CV (px)",
              *residual_head, "robot correction (°, mm)", "Mahalanobis", "flag"])
     outliers = outlier_ids(result)
-    rows = [_station_row(s, cv, pose_only, (keys, limits), str(s.get("id")) in outliers)
+    rows = [_station_row(s, cv, pose_only, (keys, limits), s.id in outliers)
             for s in stations]
     width = len(head) - 1
-    rows += [f"<tr class=\"rejected\"><td class=\"l\">{_esc(r.get('id'))}</td>"
-             f"<td class=\"l\" colspan=\"{width}\">rejected: {_esc(r.get('reason'))}</td></tr>"
-             for r in result.get("rejected") or []]
+    rows += [f"<tr class=\"rejected\"><td class=\"l\">{_esc(r.id)}</td>"
+             f"<td class=\"l\" colspan=\"{width}\">rejected: {_esc(r.reason)}</td></tr>"
+             for r in result.rejected or []]
     header = "".join(f"<th class=\"{'l' if i == 0 else ''}\">{_esc(h)}</th>"
                      for i, h in enumerate(head))
     return (f"<h2>Stations</h2><table><tr>{header}</tr>{''.join(rows)}</table>")
@@ -326,63 +326,61 @@ _SELECTION_COLUMNS = (("κ", "kappa_value", ".5f"), ("ν", "nu_value", ".5f"),
                       ("CV translation (mm)", "cv_trans_mm", ".3f"))
 
 
-def _selection_table(selection: Mapping[str, Any]) -> str:
+def _selection_table(selection: ModelSelection | None) -> str:
     """Every candidate's cross-validated figures, the chosen one in bold, and the decisions."""
+    if selection is None or not selection.candidates:
+        return ""
     rows = "".join(
-        f"<tr class=\"{'chosen' if c.get('chosen') else ''}\"><td class=\"l\">"
-        f"{_esc(c.get('name'))}</td>" + "".join(
-            f"<td>{_esc(c.get(key, '–')) if fmt is None else _num(c.get(key), fmt)}</td>"
-            for _, key, fmt in _SELECTION_COLUMNS) + "</tr>"
-        for c in selection.get("candidates") or [])
+        f"<tr class=\"{'chosen' if c.chosen else ''}\"><td class=\"l\">{_esc(c.name)}</td>"
+        + "".join(f"<td>{_or(getattr(c, key), '–') if fmt is None else _num(getattr(c, key), fmt)}"
+                  "</td>" for _, key, fmt in _SELECTION_COLUMNS) + "</tr>"
+        for c in selection.candidates)
     head = "".join(f"<th>{h}</th>" for h, _, _ in _SELECTION_COLUMNS)
-    decisions = "".join(f"<li>{_esc(d)}</li>" for d in selection.get("decisions") or [])
-    return "" if not rows else (
-        f"<h2>Model selection</h2><table><tr><th class=\"l\">candidate</th>{head}</tr>{rows}"
-        f"</table><ul class=\"note\">{decisions}</ul><p class=\"note\">Rule: "
-        f"{_esc(selection.get('rule', ''))}.</p>")
+    decisions = "".join(f"<li>{_esc(d)}</li>" for d in selection.decisions)
+    return (f"<h2>Model selection</h2><table><tr><th class=\"l\">candidate</th>{head}</tr>"
+            f"{rows}</table><ul class=\"note\">{decisions}</ul><p class=\"note\">Rule: "
+            f"{_or(selection.rule, '')}.</p>")
 
 
-def _residual_cells(s: Mapping[str, Any],
+def _residual_cells(s: StationFit,
                     checks: tuple[tuple[str, str], list[float | None]]) -> list[str]:
     """A station's rotation (°) and translation (mm) residuals, each marked when over its
     threshold."""
     cells = []
     for key, limit, scale, fmt in zip(*checks, (180 / np.pi, 1e3), (".3f", ".2f"),
                                       strict=True):
-        value = s.get(key)
-        over = _is_number(value) and limit is not None and float(value) > limit
+        value = getattr(s, key)
+        over = value is not None and limit is not None and value > limit
         text = _num(value, fmt, scale)
         cells.append(f"<span class=\"over\">{text} over</span>" if over else text)
     return cells
 
 
-def _station_row(s: Mapping[str, Any], cv: Mapping[str, float], pose_only: bool,
+def _station_row(s: StationFit, cv: Mapping[str, float], pose_only: bool,
                  checks: tuple[tuple[str, str], list[float | None]], outlier: bool) -> str:
     residuals = _residual_cells(s, checks)
     if pose_only:
         cells = residuals
     else:
         correction = "–"
-        if s.get("correction_rot_rad") is not None:
-            correction = (f"{_num(s['correction_rot_rad'], '.3f', 180 / np.pi)}, "
-                          f"{_num(s.get('correction_trans_m'), '.2f', 1e3)}")
-        cells = [_esc(s.get("n_corners", "")), _num(s.get("rms_px"), ".3f"),
-                 _num(s.get("chain_rms_px"), ".2f"), _num(cv.get(str(s.get("id"))), ".2f"),
-                 *residuals, correction, _num(s.get("mahalanobis"), ".1f")]
+        if s.correction_rot_rad is not None:
+            correction = (f"{_num(s.correction_rot_rad, '.3f', 180 / np.pi)}, "
+                          f"{_num(s.correction_trans_m, '.2f', 1e3)}")
+        cells = [_or(s.n_corners, ""), _num(s.rms_px, ".3f"), _num(s.chain_rms_px, ".2f"),
+                 _num(cv.get(s.id), ".2f"), *residuals, correction,
+                 _num(s.mahalanobis, ".1f")]
     cells.append("outlier" if outlier else "")
-    return (f"<tr class=\"{'outlier' if outlier else ''}\"><td class=\"l\">"
-            f"{_esc(s.get('id'))}</td>"
+    return (f"<tr class=\"{'outlier' if outlier else ''}\"><td class=\"l\">{_esc(s.id)}</td>"
             + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
 
 
 def _provenance(result: Result) -> str:
-    software = result.get("software") or {}
-    options = result.get("options") or {}
-    opts = ", ".join(f"{k}={v}" for k, v in options.items())
+    command = result.software.command if result.software else None
+    opts = ", ".join(f"{k}={v}" for k, v in (result.options or {}).items())
     return ("<h2>Provenance</h2><table class=\"kv\">"
-            f"<tr><td>command</td><td class=\"code\">{_esc(software.get('command') or '–')}"
+            f"<tr><td>command</td><td class=\"code\">{_esc(command or '–')}"
             f"</td></tr><tr><td>options</td><td class=\"code\">{_esc(opts or '–')}</td></tr>"
-            f"<tr><td>format</td><td>{_esc(result.get('format', '?'))}</td></tr></table>")
+            f"<tr><td>format</td><td>{_esc(result.format)}</td></tr></table>")
 
 
 def _sign_off() -> str:
@@ -407,8 +405,8 @@ IDENTITY_FIELDS = (("cell", "cell"), ("robot", "robot"), ("robot_serial", "robot
 def _identity(result: Result, identity: Mapping[str, Any]) -> str:
     """What was calibrated with what: each field, or "not known" where the source does not
     say (a robot driver that reports no serial, a result file without its station set)."""
-    software = result.get("software") or {}
-    rows = [("cellcal version", software.get("version") or "not known"),
+    version = result.software.version if result.software else None
+    rows = [("cellcal version", version or "not known"),
             *((label, identity.get(key) or "not known") for key, label in IDENTITY_FIELDS)]
     body = "".join(f"<tr><td>{_esc(label)}</td><td class=\"code\">{_esc(value)}</td></tr>"
                    for label, value in rows)

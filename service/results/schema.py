@@ -148,6 +148,16 @@ class CrossValidationBlock(_PredictionFigures):
     stations: list[HeldOutStation] = Field(default_factory=list)
     note: str | None = None
 
+    def dropped_clause(self) -> str:
+        """What the headline hides without it: the figure over the kept stations and the ids
+        the fit dropped, e.g. ``"; 0.48 px over the 19 kept stations, dropped as outliers:
+        04, 11"``; empty when none was dropped."""
+        if not self.dropped or self.kept_rms_px is None:
+            return ""
+        kept = len(self.stations) - len(self.dropped)
+        return (f"; {self.kept_rms_px:.2f} px over the {kept} kept stations, dropped as "
+                f"outliers: {', '.join(self.dropped)}")
+
 
 class Candidate(_Block):
     """A model tried in model selection, with its cross-validated figures."""
@@ -234,7 +244,10 @@ class Result(_Block):
 
 
 def parse_result(doc: Any, where: str = "result") -> Result:
-    """A result document as ``Result``; ValueError with one line naming the first problem."""
+    """A result document as ``Result`` (a ``Result`` as it is); ValueError with one line
+    naming the first problem."""
+    if isinstance(doc, Result):
+        return doc
     try:
         return Result.model_validate(doc)
     except ValidationError as exc:

@@ -12,10 +12,11 @@ import base64
 import html
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
+
+from service.results.schema import Result, StationFit
 
 #: Thumbnail width (px) and JPEG quality: readable corners, a few tens of kB each.
 WIDTH_PX = 320
@@ -23,7 +24,7 @@ JPEG_QUALITY = 70
 _GREEN, _RED = (40, 170, 40), (30, 30, 220)  # BGR
 
 
-def thumbnail(image_path: Path, fit: Mapping[str, Any], *, outlier: bool) -> bytes | None:
+def thumbnail(image_path: Path, fit: StationFit, *, outlier: bool) -> bytes | None:
     """The JPEG thumbnail of one station, None when its image cannot be read."""
     image = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
     if image is None:
@@ -31,8 +32,8 @@ def thumbnail(image_path: Path, fit: Mapping[str, Any], *, outlier: bool) -> byt
     scale = WIDTH_PX / image.shape[1]
     small = cv2.resize(image, (WIDTH_PX, max(1, round(image.shape[0] * scale))),
                        interpolation=cv2.INTER_AREA)
-    corners = np.asarray(fit.get("corners_px") or [], float).reshape(-1, 2)
-    residuals = np.asarray(fit.get("residuals_px") or [], float).reshape(-1, 2)
+    corners = np.asarray(fit.corners_px or [], float).reshape(-1, 2)
+    residuals = np.asarray(fit.residuals_px or [], float).reshape(-1, 2)
     if len(residuals) == len(corners):  # crosses first: their arms show around the dots
         for x, y in (corners + residuals) * scale:
             cv2.drawMarker(small, (round(x), round(y)), _RED, cv2.MARKER_CROSS, 9, 1)
@@ -44,20 +45,19 @@ def thumbnail(image_path: Path, fit: Mapping[str, Any], *, outlier: bool) -> byt
     return jpeg.tobytes() if ok else None
 
 
-def thumbnails_section(result: Mapping[str, Any], images: Mapping[str, str | Path],
+def thumbnails_section(result: Result, images: Mapping[str, str | Path],
                        outliers: set[str]) -> str:
     """The report's "Station images" section; empty without images."""
     cells = []
-    for fit in result.get("stations") or []:
-        sid = str(fit.get("id"))
+    for fit in result.stations or []:
+        sid = fit.id
         path = images.get(sid)
         jpeg = None if path is None else thumbnail(Path(path), fit, outlier=sid in outliers)
         if jpeg is None:
             continue
         data = base64.b64encode(jpeg).decode("ascii")
         flag = " · outlier" if sid in outliers else ""
-        rms = fit.get("rms_px")
-        rms_text = f" · fit {rms:.3f} px" if isinstance(rms, int | float) else ""
+        rms_text = "" if fit.rms_px is None else f" · fit {fit.rms_px:.3f} px"
         cells.append(f"<figure class=\"thumb{' outlier' if flag else ''}\"><img alt=\"station "
                      f"{html.escape(sid)}\" src=\"data:image/jpeg;base64,{data}\"><figcaption>"
                      f"{html.escape(sid)}{rms_text}{flag}</figcaption></figure>")
