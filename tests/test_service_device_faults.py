@@ -30,11 +30,13 @@ from sqlalchemy import event
 
 from calib.geometry import ur_pose_from_matrix
 from drivers.base import Camera, Robot
+from drivers.errors import CameraError
 from drivers.stall import STALL_AFTER
 from mocks.camera import MockCamera
+from mocks.devices import MockRobot
 from mocks.scene import default_scene, sample_station_poses
 from service.app import create_app
-from service.cell.devices import settings_opener
+from service.cell.devices import Devices, settings_opener
 from service.serving.local import LocalService, ServeOptions, listening_socket, local_service
 from service.settings import Settings
 from service.store.records import RunRecord, StationRecord
@@ -104,6 +106,37 @@ def test_unplugged_camera_comes_back_on_resume(tmp_path, board_images):
         assert run["state"] == "done", run
         assert [s["index"] for s in client.get(f"{path}/stations").json()] == list(range(n))
         assert client.get("/devices").json()["camera"]["opened"] is True
+
+
+def test_camera_lost_outside_a_run_is_still_disconnected_at_reopen():
+    """The loss of the service's camera reads ``camera_disconnected`` until it is back, whoever
+    saw it: a resumed run's first grab, or the thread of a paused run finishing its station in
+    progress (which closes the camera before the resumed run reopens it). Both orders happen
+    in the test above, depending on whether the unplug came before that last grab."""
+    robot = MockRobot(default_scene())
+    robot.connect()
+    camera = MockCamera(robot.scene, robot)
+    camera.open()
+    devices = Devices(lambda: (robot, camera))
+    assert devices.get() == (robot, camera)
+    camera.inject_fault("unplug")
+    with pytest.raises(CameraError) as err:
+        camera.grab()  # the paused run's thread, after it let go of the run
+    assert err.value.code == "camera_disconnected" and not camera.opened
+    with pytest.raises(CameraError, match="disconnected and is not back: No mock camera") as err:
+        devices.get()  # the resumed run
+    assert err.value.code == "camera_disconnected" and not camera.opened
+    camera.replug()
+    assert devices.get() == (robot, camera) and camera.opened
+
+    def opener() -> tuple[Robot, Camera]:
+        camera.open()
+        return robot, camera
+
+    camera.inject_fault("unplug")  # a camera the service did not hold yet is not found
+    with pytest.raises(CameraError) as err:
+        Devices(opener).get()
+    assert err.value.code == "camera_not_found"
 
 
 def test_run_that_captured_nothing_fails(tmp_path):

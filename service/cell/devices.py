@@ -8,7 +8,7 @@ import threading
 from collections.abc import Callable
 
 from drivers.base import Camera, Robot
-from drivers.errors import DeviceError
+from drivers.errors import CameraError, DeviceError
 from drivers.registry import open_camera, open_robot
 from service.settings import Settings
 
@@ -45,13 +45,16 @@ class Devices:
         """The open devices; raises ``DeviceError`` (or ``ValueError``) if they cannot open.
 
         A camera that closed itself (unplugged, stalled: ``opened`` is False) is opened again
-        here, so it comes back as soon as it is plugged in or delivers again.
+        here, so it comes back as soon as it is plugged in or delivers again. Until it is back
+        it stays ``camera_disconnected``, the code its loss had: whether a capture finds the
+        camera gone at its first grab or at this reopen (the loss seen by a thread that has
+        let go of its run, a paused one finishing its station in progress) then says the same.
         """
         with self._lock:
             if self._devices is None:
                 self._devices = self._opener()
             elif not self._devices[1].opened:
-                self._devices[1].open()
+                _reopen(self._devices[1])
             return self._devices
 
     def current(self) -> tuple[Robot, Camera] | None:
@@ -71,3 +74,15 @@ class Devices:
                     log.warning("closing %s: %s", type(device).__name__, exc)
 
     close = reset
+
+
+def _reopen(camera: Camera) -> None:
+    """Open ``camera`` again after it closed itself; a device still missing is
+    ``camera_disconnected`` (the camera was there and went away), not ``camera_not_found``."""
+    try:
+        camera.open()
+    except CameraError as exc:
+        if exc.code != "camera_not_found":
+            raise
+        raise CameraError(f"The camera was disconnected and is not back: {exc}",
+                          code="camera_disconnected") from exc
