@@ -106,6 +106,24 @@ class Camera(Protocol):
         """Request a resolution and/or exposure (seconds); unsupported requests raise."""
 
 
+@dataclass(frozen=True)
+class RobotIdentity:
+    """Which robot this is, as its controller tells it (None: the controller does not say).
+    The report names it so that a signed calibration points at one physical arm."""
+
+    model: str | None = None
+    serial: str | None = None
+    controller_version: str | None = None
+
+
+@runtime_checkable
+class DescribesRobot(Protocol):
+    """Capability of a robot: it can say which robot it is."""
+
+    def identity(self) -> RobotIdentity:
+        """Model, serial number and controller version, as far as the controller knows."""
+
+
 @runtime_checkable
 class ReportsFreshness(Protocol):
     """Capability of a camera: it says how its last grabbed frame was made fresh (stale

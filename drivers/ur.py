@@ -30,16 +30,16 @@ import rtde_control
 import rtde_receive
 
 from calib import check_joint_positions, check_ur_pose
-from drivers.base import RobotSession, RobotStatus
+from drivers.base import RobotIdentity, RobotSession, RobotStatus
 from drivers.errors import (
     EmergencyStopError,
     ProtectiveStopError,
     RobotConnectionError,
     RobotError,
 )
+from drivers.ur_dashboard import dashboard_exchange, parse_identity
 
 RTDE_PORT = 30004
-DASHBOARD_PORT = 29999
 SCRIPT_PORT = 30003
 
 #: Request/reply round trips the two ur-rtde constructors make (RTDE recipes + dashboard).
@@ -108,6 +108,7 @@ class URRobot(RobotSession):
         self._moving = False
         self._stop_requested = False
         self._lost = False  # a connection was abandoned; cleared by connect() / close()
+        self._identity: RobotIdentity | None = None  # asked once, see identity()
 
     @classmethod
     def from_url(cls, url: str, *, config: Any = None) -> URRobot:
@@ -171,10 +172,7 @@ class URRobot(RobotSession):
                 _rtde_request(s, b"O", struct.pack(">d", 125.0) + b"timestamp")
                 _rtde_request(s, b"S")
                 _rtde_receive(s, b"U")  # the first streamed data package
-            with socket.create_connection((self.host, DASHBOARD_PORT), remaining()) as s:
-                s.settimeout(remaining())
-                if not s.recv(256):  # the banner
-                    raise ConnectionResetError("dashboard closed the connection")
+            dashboard_exchange(self.host, [], remaining())  # its banner
             socket.create_connection((self.host, SCRIPT_PORT), remaining()).close()
         except TimeoutError:
             raise RobotConnectionError(
@@ -271,6 +269,21 @@ class URRobot(RobotSession):
     def joint_positions(self) -> np.ndarray:
         """Actual joint angles, shape (6,), radians."""
         return np.asarray(self._read("getActualQ"), dtype=float)
+
+    def identity(self) -> RobotIdentity:
+        """Model, serial number and PolyScope version from the dashboard, asked once (serial
+        numbers are answered from PolyScope 5.6 on; older controllers leave it None)."""
+        if self._identity is None:
+            try:
+                replies = dashboard_exchange(
+                    self.host, ["get robot model", "get serial number", "PolyscopeVersion"],
+                    self.connect_timeout)
+            except OSError as err:
+                raise RobotConnectionError(
+                    f"The robot controller at {self.host} did not tell its identity on the "
+                    f"dashboard ({err.strerror or err}).") from None
+            self._identity = RobotIdentity(**parse_identity(*replies))
+        return self._identity
 
     def status(self) -> RobotStatus:
         """Current controller state; ``connected=False`` rather than an error when offline."""
@@ -464,12 +477,7 @@ class URRobot(RobotSession):
         if self._moving:
             self._stop_requested = True
             try:
-                with socket.create_connection((self.host, DASHBOARD_PORT),
-                                              self.connect_timeout) as s:
-                    s.settimeout(self.connect_timeout)
-                    s.recv(256)  # banner
-                    s.sendall(b"stop\n")
-                    s.recv(256)
+                dashboard_exchange(self.host, ["stop"], self.connect_timeout)
             except OSError:
                 raise RobotConnectionError(
                     f"Could not reach the robot at {self.host} to stop it. Use the emergency "

@@ -42,7 +42,7 @@ from calib import (
     perturb,
     ur_pose_from_matrix,
 )
-from drivers.base import BoardTruth, CellHints, RobotSession, RobotStatus
+from drivers.base import BoardTruth, CellHints, RobotIdentity, RobotSession, RobotStatus
 from drivers.errors import (
     ProtectiveStopError,
     RobotConnectionError,
@@ -310,6 +310,10 @@ class MockRobot(RobotSession):
     def stop(self) -> None:
         """Stop a move in progress where it is (the move raises ``motion_stopped``)."""
         self._stop.set()
+
+    def identity(self) -> RobotIdentity:
+        """A simulator: its model says so; it has no serial number or controller version."""
+        return RobotIdentity(model="cellcal mock (a simulated arm)")
 
     def status(self) -> RobotStatus:
         """Current simulated controller state."""

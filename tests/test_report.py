@@ -256,6 +256,9 @@ def test_rest_report_of_a_capture_run(client) -> None:
     assert thumbs == [s["id"] for s in cal["result"]["stations"]]  # the run's images
     identity = r.text[r.text.index("<h2>Cell and inputs</h2>"):r.text.index("<h2>Sign-off")]
     assert f"8 of run {run_id}" in identity and "mock://" in identity
+    assert ("<td>robot model</td><td class=\"code\">cellcal mock (a simulated arm)</td>"
+            in identity)  # as the driver told it when capture started
+    assert "<td>robot serial</td><td class=\"code\">not known</td>" in identity
     assert re.search(r">[0-9a-f]{64}<", identity)
     missing = client.get("/calibrations/nope/report")
     assert missing.status_code == 404 and missing.json()["code"] == "not_found"

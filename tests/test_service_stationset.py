@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import re
 import threading
 import zipfile
 from pathlib import Path
@@ -15,6 +16,7 @@ from fastapi.testclient import TestClient
 
 from calib import CheckerboardTarget, Station, Stations
 from service.cli.main import main
+from service.cli.report import station_images, station_set_identity
 from service.stationsets.format import load_station_set, write_station_set
 from tests.support.service import (
     assert_same_calibration,
@@ -67,6 +69,11 @@ def test_cellcal_calibrate_on_an_exported_run_gives_the_service_result(
         served["method"], served["setup"], served["options"])
     assert_same_calibration(served, cli)
     assert cli["quality"]["verdict"] == served["quality"]["verdict"]
+
+    # The service's report and `cellcal report --stations` on the download name the same input.
+    page = client.get(f"/calibrations/{cal['id']}/report").text
+    local = station_set_identity(station_dir, station_images(station_dir))["input_sha256"]
+    assert re.findall(r"\b[0-9a-f]{64}\b", page) == [local]
 
 
 def test_station_set_keeps_how_freshness_was_ensured(tmp_path: Path) -> None:

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from calib.geometry import matrix_from_ur_pose, pose_error
-from drivers.base import Robot
+from drivers.base import DescribesRobot, Robot, RobotIdentity
 from drivers.errors import (
     EmergencyStopError,
     ProtectiveStopError,
@@ -27,6 +27,8 @@ from drivers.errors import (
     RobotError,
 )
 from drivers.ur import URRobot
+from drivers.ur_dashboard import parse_identity
+from mocks.ur_emulator import CONTROLLER_VERSION
 from mocks.ur_kinematics import fk_pose
 from tests.support.helpers import ends_with_this_process
 from tests.support.ur_emulator import (
@@ -88,6 +90,23 @@ def test_reads_pose_consistent_with_joints(robot: URRobot) -> None:
 
 
 @pytest.mark.timeout(120)
+def test_identity_from_the_dashboard(robot: URRobot) -> None:
+    """The report's robot serial and controller version come from the dashboard."""
+    assert isinstance(robot, DescribesRobot)
+    assert robot.identity() == RobotIdentity(
+        model="UR5", serial="20205500001",
+        controller_version=".".join(map(str, CONTROLLER_VERSION)))
+
+
+def test_identity_of_an_older_controller_is_partly_unknown() -> None:
+    """PolyScope before 5.6 does not know ``get serial number``; CB3 says 3.x."""
+    assert parse_identity("UR10", "could not understand: 'get serial number'",
+                          "URSoftware 3.15.7.106331 (Jan 01 2023)") == {
+        "model": "UR10", "serial": None, "controller_version": "3.15.7.106331"}
+    assert parse_identity("", "", "") == {"model": None, "serial": None,
+                                          "controller_version": None}
+
+
 def test_connect_waits_for_the_program_on_the_status_stream(emulator: EmulatorProcess) -> None:
     """The receive stream shows a (re)started program late: connect waits for it."""
     with faults_cleared(emulator):

@@ -3,7 +3,6 @@ export it in the format a user's stack wants."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 from typing import Annotated
@@ -11,6 +10,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Response, status
 from fastapi.responses import FileResponse, HTMLResponse, StreamingResponse
 
+from drivers.base import RobotIdentity
 from service.api.deps import CalibrationsDep, EventsDep, SessionDep, SettingsDep
 from service.api.reads import Read, add_reads
 from service.api.streams import LastEventId, event_stream, stream_doc
@@ -18,8 +18,10 @@ from service.errors import ConflictError, UnprocessableError
 from service.exports import ExportNames, export
 from service.results.schema import parse_result
 from service.schemas import CalibrationCreate, CalibrationPublic, Created, ExportQuery
+from service.stationsets.format import captured_set_sha256
 from service.store import queries
-from service.store.records import StationRecord, Topic
+from service.store.records import Topic
+from service.store.stations import captured_station_set
 
 router = APIRouter(tags=["calibrations"])
 
@@ -78,19 +80,6 @@ def export_calibration(cal_id: str, session: SessionDep,
                     headers={"Content-Disposition": f'attachment; filename="{filename}"'})
 
 
-def stations_sha256(rows: list[StationRecord], images: dict[str, str]) -> str:
-    """SHA-256 of a run's stations as captured: each station's robot pose and detection
-    outcome (JSON) followed by its image file, in index order."""
-    digest = hashlib.sha256()
-    for row in rows:
-        digest.update(json.dumps([row.index, row.state, row.tcp_pose, row.joint_positions],
-                                 sort_keys=True).encode())
-        path = images.get(f"{row.index:03d}")
-        if path is not None and Path(path).is_file():
-            digest.update(Path(path).read_bytes())
-    return digest.hexdigest()
-
-
 @router.get("/calibrations/{cal_id}/report", response_class=HTMLResponse, responses={
     200: {"content": {"text/html": {}},
           "description": "one self-contained HTML page (plots embedded, no external links)"},
@@ -108,10 +97,14 @@ def calibration_report(cal_id: str, session: SessionDep, settings: SettingsDep,
         images = {f"{row.index:03d}": str(Path(settings.data_dir) / row.image_path)
                   for row in rows if row.image_path}
         run = queries.get_run(session, run_id=cal.run_id)
+        captured = captured_station_set(session, run_id=cal.run_id)
+        robot = RobotIdentity(**run.robot_identity or {})
         identity = {"cell": run.cell, "robot": run.robot, "camera": settings.camera,
+                    "robot_model": robot.model, "robot_serial": robot.serial,
+                    "controller_version": robot.controller_version,
                     "board": json.dumps(run.target, sort_keys=True),
                     "stations": f"{len(rows)} of run {run.id}",
-                    "input_sha256": stations_sha256(rows, images)}
+                    "input_sha256": captured_set_sha256(captured, source=settings.data_dir)}
         page = calibrations.reports.page(cal_id, cal.result, images, identity)
     except ValueError as exc:  # a stored result edited by hand
         raise UnprocessableError(str(exc), code="invalid_result") from None

@@ -9,7 +9,6 @@ rejected station with the reason.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import shutil
 import subprocess
@@ -75,19 +74,15 @@ def station_images(directory: Path) -> dict[str, Path]:
 
 
 def station_set_identity(directory: Path, images: dict[str, Path]) -> dict[str, str]:
-    """The board, the station count and the SHA-256 of the station set: its stations.json
-    followed by each image file in the order stations.json names them."""
+    """The board, the station count and the input checksum of the station set in
+    ``directory`` (see :func:`station_set_sha256`)."""
+    from service.stationsets.format import station_set_sha256
+
     index = directory / "stations.json"
-    digest = hashlib.sha256(index.read_bytes())
-    for path in images.values():
-        try:
-            digest.update(path.read_bytes())
-        except OSError:
-            digest.update(b"missing:" + path.name.encode())
     doc = json.loads(index.read_text())
     return {"board": json.dumps(doc.get("target"), sort_keys=True),
             "stations": f"{len(doc.get('stations') or [])} in {directory.resolve()}",
-            "input_sha256": digest.hexdigest()}
+            "input_sha256": station_set_sha256(index.read_bytes(), images.values())}
 
 
 def chromium() -> str | None:

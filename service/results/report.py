@@ -396,7 +396,8 @@ def _sign_off() -> str:
 
 
 #: The cell and the inputs a signed report names: key of ``identity`` and its label.
-IDENTITY_FIELDS = (("cell", "cell"), ("robot", "robot"), ("robot_serial", "robot serial"),
+IDENTITY_FIELDS = (("cell", "cell"), ("robot", "robot"), ("robot_model", "robot model"),
+                   ("robot_serial", "robot serial"),
                    ("controller_version", "controller version"), ("camera", "camera"),
                    ("board", "board"), ("stations", "stations"),
                    ("input_sha256", "input checksum (SHA-256 of the station set)"))

@@ -29,7 +29,7 @@ import logging
 import math
 import os
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -38,6 +38,7 @@ import numpy as np
 from sqlalchemy.orm import Session
 
 from calib import Board, ChecksConfiguration, Station, board_from_target
+from drivers.base import DescribesRobot
 from drivers.capture import CaptureOptions, capture_station
 from drivers.errors import (
     CameraError,
@@ -199,6 +200,16 @@ class Capture:
         return retry_transient(transaction, budget_s=budget, what=what,
                                stopping=self.motion.stopping)
 
+    def _open_devices(self) -> None:
+        """Open the robot and the camera; keep the robot's identity with the run, for the
+        report (a driver that cannot tell it leaves None)."""
+        self.robot, self.camera = self.motion.devices.get()
+        if isinstance(self.robot, DescribesRobot):
+            identity = asdict(self.robot.identity())
+            self._in_session(lambda s: writes.move_run(
+                s, run_id=self.run_id, from_state="capturing", robot_identity=identity),
+                f"recording the robot of run {self.run_id}")
+
     # ---- the loop --------------------------------------------------------------------------
 
     def _capture_owned(self) -> None:
@@ -219,7 +230,7 @@ class Capture:
         and then the run becomes ``interrupted`` or ``failed``; a frame captured but not yet
         handed over is dropped.
         """
-        self.robot, self.camera = self.motion.devices.get()
+        self._open_devices()
         plan = self._in_session(self._plan, f"reading run {self.run_id}")
         if plan is None:
             return

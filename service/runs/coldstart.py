@@ -62,7 +62,7 @@ class ColdStartCapture(Capture):
     """The capture thread of a cold-start run (module docstring)."""
 
     def _capture_owned(self) -> None:
-        self.robot, self.camera = self.motion.devices.get()
+        self._open_devices()
         read = self._in_session(self._read, f"reading run {self.run_id}")
         if read is None:
             return

@@ -7,12 +7,14 @@ a robot pose (``tcp_pose``, T_base_tcp) and either an ``image`` or a measured ``
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
 import tempfile
 import zipfile
 from collections import Counter
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -150,20 +152,9 @@ def station_record(station: Station, image_name: str) -> dict[str, Any]:
     return record
 
 
-def write_station_set(directory: str | Path, stations: Stations, *,
-                      source: str | Path | None = None) -> Path:
-    """Write ``stations`` (each with an image) as a station set in ``directory``; return the
-    ``stations.json`` path.
-
-    Images are ``000.png``, ``001.png``, ... in station order: a station's ``image`` is either
-    its pixels (written as PNG) or a PNG file relative to ``source`` (copied byte for byte, so
-    a calibration of the set detects exactly what the service detected). The document is
-    validated before anything is written (``ValueError``), an existing ``stations.json`` is
-    never overwritten (``FileExistsError``), and ``stations.json`` is written last,
-    atomically, so an interrupted write never leaves a readable but incomplete set.
-    """
-    directory = Path(directory)
-    path = directory / STATIONS_FILE
+def station_set_document(stations: Stations) -> tuple[str, list[str]]:
+    """The ``stations.json`` text of ``stations`` and its image names (``000.png``, ...
+    in station order), validated (``ValueError`` with one clear line)."""
     names = [f"{k:03d}.png" for k in range(len(stations.stations))]
     doc: dict[str, Any] = {"format": "cellcal/stations@1", "setup": stations.setup,
                            "target": None if stations.target is None
@@ -178,13 +169,53 @@ def write_station_set(directory: str | Path, stations: Stations, *,
     except ValidationError as exc:
         raise ValueError(f"cannot write a station set: {describe_validation_error(exc)}") \
             from None
+    return json.dumps(doc, indent=2) + "\n", names
+
+
+def station_set_sha256(index: bytes, images: Iterable[Path]) -> str:
+    """The input checksum a report carries: SHA-256 of a station set's ``stations.json``
+    bytes followed by each image file in the order it names them (a missing file counts as
+    ``missing:NAME``). The service computes it of the set it would download, the CLI of the
+    directory, so the two agree on the same stations."""
+    digest = hashlib.sha256(index)
+    for path in images:
+        try:
+            digest.update(path.read_bytes())
+        except OSError:
+            digest.update(b"missing:" + path.name.encode())
+    return digest.hexdigest()
+
+
+def captured_set_sha256(stations: Stations, *, source: str | Path) -> str:
+    """:func:`station_set_sha256` of the set :func:`write_station_set` would write of
+    ``stations``, whose images are PNG files relative to ``source``."""
+    text, _ = station_set_document(stations)
+    return station_set_sha256(text.encode(), (Path(source) / str(s.image)
+                                              for s in stations.stations))
+
+
+def write_station_set(directory: str | Path, stations: Stations, *,
+                      source: str | Path | None = None) -> Path:
+    """Write ``stations`` (each with an image) as a station set in ``directory``; return the
+    ``stations.json`` path.
+
+    Images are ``000.png``, ``001.png``, ... in station order: a station's ``image`` is either
+    its pixels (written as PNG) or a PNG file relative to ``source`` (copied byte for byte, so
+    a calibration of the set detects exactly what the service detected). The document is
+    validated before anything is written (``ValueError``), an existing ``stations.json`` is
+    never overwritten (``FileExistsError``), and ``stations.json`` is written last,
+    atomically, so an interrupted write never leaves a readable but incomplete set.
+    """
+    directory = Path(directory)
+    path = directory / STATIONS_FILE
+    text, names = station_set_document(stations)
     if path.exists():
         raise FileExistsError(f"{path} already exists; choose a new directory for the capture")
     directory.mkdir(parents=True, exist_ok=True)
     for station, name in zip(stations.stations, names, strict=True):
         _write_image(directory / name, station, source)
     tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(doc, indent=2) + "\n")
+    tmp.write_text(text)
     os.replace(tmp, path)
     return path
 

@@ -99,6 +99,9 @@ class RunRecord(Base):
     #: A run planned station by station from a cold start (``service.runs.coldstart``): its
     #: station count or stop rule, start pose, progress and stop reason; None otherwise.
     cold_start: Mapped[dict[str, Any] | None]
+    #: The robot's model, serial number and controller version as its driver told them when
+    #: the capture started (``drivers.base.RobotIdentity``); None for external runs.
+    robot_identity: Mapped[dict[str, Any] | None]
     #: Token of the capture thread that may write stations; a new one on every (re)start.
     owner: Mapped[str | None] = mapped_column(String(32))
     #: The service instance whose thread captures (or whose controller posts) the stations.
