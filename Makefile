@@ -18,10 +18,11 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q -m "not slow" -n 2 --dist loadfile
 
-# `make test` RUNS times in a row while two CPU-bound processes run (tools/test-under-load).
+# `make test` RUNS times in a row while BUSY CPU-bound processes run (tools/test-under-load).
 RUNS ?= 1
+BUSY ?= 4
 test-under-load: $(STAMP)
-	tools/test-under-load $(RUNS)
+	BUSY=$(BUSY) tools/test-under-load $(RUNS)
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow
