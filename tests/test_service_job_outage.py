@@ -7,7 +7,8 @@ outcome has gone to the spool (``service.jobs.outcomes``), so the ends of both j
 database that does not answer for longer than the service retries (``database_retry_s``,
 shortened by configuration, as in ``test_service_database_outage``). Meanwhile the job shows
 its outcome and holds no robot; once the lock is gone the outcome is stored, the listener gets
-the final state, and nothing is lost.
+the final state, and nothing is lost. ``tools/database_lock.py`` holds the real 40 s lock
+against ``cellcal serve`` with the default settings (its docstring has the result).
 """
 
 from __future__ import annotations
