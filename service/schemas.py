@@ -429,7 +429,8 @@ class CalibrationQuery(BaseModel):
     limit: int = Field(50, ge=1, le=200)
     cursor: str | None = Field(None, max_length=100,
                                description="the next page: `next_cursor` of the page before "
-                                           "(keyset: as fast deep in the history as at its top)")
+                                           "(keyset: as fast deep in the history as at its top)",
+                               json_schema_extra={"pattern": r"^[0-9]{1,19}\.[0-9a-f]{32}$"})
     offset: int = Field(0, ge=0, le=MAX_INDEX, description="rows to skip (prefer `cursor`)")
 
 

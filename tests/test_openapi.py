@@ -59,6 +59,18 @@ def test_each_operation_declares_the_statuses_it_can_answer(doc: dict[str, Any])
         assert ("413" in statuses) == ("requestBody" in op), (method, path)
 
 
+def test_starts_declare_the_idempotency_key(doc: dict[str, Any]) -> None:
+    """The header the idempotency middleware reads is in the document, on exactly the four
+    operations that start work, with the 400 a malformed key gets."""
+    starts = sorted((m, p) for m, p, op in operations(doc)
+                    if any(q["name"] == "Idempotency-Key" and q["in"] == "header"
+                           for q in op.get("parameters", ())))
+    assert starts == [("post", "/calibrations/{cal_id}/checks"),
+                      ("post", "/calibrations/{cal_id}/validations"),
+                      ("post", "/runs"), ("post", "/runs/{run_id}/calibrations")]
+    assert all({"400", "409"} <= set(doc["paths"][p][m]["responses"]) for m, p in starts)
+
+
 @dataclass(frozen=True)
 class Case:
     """A request that fails, the operation's path template and the status it gets."""
@@ -78,6 +90,8 @@ class Case:
     Case("post", "/calibrations/nope/checks", "/calibrations/{cal_id}/checks", 422,
          {"json": {"stations": 0}}),
     Case("get", "/calibrations/active", "/calibrations/active", 404),
+    Case("post", "/runs", "/runs", 400,
+         {"json": {"stations": 5}, "headers": {**AUTH, "Idempotency-Key": "two words"}}),
 ], ids=lambda c: f"{c.status}-{c.method}-{c.path}")
 def test_real_error_answers_match_the_document(client: TestClient, doc: dict[str, Any],
                                                case: Case) -> None:

@@ -125,8 +125,9 @@ def test_runs_pages_follow_the_link_header(client: TestClient) -> None:
         seen += [run["id"] for run in r.json()]
         url = r.links.get("next", {}).get("url")
     assert sorted(seen) == sorted(made) and len(seen) == 5
-    bad = client.get("/calibrations", params={"cursor": "12.nope"})
-    assert (bad.status_code, bad.json()["code"]) == (422, "invalid_cursor")
+    for cursor in ("12.nope", "9" * 19 + "." + "0" * 32):  # not one; after the year 9999
+        bad = client.get("/calibrations", params={"cursor": cursor})
+        assert (bad.status_code, bad.json()["code"]) == (422, "invalid_cursor")
 
 
 @pytest.mark.parametrize("params", [{"state": "finished"}, {"setup": "eye_on_hand"},

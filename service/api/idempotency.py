@@ -40,6 +40,17 @@ HEADER = "idempotency-key"
 STARTS = re.compile(r"/runs|/runs/[0-9a-f]{32}/calibrations"
                     r"|/calibrations/[0-9a-f]{32}/(validations|checks)")
 _KEY = re.compile(r"[\x21-\x7e]{1,255}")
+#: STARTS as OpenAPI path templates (``/runs/{run_id}/calibrations``).
+START_TEMPLATES = re.compile(STARTS.pattern.replace("[0-9a-f]{32}", r"\{[a-z_]+\}"))
+#: The header as an OpenAPI parameter of the operations that start work.
+PARAMETER = {
+    "name": "Idempotency-Key", "in": "header", "required": False,
+    "description": "Any client-chosen key, e.g. a UUID. The same key with the same request "
+                   "within a day answers the first answer again (Idempotent-Replayed: true) "
+                   "and starts nothing; 409 request_in_progress while the first is still "
+                   "being answered; 422 idempotency_key_reused with another request.",
+    "schema": {"type": "string", "minLength": 1, "maxLength": 255,
+               "pattern": "^[\\x21-\\x7e]+$"}}
 KEEP = dt.timedelta(days=1)
 ABANDONED = dt.timedelta(minutes=10)
 

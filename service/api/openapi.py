@@ -6,7 +6,9 @@ problem), whatever raised it; FastAPI's generated document instead shows a list-
 operation gets the statuses it can answer, all with ``ErrorBody``: 401 (the API key, every
 route but ``/health``), 404 (an unknown id in the path), 413 (a body over the size limit),
 422 (malformed parameters or body), 500 and 503 (a database that does not answer), plus those
-the route itself declares (409, 429).
+the route itself declares (409, 429). The operations that start work also declare the
+``Idempotency-Key`` header (``service.api.idempotency``, a middleware FastAPI cannot see) and
+its answers: 400 for a malformed key, 409 while the first request runs.
 """
 
 from __future__ import annotations
@@ -17,12 +19,16 @@ from typing import Any
 from fastapi import FastAPI
 from pydantic import BaseModel, Field
 
+from service.api import idempotency
+
 #: Paths reachable without the API key.
 OPEN_PATHS = ("/health",)
 _DESCRIPTIONS = {
+    "400": "a malformed Idempotency-Key",
     "401": "no API key, or a wrong one",
     "404": "no such id",
     "413": "the request body is larger than the service accepts",
+    "409": "a conflict: the detail says with what",
     "422": "malformed parameters or body; errors says where",
     "500": "an internal error (a bug: the detail names it)",
     "503": "the database is not answering; retry in a moment",
@@ -63,6 +69,8 @@ def _with_errors(doc: dict[str, Any]) -> dict[str, Any]:
     schemas["ErrorBody"] = body
     content = {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorBody"}}}
     for path, operations in doc["paths"].items():
+        if "post" in operations and idempotency.START_TEMPLATES.fullmatch(path):
+            operations["post"].setdefault("parameters", []).append(idempotency.PARAMETER)
         for op in operations.values():
             responses = op.setdefault("responses", {})
             for status in _statuses(path, op):
@@ -84,4 +92,6 @@ def _statuses(path: str, op: dict[str, Any]) -> list[str]:
         statuses.append("404")
     if "requestBody" in op:
         statuses.append("413")
+    if idempotency.PARAMETER in op.get("parameters", ()):
+        statuses += ["400", "409"]
     return statuses

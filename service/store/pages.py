@@ -36,10 +36,13 @@ class Cursor:
     def decode(cls, text: str) -> Cursor:
         """The cursor ``encode`` wrote (422 ``invalid_cursor`` for anything else)."""
         match = _CURSOR.fullmatch(text)
-        if match is None:
-            raise UnprocessableError(f"cursor {text[:80]!r} is not a cursor this service "
-                                     "gave; start again without one.", code="invalid_cursor")
-        return cls(_EPOCH + dt.timedelta(microseconds=int(match[1])), match[2])
+        try:
+            if match is not None:
+                return cls(_EPOCH + dt.timedelta(microseconds=int(match[1])), match[2])
+        except OverflowError:  # after the year 9999: not a time this service wrote
+            pass
+        raise UnprocessableError(f"cursor {text[:80]!r} is not a cursor this service gave; "
+                                 "start again without one.", code="invalid_cursor")
 
     @classmethod
     def of(cls, row: Any) -> Cursor:
