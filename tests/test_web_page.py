@@ -24,6 +24,7 @@ from service.app import create_app
 from service.serving.local import LocalService, local_service
 from service.web import STATIC_DIR
 from tests.support.browser import Browser
+from tests.support.helpers import wait_for
 from tests.support.service import AUTH, KEY, settings
 
 #: src / href attribute values in HTML.
@@ -333,6 +334,29 @@ def test_docs_render_in_chromium_asking_no_other_host(served: LocalService, tmp_
 
 
 @pytest.mark.timeout(300)
+@pytest.mark.timeout(600)
+def test_page_opens_a_run_and_a_calibration_by_short_id(served: LocalService,
+                                                         tmp_path: Path) -> None:
+    """Issue 19 item 6: the 8-character ids the page shows open a run and a calibration from
+    the page's address; the page then works with the full ids the service answers."""
+    headers = {"Authorization": f"Bearer {KEY}"}
+    run_id = httpx.post(f"{served.url}/runs", json={"stations": 6}, headers=headers).json()["id"]
+    wait_for("the run to end", lambda: httpx.get(
+        f"{served.url}/runs/{run_id}", headers=headers).json()["state"] != "capturing",
+        timeout=300)
+    cal_id = httpx.post(f"{served.url}/runs/{run_id[:8]}/calibrations", json={},
+                        headers=headers).json()["id"]
+    with Browser(tmp_path / "chromium") as browser:
+        browser.goto(f"{served.url}/#key={KEY}&run={run_id[:8]}&calibration={cal_id[:8]}")
+        browser.wait_for("the run to open", "document.querySelector('#run-state')"
+                         ".textContent === 'done'")
+        browser.wait_for("the calibration to show", "!document.querySelector("
+                         "'#calibration-view').hidden")
+        assert browser.js("currentRun") == run_id
+        assert (text(browser, "#run-id"), text(browser, "#cal-id")) == (run_id[:8], cal_id[:8])
+        assert "state" in text(browser, "#figures")
+
+
 def test_devices_line_refreshes_itself(tmp_path: Path) -> None:
     """Issue 19 item 1: the devices line was read once, when the page connected. The robot
     moves (a run through the API, not the page); the line follows without a click."""

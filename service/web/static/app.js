@@ -88,13 +88,15 @@ async function loadRuns() {
   }
 }
 
+// ``runId`` may be a unique prefix (a short id from an address): the page then works with
+// the full id the service answers.
 async function openRun(runId) {
-  currentRun = runId;
+  currentRun = (await json("GET", `/runs/${runId}`)).id;
   $("#run-view").hidden = false;
-  $("#run-id").textContent = short(runId);
-  await loadRunResult(runId);
+  $("#run-id").textContent = short(currentRun);
+  await loadRunResult(currentRun);
   await refreshRun();
-  follow(runId);
+  follow(currentRun);
 }
 
 // What each run button may do in each run state (the service answers 409 otherwise).
@@ -322,7 +324,7 @@ async function loadCalibrations() {
 async function showCalibration(calId) {
   const cal = await json("GET", `/calibrations/${calId}`);
   $("#calibration-view").hidden = false;
-  $("#cal-id").textContent = short(calId);
+  $("#cal-id").textContent = short(cal.id);
   const r = cal.result ?? {};
   const mm = (values) => values?.map((v) => (1e3 * v).toFixed(2)).join(" / ");
   const deg = (values) => values?.map((v) => (180 / Math.PI * v).toFixed(3)).join(" / ");
