@@ -51,7 +51,7 @@ from drivers.errors import (
 )
 from mocks import ur_kinematics as kin
 from mocks.scene import MockScene, read_scene
-from mocks.ur_emulator import trapezoid_fraction
+from mocks.ur_emulator.controller import trapezoid_fraction
 
 #: Robot faults: each affects the next move only (``slow`` its settling), see ``inject_fault``.
 ROBOT_FAULTS = ("protective_stop", "disconnect", "unreachable", "slow")

@@ -28,7 +28,7 @@ from drivers.errors import (
 )
 from drivers.ur import URRobot
 from drivers.ur_dashboard import parse_identity
-from mocks.ur_emulator import CONTROLLER_VERSION
+from mocks.ur_emulator.wire import CONTROLLER_VERSION
 from mocks.ur_kinematics import fk_pose
 from tests.support.helpers import ends_with_this_process
 from tests.support.ur_emulator import (
