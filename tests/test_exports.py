@@ -145,3 +145,23 @@ def test_bad_hand_eye_is_refused():
     result["hand_eye"]["matrix"][0][0] = 2.0
     with pytest.raises(ValueError, match=r"hand_eye.*not orthonormal"):
         export(result, "ur-pose")
+
+
+def test_a_result_with_a_robot_translation_map_carries_it_into_every_hand_eye_export():
+    """The hand-eye holds for readings mapped by S (the model selection's robot-scale term):
+    each export with the hand-eye says so and carries S; without a map nothing is added."""
+    S = [[0.003, 0.0005, 0.0], [0.0, -0.002, 0.0], [0.0, 0.0, 0.001]]
+    finding = {"code": "robot_translation_map", "severity": "info", "message": "...",
+               "largest_entry": 0.003, "largest_shift_m": 0.0021}
+    result = full_result() | {"robot_translation_map": S,
+                              "quality": {"verdict": "pass", "findings": [finding]}}
+    for fmt in ("urdf", "ur-pose", "ros2-static-tf", "opencv-yaml"):
+        content = export(result, fmt)[0]
+        assert "robot_translation_map S = [0.003, 0.0005, 0.0; 0.0, -0.002, 0.0;" in content, fmt
+        assert "corrected to t + S t" in content and "2.1 mm" in content, fmt
+        assert "robot_translation_map" not in export(full_result(), fmt)[0], fmt
+    urdf_joint(export(result, "urdf")[0])  # still well-formed XML
+    assert export(result, "ur-pose")[0].splitlines()[-1].startswith("p[")
+    compile(export(result, "ros2-static-tf")[0], "launch.py", "exec")
+    fs = read_cv_yaml(export(result, "opencv-yaml")[0])
+    np.testing.assert_array_equal(fs.getNode("robot_translation_map").mat(), S)

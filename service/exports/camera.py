@@ -11,7 +11,7 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from service.exports.common import FRAMES, matrix, num
+from service.exports.common import FRAMES, matrix, num, robot_map_note
 from service.results.schema import CameraModel, Result
 
 
@@ -41,6 +41,10 @@ def opencv_yaml(result: Result, camera: CameraModel,
         fs.write("hand_eye", matrix(result.hand_eye, "hand_eye"))
         if result.target_pose is not None:
             fs.write("target_pose", matrix(result.target_pose, "target_pose"))
+        if result.robot_translation_map is not None:
+            for line in robot_map_note(result):
+                fs.writeComment(line)
+            fs.write("robot_translation_map", np.asarray(result.robot_translation_map))
     fs.write("kappa", result.target.kappa)
     fs.write("nu", result.target.nu)
     return fs.releaseAndGetString(), "application/yaml", "camera_calibration.yaml"

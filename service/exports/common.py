@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib import check_transforms
-from service.results.schema import Transform
+from service.results.schema import Result, Transform
 
 #: What ``hand_eye`` / ``target_pose`` mean in each setup (``docs/conventions.md``).
 FRAMES = {"eye_in_hand": ("tcp_T_cam", "base_T_target"),
@@ -19,6 +19,23 @@ FRAMES = {"eye_in_hand": ("tcp_T_cam", "base_T_target"),
 def matrix(transform: Transform, name: str) -> np.ndarray:
     """The transform's matrix, shape (4, 4), checked to be rigid (ValueError naming ``name``)."""
     return check_transforms(np.asarray(transform.matrix, dtype=float), name)[0]
+
+
+def robot_map_note(result: Result) -> list[str]:
+    """What an exported hand-eye needs when the result maps the robot's translations
+    (``robot_translation_map``, the model selection's robot-scale term): the map itself and
+    that the hand-eye holds for readings corrected by it; lines of plain text, none when the
+    result has no map. The figure is the result's ``robot_translation_map`` finding's."""
+    S = result.robot_translation_map
+    if S is None:
+        return []
+    rows = "; ".join(", ".join(num(v) for v in row) for row in S)
+    shift = next((getattr(f, "largest_shift_m", None) for f in result.quality.findings
+                  if f.code == "robot_translation_map"), None) if result.quality else None
+    off = "" if shift is None else f" by up to {1e3 * float(shift):.1f} mm over its stations"
+    return [f"robot_translation_map S = [{rows}] (3x3, base frame): this hand-eye holds for",
+            "the arm's translations corrected to t + S t; combined with the arm's readings as",
+            f"they are it is off{off}: correct the readings by S, or calibrate the arm."]
 
 
 def num(v: float) -> str:

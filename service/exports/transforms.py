@@ -16,7 +16,7 @@ from collections.abc import Callable
 from scipy.spatial.transform import Rotation
 
 from calib import ur_pose_from_matrix
-from service.exports.common import FRAMES, ExportNames, matrix, num
+from service.exports.common import FRAMES, ExportNames, matrix, num, robot_map_note
 from service.results.schema import Result, Transform
 
 #: What the default parent frame must stand for, per setup.
@@ -37,11 +37,12 @@ def urdf(result: Result, hand_eye: Transform, names: ExportNames) -> tuple[str, 
         rpy = Rotation.from_matrix(X[:3, :3]).as_euler("xyz")
     xyz = " ".join(num(v) for v in X[:3, 3])
     camera = names.camera_name
+    note = "".join(f"\n     {line}" for line in robot_map_note(result))
     text = f"""<?xml version="1.0"?>
 <!-- cellcal hand-eye ({setup}): {FRAMES[setup][0]} as a fixed joint, metres and radians.
      rpy is URDF's fixed-axis roll-pitch-yaw: R = Rz(yaw) Ry(pitch) Rx(roll).
      {child}: OpenCV / ROS optical frame, x right, y down, z along the optical axis.
-     {_PARENT_NOTE[setup]}.
+     {_PARENT_NOTE[setup]}.{note}
      Copy the joint and the camera link into your robot description. -->
 <robot name="cellcal_{camera}">
   <link name="{parent}"/>
@@ -67,7 +68,7 @@ def ur_pose(result: Result, hand_eye: Transform, names: ExportNames) -> tuple[st
     else:
         what = "base_T_cam: the camera's optical frame in the robot base frame"
     text = (f"# cellcal hand-eye ({setup}), {what}; metres, rotation vector in radians\n"
-            f"p[{pose}]\n")
+            + "".join(f"# {line}\n" for line in robot_map_note(result)) + f"p[{pose}]\n")
     return text, "text/plain", "hand_eye_ur_pose.txt"
 
 
@@ -83,11 +84,12 @@ def ros2_static_tf(result: Result, hand_eye: Transform,
     args += [f'"--frame-id", "{parent}",', f'"--child-frame-id", "{child}",']
     lines = "\n".join(f"                {a}" for a in args)
     node = f"{names.camera_name}_static_tf"
+    note = "".join(f"{line}\n" for line in robot_map_note(result))
     text = f'''"""cellcal hand-eye ({setup}): {FRAMES[setup][0]} as the static transform
 {parent} -> {child} (metres; quaternion x, y, z, w).
 
 {child}: OpenCV / ROS optical frame, x right, y down, z along the optical axis.
-Run it with: ros2 launch ./{node}.launch.py
+{note}Run it with: ros2 launch ./{node}.launch.py
 """
 
 from launch import LaunchDescription
