@@ -1,8 +1,8 @@
 """cellcal's calibration mathematics: pure functions on arrays, no I/O and no devices.
 
-This is the public surface that ``service``, ``drivers``, ``mocks`` and ``benchmarks`` import
-(``from calib import calibrate_stations``). Modules inside ``calib`` import each other directly;
-the layout is in ``docs/architecture.md``:
+This is the public surface that ``service``, ``drivers``, ``mocks`` and ``benchmarks`` import;
+``calibrate(stations, options)`` (``calib.calibration``) is the one way into the solver.
+Modules inside ``calib`` import each other directly; the layout is in ``docs/architecture.md``:
 
 * ``so3``, ``geometry`` — rotations and rigid transforms, UR pose vectors, validation;
 * ``chain`` — the cell as one loop ``P X C = Y``: setups, camera-from-robot, motions;
@@ -11,7 +11,8 @@ the layout is in ``docs/architecture.md``:
 * ``screw``, ``peers``, ``refine``, ``handeye`` — pose-level hand-eye (SM, OpenCV, ``refine``);
 * ``intrinsics``, ``joint``, ``nu``, ``bounds`` — corner-level estimation: Method #1, the joint
   maximum likelihood, Method #2, the Cramér-Rao bound;
-* ``validation``, ``planning``, ``pipeline`` — trust metrics, station planning, the whole flow.
+* ``validation``, ``planning`` — trust metrics, station planning;
+* ``options``, ``calibration``, ``pipeline`` — how to calibrate, the one entry, the image flow.
 """
 
 from calib.boards import (
@@ -32,6 +33,7 @@ from calib.boards import (
     target_from_board,
 )
 from calib.bounds import cramer_rao_bound
+from calib.calibration import Calibration, PoseOnlyResult, calibrate
 from calib.camera import Pinhole, image_corner_error, solve_pnp
 from calib.chain import (
     SETUPS,
@@ -47,7 +49,7 @@ from calib.chain import (
 )
 from calib.coldstart import Bootstrap, Guess, View, bootstrap, camera_position
 from calib.crossval import CrossValidation, PoseStations
-from calib.evidence import Trust, choose_pose_only
+from calib.evidence import Trust
 from calib.explorer import ColdStart, Proposal
 from calib.geometry import (
     PoseError,
@@ -79,14 +81,9 @@ from calib.joint import (
     solve_joint,
 )
 from calib.nu import NuSearch, nu_from_extrinsics
+from calib.options import METHODS, SolverOptions
 from calib.peers import OPENCV_HAND_EYE_METHODS, OPENCV_ROBOT_WORLD_METHODS
-from calib.pipeline import (
-    METHODS,
-    CalibrationResult,
-    PipelineOptions,
-    StationReport,
-    calibrate_stations,
-)
+from calib.pipeline import CalibrationResult, StationReport
 from calib.planning import (
     CellGuess,
     Plan,
@@ -123,6 +120,7 @@ __all__ = [
     "Board",
     "BoardTarget",
     "Bootstrap",
+    "Calibration",
     "CalibrationResult",
     "CellGuess",
     "CellParameters",
@@ -148,15 +146,16 @@ __all__ = [
     "MotionPairs",
     "NuSearch",
     "Pinhole",
-    "PipelineOptions",
     "Plan",
     "PlanOptions",
     "PoseError",
+    "PoseOnlyResult",
     "PoseStations",
     "Proposal",
     "RefineOptions",
     "RobotNoise",
     "Selection",
+    "SolverOptions",
     "Station",
     "StationCheck",
     "StationInputs",
@@ -170,9 +169,9 @@ __all__ = [
     "board_from_target",
     "board_points",
     "bootstrap",
+    "calibrate",
     "calibrate_hand_eye",
     "calibrate_intrinsics",
-    "calibrate_stations",
     "camera_from_robot",
     "camera_position",
     "check_joint_positions",
@@ -181,7 +180,6 @@ __all__ = [
     "check_ur_pose",
     "check_ur_poses",
     "check_verdict",
-    "choose_pose_only",
     "cramer_rao_bound",
     "cuts_board_at_corner",
     "detect_checkerboard",

@@ -1,7 +1,7 @@
 """From images (or detected corners) and robot poses to a result a user can trust.
 
-One entry point, :func:`calibrate_stations`, for the CLI and the service (``product.md``,
-"Pipeline")::
+The image path of :func:`calib.calibrate` (``product.md``, "Pipeline"),
+:func:`calibrate_stations`::
 
     detect the board (calib.boards)  a bad image becomes a rejected station, never an abort;
                                      partial views carry their point ids through every stage
@@ -30,18 +30,15 @@ from threadpoolctl import threadpool_limits
 from calib.boards import Board
 from calib.camera import Pinhole
 from calib.chain import (
-    RobotNoise,
     camera_from_robot,
-    check_setup,
     robot_chain,
 )
 from calib.crossval import predict_dropped
 from calib.evidence import JointChoice, Trust, choose_joint, method_cross_validation
 from calib.geometry import PoseError, check_ur_poses
-from calib.handeye import POSE_METHODS, calibrate_hand_eye
+from calib.handeye import calibrate_hand_eye
 from calib.intrinsics import IntrinsicsOptions, calibrate_intrinsics
 from calib.joint import (
-    OUTLIER_SIGMA,
     CellParameters,
     CornerStations,
     JointOptions,
@@ -50,9 +47,9 @@ from calib.joint import (
 )
 from calib.jointfit import JointData, JointModel
 from calib.nu import NuSearch, nu_from_extrinsics
+from calib.options import SolverOptions
 from calib.quality import QualityInputs, assess, irreconcilable
 from calib.refine import RefineOptions, scale_translations
-from calib.selection import KAPPA_MODES
 from calib.stations import (
     Observation,
     StationInputs,
@@ -68,11 +65,6 @@ from calib.validation import (
     reprojection_rms,
 )
 
-#: Calibration methods: the pose-level hand-eye solvers, and ``joint`` (the default), the
-#: maximum likelihood over all corners and robot poses started from ``refine``.
-METHODS = (*POSE_METHODS, "joint")
-#: Ways to estimate ν: ``images`` (Method #1, eq. 5) or ``extrinsics`` (Method #2).
-NU_METHODS = ("images", "extrinsics")
 #: Leave-one-out validation holds out at most this many stations (evenly spread).
 MAX_HELD_OUT = 15
 
@@ -145,60 +137,6 @@ class CalibrationResult:
     robot_map: np.ndarray | None = None
 
 
-@dataclass(frozen=True)
-class PipelineOptions:
-    """How :func:`calibrate_stations` calibrates; checked on construction.
-
-    ``method``: a name of ``METHODS``: ``joint`` (default), ``refine``, ``sm`` or an OpenCV
-    solver. ``estimate_nu``, ``estimate_kappa``: False holds ν (κ) at 1, the traditional
-    nominal-size calibration. ``nu_method``: ``images`` (Method #1) or ``extrinsics`` (Method
-    #2; ``joint`` only), then ν is held at the Method #2 value in the joint stage. ``noise``:
-    the robot reading noise, the joint prior. ``outlier_sigma``: joint stage: drop stations
-    whose robot correction lies beyond this many σ (Mahalanobis); None keeps all. ``kappa``:
-    ``auto`` (κ estimated only when that predicts held-out stations clearly better,
-    ``calib.selection``), ``estimate``, or ``fixed`` (held at exactly 1: the entered square
-    size was measured); ``estimate_kappa=False`` means ``fixed``.
-    """
-
-    setup: str = "eye_in_hand"
-    method: str = "joint"
-    estimate_nu: bool = True
-    estimate_kappa: bool = True
-    kappa: str = "auto"
-    nu_method: str = "images"
-    noise: RobotNoise = field(default_factory=RobotNoise)
-    outlier_sigma: float | None = OUTLIER_SIGMA
-
-    def __post_init__(self) -> None:
-        check_setup(self.setup)
-        if self.method not in METHODS:
-            raise ValueError(f"unknown method '{self.method}': choose one of "
-                             f"{', '.join(METHODS)}")
-        if self.kappa not in KAPPA_MODES:
-            raise ValueError(f"unknown kappa mode '{self.kappa}': choose one of "
-                             f"{', '.join(KAPPA_MODES)}")
-        if self.nu_method not in NU_METHODS:
-            raise ValueError(f"unknown nu_method '{self.nu_method}': choose one of "
-                             f"{NU_METHODS}")
-        if self.nu_method == "extrinsics" and (self.method != "joint" or not self.estimate_nu):
-            raise ValueError("nu_method 'extrinsics' (Method #2) needs method 'joint' and "
-                             "estimate_nu")
-
-    @property
-    def kappa_mode(self) -> str:
-        """``kappa``, or ``fixed`` when ``estimate_kappa`` is off."""
-        return self.kappa if self.estimate_kappa else "fixed"
-
-    def record(self, known_intrinsics: bool) -> dict[str, Any]:
-        """The options as the result document lists them."""
-        return dict(method=self.method, estimate_nu=self.estimate_nu,
-                    estimate_kappa=self.kappa_mode != "fixed", kappa=self.kappa_mode,
-                    nu_method=self.nu_method,
-                    robot_noise_rot_rad=self.noise.rot_rad,
-                    robot_noise_trans_m=self.noise.trans_m, outlier_sigma=self.outlier_sigma,
-                    known_intrinsics=known_intrinsics)
-
-
 @dataclass
 class _Stage:
     """The estimate as the stages refine it; ``C`` (n, 4, 4) are the per-image camera poses
@@ -219,12 +157,14 @@ class _Stage:
     fix: tuple[str, ...] = ()
     choice: JointChoice | None = None
     image_size: tuple[int, int] = (0, 0)
+    setup: str = "eye_in_hand"
+    method: str = "joint"
     pose_residuals: np.ndarray | None = None  # (n, 2) of the pose-level fit, rad and m
 
 
 @threadpool_limits.wrap(limits=1, user_api="blas")
 def calibrate_stations(stations: StationInputs, board: Board,
-                       options: PipelineOptions | None = None, *,
+                       options: SolverOptions | None = None, *,
                        progress: Callable[[Iterable[Observation]], Iterable[Observation]]
                        | None = None,
                        on_stage: Callable[[str], None] | None = None) -> CalibrationResult:
@@ -246,7 +186,7 @@ def calibrate_stations(stations: StationInputs, board: Board,
         Bad arguments, too few usable stations (with the rejection reasons), or stations
         that cannot determine the calibration.
     """
-    options = PipelineOptions() if options is None else options
+    options = SolverOptions() if options is None else options
     items = stations.observations if progress is None else progress(stations.observations)
     detections = detect_all(items, board)
     ids, usable, rejected, size = usable_stations(detections, stations, board)
@@ -256,8 +196,9 @@ def calibrate_stations(stations: StationInputs, board: Board,
     begin = on_stage or (lambda name: None)
     begin("intrinsics")
     stage = _camera_stage(measured, size, stations.intrinsics, options)
-    stage.image_size = size
-    common = dict(setup=options.setup, image_size=size, options=options.record(
+    stage.image_size, stage.setup = size, stations.setup
+    stage.method = options.solver("images")
+    common = dict(setup=stage.setup, image_size=size, options=options.record(
         stations.intrinsics is not None))
     if stations.tcp_poses is None or all(p is None for p in stations.tcp_poses):
         res = _view_residuals(measured, stage.C, stage.nu, stage.K, stage.dist)
@@ -271,13 +212,13 @@ def calibrate_stations(stations: StationInputs, board: Board,
             rejected=tuple(rejected), validation={}, trust=Trust(
                 cross_validation=None, model_selection=None, uncertainty=None,
                 quality=assess(QualityInputs(
-                    setup=options.setup, T_base_tcp=None, corrections=None, cv=None,
+                    setup=stage.setup, T_base_tcp=None, corrections=None, cv=None,
                     square_size_m=board.square_size, corners=tuple(corners),
                     image_size=size))), **common)
 
     T_base_tcp = check_ur_poses([stations.tcp_poses[k] for k in usable], "tcp_pose")
     if any(d.ambiguous for d, _ in (detections[k] for k in usable)):
-        stage.C, corners = resolve_symmetric_origin(robot_chain(T_base_tcp, options.setup),
+        stage.C, corners = resolve_symmetric_origin(robot_chain(T_base_tcp, stage.setup),
                                                      stage.C, corners, board.points(), stage.nu)
     measured = replace(measured, image_points=corners, T_base_tcp=T_base_tcp)
     begin("hand-eye")
@@ -288,13 +229,13 @@ def calibrate_stations(stations: StationInputs, board: Board,
         _choose_model(stage, measured, station_ids, options)
         rejected += [(ids[usable[i]], reason) for i, reason in stage.joint.rejected]
     begin("validation")
-    reports, validation = _validate(stage, measured, station_ids, options.setup)
+    reports, validation = _validate(stage, measured, station_ids)
     begin("cross-validation")
     joint = stage.joint
     rms = (joint.rms_px if joint is not None
            else float(np.sqrt(np.mean(stage.rms_img[stage.keep] ** 2))))
     return CalibrationResult(
-        method=options.method, K=stage.K, dist=stage.dist, sigma_px=stage.sigma_px, rms_px=rms,
+        method=stage.method, K=stage.K, dist=stage.dist, sigma_px=stage.sigma_px, rms_px=rms,
         nu=stage.nu, kappa=stage.kappa, hand_eye=stage.hand_eye, target_pose=stage.target_pose,
         sigmas=stage.sigmas, stations=tuple(reports), rejected=tuple(rejected),
         validation=validation, variance_factor=None if joint is None
@@ -304,7 +245,7 @@ def calibrate_stations(stations: StationInputs, board: Board,
 
 def _camera_stage(views: CornerStations, size: tuple[int, int],
                   intrinsics: tuple[np.ndarray, np.ndarray] | None,
-                  options: PipelineOptions) -> _Stage:
+                  options: SolverOptions) -> _Stage:
     """Intrinsics with ν (Method #1), or the known camera and per-image PnP poses, from the
     corners and point ids of ``views`` (its robot poses are not used)."""
     if intrinsics is None:
@@ -322,11 +263,11 @@ def _camera_stage(views: CornerStations, size: tuple[int, int],
 
 
 def _hand_eye_stage(stage: _Stage, stations: CornerStations, size: tuple[int, int],
-                    options: PipelineOptions, known_intrinsics: bool) -> None:
+                    options: SolverOptions, known_intrinsics: bool) -> None:
     """Hand-eye by the pose-level method, then (``joint``) the joint ML; updates ``stage``."""
-    method, noise = options.method, options.noise
+    method, noise = stage.method, options.noise
     pose_method = "refine" if method == "joint" else method
-    fit = calibrate_hand_eye(stations.T_base_tcp, stage.C, setup=options.setup,
+    fit = calibrate_hand_eye(stations.T_base_tcp, stage.C, setup=stage.setup,
                              method=pose_method, options=RefineOptions(
                                  noise=noise,
                                  estimate_kappa=pose_method == "refine"
@@ -343,11 +284,11 @@ def _hand_eye_stage(stage: _Stage, stations: CornerStations, size: tuple[int, in
         fix += ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
     if options.nu_method == "extrinsics":
         stage.nu, sigma_nu = nu_from_extrinsics(stations, size, stage.nu,
-                                                NuSearch(setup=options.setup, noise=noise))
+                                                NuSearch(setup=stage.setup, noise=noise))
         fix += ("nu",)
     joint = solve_joint(stations, CellParameters(stage.K, stage.dist, stage.nu, stage.kappa,
                                                  stage.hand_eye, stage.target_pose),
-                        JointOptions(sigma_px=stage.sigma_px, setup=options.setup, noise=noise,
+                        JointOptions(sigma_px=stage.sigma_px, setup=stage.setup, noise=noise,
                                      fix=fix, outlier_sigma=None if irreconcilable(
                                          fit.station_residuals) else options.outlier_sigma))
     stage.K, stage.dist, stage.nu, stage.kappa = joint.K, joint.dist, joint.nu, joint.kappa
@@ -360,13 +301,13 @@ def _hand_eye_stage(stage: _Stage, stations: CornerStations, size: tuple[int, in
 
 
 def _choose_model(stage: _Stage, stations: CornerStations, ids: list[str],
-                  options: PipelineOptions) -> None:
+                  options: SolverOptions) -> None:
     """Model selection by cross-validation on the joint stage's stations (``calib.evidence``):
     the chosen model's result, with honest σ, replaces the joint stage's."""
     first = stage.joint
     assert first is not None
     kept = first.stations
-    data = JointData(stations.subset(kept), options.setup, stage.sigma_px)
+    data = JointData(stations.subset(kept), stage.setup, stage.sigma_px)
     stage.choice = choose_joint(data, [ids[i] for i in kept],
                                 JointModel("all estimated", stage.fix, options.noise), first,
                                 kappa=options.kappa_mode)
@@ -380,22 +321,22 @@ def _choose_model(stage: _Stage, stations: CornerStations, ids: list[str],
 
 
 def _trust(stage: _Stage, stations: CornerStations, ids: list[str],
-           options: PipelineOptions, rejected: list[tuple[str, str]]) -> Trust:
+           options: SolverOptions, rejected: list[tuple[str, str]]) -> Trust:
     """Cross-validation, selection, uncertainty and the verdict of the finished stages."""
     keep = stage.keep
-    data = JointData(stations.subset(keep), options.setup, stage.sigma_px)
+    data = JointData(stations.subset(keep), stage.setup, stage.sigma_px)
     kept_ids = [ids[i] for i in keep]
     if stage.choice is None:
         cell = CellParameters(stage.K, stage.dist, stage.nu, stage.kappa, stage.hand_eye,
                               stage.target_pose)
-        cv = method_cross_validation(data, kept_ids, cell, stage.C[keep], options.method)
+        cv = method_cross_validation(data, kept_ids, cell, stage.C[keep], stage.method)
         selection, uncertainty, corrections = None, None, stage.pose_residuals
-        kappa_sigma = stage.sigmas.get("kappa") if options.method == "refine" else None
+        kappa_sigma = stage.sigmas.get("kappa") if stage.method == "refine" else None
     else:
         selection, uncertainty = stage.choice.selection, stage.choice.uncertainty
         dropped = [i for i, _ in stage.choice.result.rejected]
         cv = predict_dropped(selection.chosen.cv,
-                             JointData(stations.subset(dropped), options.setup, stage.sigma_px),
+                             JointData(stations.subset(dropped), stage.setup, stage.sigma_px),
                              [ids[i] for i in dropped], dropped, ids)
         delta = stage.choice.result.corrections
         corrections = np.column_stack([np.linalg.norm(delta[:, :3], axis=1),
@@ -403,7 +344,7 @@ def _trust(stage: _Stage, stations: CornerStations, ids: list[str],
         held = "kappa" in (selection.chosen.model.fix if selection.chosen.model else ())
         kappa_sigma = None if held else stage.sigmas.get("kappa")
     quality = assess(QualityInputs(
-        setup=options.setup, T_base_tcp=data.stations.T_base_tcp, corrections=corrections,
+        setup=stage.setup, T_base_tcp=data.stations.T_base_tcp, corrections=corrections,
         cv=cv, square_size_m=stations.board.square_size, kappa=stage.kappa,
         kappa_sigma=None if kappa_sigma is None else float(kappa_sigma),
         sigma_px=stage.sigma_px, corners=tuple(data.stations.image_points),
@@ -413,10 +354,11 @@ def _trust(stage: _Stage, stations: CornerStations, ids: list[str],
                  quality=quality)
 
 
-def _validate(stage: _Stage, stations: CornerStations, ids: list[str], setup: str
+def _validate(stage: _Stage, stations: CornerStations, ids: list[str]
               ) -> tuple[list[StationReport], dict[str, Any]]:
     """Reports of the kept stations and the validation figures, camera poses at true scale."""
     keep, joint, X, Y = stage.keep, stage.joint, stage.hand_eye, stage.target_pose
+    setup = stage.setup
     P, Ck = stations.T_base_tcp[keep], scale_translations(stage.C[keep], stage.kappa)
     kept = stations.subset(keep)
     pts, point_ids = kept.image_points, kept.ids()

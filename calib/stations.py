@@ -18,6 +18,7 @@ import numpy as np
 
 from calib.boards import Board, BoardTarget, Detection, TargetAdapter
 from calib.camera import solve_pnp
+from calib.chain import check_setup
 from calib.geometry import check_ur_poses, invert, make_transform, rotation_angle
 from calib.intrinsics import MIN_IMAGES
 
@@ -40,7 +41,8 @@ class StationInputs:
     None (or no pose at all) gives an intrinsics-only calibration. ``ids``: n names for reports
     (default ``000``, ``001``, ...). ``image_size``: (width, height), required when no
     observation is an image. ``intrinsics``: a known camera (K (3, 3), dist (5,)); the
-    intrinsic stage is skipped and K, dist are held in the joint stage.
+    intrinsic stage is skipped and K, dist are held in the joint stage. ``setup``:
+    ``eye_in_hand`` or ``eye_to_hand`` (``calib.chain.SETUPS``).
     """
 
     observations: Iterable[Observation]
@@ -48,6 +50,10 @@ class StationInputs:
     ids: Sequence[str] | None = None
     image_size: Sequence[int] | None = None
     intrinsics: tuple[np.ndarray, np.ndarray] | None = None
+    setup: str = "eye_in_hand"
+
+    def __post_init__(self) -> None:
+        check_setup(self.setup)
 
 
 @dataclass(frozen=True)
@@ -115,7 +121,7 @@ class Stations:
         return StationInputs(observations, [s.T_base_tcp for s in self.stations],
                              ids=[s.id for s in self.stations],
                              image_size=sizes[0] if sizes else None,
-                             intrinsics=self.intrinsics)
+                             intrinsics=self.intrinsics, setup=self.setup)
 
 
 def usable_stations(detections: list[tuple[Detection, tuple[int, int] | None]],

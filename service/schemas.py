@@ -13,7 +13,7 @@ import numpy as np
 from fastapi import Path as PathParam
 from pydantic import BaseModel, ConfigDict, Field, field_serializer, model_validator
 
-from calib import METHODS, SETUPS, Detection, PipelineOptions, RobotNoise, Target
+from calib import METHODS, Detection, RobotNoise, SolverOptions, Target
 from service.exports import FORMATS
 from service.results.schema import Result
 
@@ -257,7 +257,7 @@ class StationPublic(BaseModel):
 
 
 class CalibrationOptions(_Input):
-    """Solver options (``calib.pipeline.calibrate_stations``); noise levels are 1-sigma."""
+    """Solver options (``calib.calibrate``); noise levels are 1-sigma."""
 
     method: Literal[METHODS] = "joint"  # type: ignore[valid-type]
     estimate_kappa: bool = True
@@ -276,20 +276,20 @@ class CalibrationOptions(_Input):
     def _the_solver_takes_them(self) -> CalibrationOptions:
         """Options the solver would refuse (e.g. Method #2 with a method other than joint)
         are refused when the request arrives (422 with the solver's reason)."""
-        self.pipeline(SETUPS[0])
+        self.solver()
         return self
 
-    def pipeline(self, setup: str) -> PipelineOptions:
-        """The solver's options for a run of ``setup`` (metres and radians)."""
+    def solver(self) -> SolverOptions:
+        """The solver's options (metres and radians)."""
         default = RobotNoise()
         noise = RobotNoise(
             default.rot_rad if self.robot_noise_rot_deg is None
             else float(np.deg2rad(self.robot_noise_rot_deg)),
             default.trans_m if self.robot_noise_trans_mm is None
             else self.robot_noise_trans_mm * 1e-3)
-        return PipelineOptions(setup=setup, method=self.method, estimate_nu=self.estimate_nu,
-                               estimate_kappa=self.estimate_kappa, kappa=self.kappa,
-                               nu_method=self.nu_method, noise=noise)
+        return SolverOptions(method=self.method, estimate_nu=self.estimate_nu,
+                             estimate_kappa=self.estimate_kappa, kappa=self.kappa,
+                             nu_method=self.nu_method, noise=noise)
 
 
 class CalibrationCreate(_Input):

@@ -68,7 +68,7 @@ def test_wrong_inner_corners_is_told_from_the_first_image(tmp_path, capsys, monk
     larger configured board took the detector's whole search on every image)."""
     d = write_image_set(tmp_path / "set", inner_corners=inner_corners, n=3)
     solved = []
-    monkeypatch.setattr("service.cli.calibrate.calibrate_stations",
+    monkeypatch.setattr("service.cli.calibrate.calibrate",
                         lambda *a, **k: solved.append(1))
     assert main(["calibrate", str(d)]) == 2
     err = capsys.readouterr().err
@@ -112,7 +112,7 @@ def test_out_is_checked_before_the_solve(tmp_path, capsys, monkeypatch, out, mes
     d = write_image_set(tmp_path / "set", n=3)
     monkeypatch.chdir(tmp_path)
     solved = []
-    monkeypatch.setattr("service.cli.calibrate.calibrate_stations",
+    monkeypatch.setattr("service.cli.calibrate.calibrate",
                         lambda *a, **k: solved.append(1))
     assert main(["calibrate", str(d), "--out", out]) == 2
     err = capsys.readouterr().err

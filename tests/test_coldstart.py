@@ -8,16 +8,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from calib import (
-    PipelineOptions,
     StationInputs,
     board_from_target,
-    calibrate_stations,
     make_transform,
     pose_error,
     ur_pose_from_matrix,
 )
 from calib.coldstart import Guess, View, bootstrap
 from calib.explorer import ColdStart
+from calib.pipeline import calibrate_stations
 from calib.viewselect import Scene
 from mocks.blindcells import CornerCell, random_blind_scene
 
@@ -86,7 +85,7 @@ def test_cold_start_plan_calibrates_a_blind_cell_inside_its_box(setup, seed):
     assert plan.log.explore_moves <= 8 and "station" in kinds
     result = calibrate_stations(StationInputs(
         [s.corners for s in shots], [ur_pose_from_matrix(s.T_base_tcp) for s in shots],
-        image_size=scene.camera.image_size), board, PipelineOptions(setup=setup))
+        image_size=scene.camera.image_size, setup=setup), board)
     rot, trans = pose_error(result.hand_eye, scene.hand_eye_matrix)
     # a calibration, and an honest one: within 2 mm / 0.2° and within 2.5x its reported σ
     sigma_rot = np.linalg.norm(result.sigmas["hand_eye_rot_rad"])

@@ -15,13 +15,13 @@ from calib import (
     JointOptions,
     RobotNoise,
     StationInputs,
-    calibrate_stations,
     matrix_from_ur_pose,
     solve_joint,
     ur_pose_from_matrix,
 )
 from calib.crossval import fold_indices
 from calib.jointfit import JointData, JointModel, fit_joint
+from calib.pipeline import calibrate_stations
 from calib.uncertainty import JACKKNIFE_NOISE
 from service.cli.main import main
 from tests.support.helpers import SHARED

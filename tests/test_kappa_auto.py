@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib import Checkerboard, PipelineOptions, StationInputs, calibrate_stations
+from calib import Checkerboard, StationInputs
+from calib.pipeline import calibrate_stations
 from mocks.cornersim import simulate_corners
 from mocks.scene import MockScene, load_scene
 
@@ -20,8 +21,8 @@ def calibrate(scene: MockScene, n: int, seed: int):
     corners, poses = simulate_corners(scene, n, np.random.default_rng(seed))
     t = scene.target
     return calibrate_stations(
-        StationInputs(corners, poses, image_size=tuple(scene.camera.image_size)),
-        Checkerboard(tuple(t.inner_corners), t.square_size_m), PipelineOptions(setup=scene.setup))
+        StationInputs(corners, poses, image_size=tuple(scene.camera.image_size),
+                      setup=scene.setup), Checkerboard(tuple(t.inner_corners), t.square_size_m))
 
 
 def with_board(kappa: float, kinematic_errors: bool) -> MockScene:

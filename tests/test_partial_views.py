@@ -12,15 +12,15 @@ from calib import (
     Charuco,
     Detection,
     Pinhole,
-    PipelineOptions,
+    SolverOptions,
     StationInputs,
-    calibrate_stations,
     image_corner_error,
     make_transform,
     perturb,
     pose_error,
     ur_pose_from_matrix,
 )
+from calib.pipeline import calibrate_stations
 from calib.stations import MIN_STATION_POINTS
 from mocks.posesim import ViewSpread, default_cell, robot_poses, sample_camera_poses
 
@@ -75,7 +75,7 @@ def test_station_set_has_the_intended_views():
 def test_partial_views_calibrate_kappa_nu_and_hand_eye():
     detections, poses, cell = station_set()
     res = calibrate_stations(StationInputs(detections, poses, image_size=cell.image_size),
-                             BOARD, PipelineOptions(kappa="estimate"))
+                             BOARD, SolverOptions(kappa="estimate"))
     assert res.rejected == (("015", f"only {len(detections[-1].ids)} board points usable, at "
                              f"least {MIN_STATION_POINTS} not on one line are needed"),)
     assert len(res.stations) == 15
@@ -95,7 +95,7 @@ def test_partial_views_with_known_intrinsics_and_intrinsics_only():
     detections, poses, cell = station_set()
     known = calibrate_stations(
         StationInputs(detections, poses, image_size=cell.image_size,
-                      intrinsics=(cell.K, DIST)), BOARD, PipelineOptions(kappa="estimate"))
+                      intrinsics=(cell.K, DIST)), BOARD, SolverOptions(kappa="estimate"))
     assert np.array_equal(known.K, cell.K) and abs(known.nu - NU) < 3 * known.sigmas["nu"]
     trans = pose_error(known.hand_eye, cell.hand_eye)[1]
     assert trans < 4 * np.linalg.norm(known.sigmas["hand_eye_trans_m"]) and trans < 1e-3

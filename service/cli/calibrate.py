@@ -19,7 +19,7 @@ import argparse
 import json
 import os
 import sys
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -28,16 +28,15 @@ import numpy as np
 from calib import (
     KAPPA_MODES,
     METHODS,
+    Calibration,
     ChecksConfiguration,
     Detection,
-    PipelineOptions,
-    PoseStations,
-    RefineOptions,
+    PoseOnlyResult,
+    SolverOptions,
     Station,
     Stations,
     board_from_target,
-    calibrate_stations,
-    choose_pose_only,
+    calibrate,
 )
 from service.cli.exit_codes import EXIT_VERDICT_FAIL
 from service.results.document import cv_dropped_clause
@@ -52,13 +51,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", choices=METHODS,
                         help="solver (default: joint with images, refine for pose-only sets)")
     parser.add_argument("--estimate-kappa", action="store_true",
-                        help="pose-only sets: also estimate the board scale kappa (refine only; "
-                             "always estimated from images)")
+                        help="the same as --kappa estimate (pose-only sets hold kappa at 1 "
+                             "unless told so; estimated by refine only)")
     parser.add_argument("--kappa", default="auto", choices=KAPPA_MODES,
                         help="board scale kappa (true / entered square size): auto (default) "
                              "estimates it only when that predicts held-out stations clearly "
                              "better; estimate: always; fixed: held at exactly 1 (you measured "
-                             "the board and entered its true square size)")
+                             "the board and entered its true square size); pose-only sets: auto "
+                             "holds it at 1")
     parser.add_argument("--nu-method", default="images", choices=("images", "extrinsics"),
                         help="images: board aspect ratio nu from the corner residuals (Method #1, "
                              "default); extrinsics: from the hand-eye residuals (Method #2)")
@@ -77,26 +77,14 @@ def run(args: argparse.Namespace) -> int:
     """Calibrate ``args.station_dir`` and write the result document."""
     if args.out not in (None, "-"):
         check_out_path(args.out)
+    if args.estimate_kappa and args.kappa == "fixed":
+        raise ValueError("--estimate-kappa and --kappa fixed contradict each other")
     stations = load_station_set(args.station_dir, max_stations=args.max_stations).model()
-    command = " ".join(["cellcal", *sys.argv[1:]])
-    if stations.pose_only:
-        from service.results.document import hand_eye_result_json
-
-        P, C = stations.pose_arrays()
-        method = args.method or "refine"
-        if method == "joint":
-            raise ValueError("method 'joint' (maximum likelihood over the corners) needs images; "
-                             "pose-only station sets use 'refine' (the default) or another "
-                             "pose solver")
-        options = {"estimate_kappa": args.estimate_kappa}
-        ids = [s.id for s in stations.stations]
-        result, trust = choose_pose_only(
-            PoseStations(P, C, stations.setup), ids, method=method,
-            options=RefineOptions(estimate_kappa=args.estimate_kappa),
-            square_size_m=None if stations.target is None else stations.target.square_size_m)
-        doc = hand_eye_result_json(result, ids, options=options, command=command, trust=trust)
-    else:
-        doc = _calibrate_images(args, stations, command)
+    options = SolverOptions(method=args.method, nu_method=args.nu_method,
+                            kappa="estimate" if args.estimate_kappa else args.kappa)
+    result = calibrate(stations, options, images=_image_reader(args, stations),
+                       progress=_progress_bar(len(stations.stations)))
+    doc = _document(result, " ".join(["cellcal", *sys.argv[1:]]))
     text = json.dumps(doc, indent=2)
     for rejected in doc.get("rejected") or []:
         print(f"cellcal: station {rejected['id']} rejected: {rejected['reason']}",
@@ -109,6 +97,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {args.out}", file=sys.stderr)
     failed = (doc.get("quality") or {}).get("verdict") == "fail"
     return EXIT_VERDICT_FAIL if failed else 0
+
+
+def _document(result: Calibration, command: str) -> dict[str, Any]:
+    """The result document of either kind of calibration."""
+    from service.results.document import calibration_result_json, hand_eye_result_json
+
+    if isinstance(result, PoseOnlyResult):
+        return hand_eye_result_json(result.fit, list(result.station_ids),
+                                    options=result.options, command=command,
+                                    trust=result.trust)
+    return calibration_result_json(result, command=command)
 
 
 def check_out_path(out: str) -> None:
@@ -144,40 +143,32 @@ def verdict_line(doc: dict[str, Any]) -> str:
             + (f"; findings: {', '.join(codes)}" if codes else ""))
 
 
-def _calibrate_images(args: argparse.Namespace, stations: Stations,
-                      command: str) -> dict[str, Any]:
-    """Result document of a station set with images (``calib.pipeline``)."""
-    from tqdm import tqdm
-
-    from service.results.document import calibration_result_json
-
-    posed = [s.id for s in stations.stations if s.T_cam_target is not None]
-    if posed:
-        raise ValueError(f"{args.station_dir}: station {posed[0]} has a target_pose while others "
-                         "have images; a station set is either pose-only or image-based")
-    target = stations.target
-    assert target is not None  # the file's schema: stations with images need a target
+def _image_reader(args: argparse.Namespace, stations: Stations
+                  ) -> Callable[[Station], np.ndarray | Detection]:
+    """Reads a station's image file (refused beyond ``--max-image-pixels``). A checkerboard of
+    another size than the configured one is told from the first image, before the solve."""
     directory = Path(args.station_dir)
-    n = len(stations.stations)
 
     def image(station: Station) -> np.ndarray | Detection:
-        assert isinstance(station.image, str)
+        assert isinstance(station.image, str)  # calib.calibrate reads image stations only
         return read_station_image(directory, station.image, max_pixels=args.max_image_pixels)
 
-    def progress(items: Iterable[Any]) -> Iterable[Any]:
-        return tqdm(items, total=n, desc="detecting corners", unit="image", file=sys.stderr,
-                    disable=n < PROGRESS_MIN_IMAGES, leave=False)
-
-    board = board_from_target(target)
-    if stations.stations and isinstance(board, ChecksConfiguration):
-        first = stations.stations[0]
+    first = stations.stations[0] if stations.stations else None
+    if first is not None and isinstance(first.image, str) and stations.target is not None:
+        board = board_from_target(stations.target)
         seen = image(first)
-        if isinstance(seen, np.ndarray) and (mismatch := board.mismatch(seen)) is not None:
+        if (isinstance(board, ChecksConfiguration) and isinstance(seen, np.ndarray)
+                and (mismatch := board.mismatch(seen)) is not None):
             raise ValueError(f"{directory}: station {first.id}: {mismatch}: correct the "
                              "target in stations.json")
-    result = calibrate_stations(
-        stations.inputs(image),
-        board,
-        PipelineOptions(setup=stations.setup, method=args.method or "joint",
-                        nu_method=args.nu_method, kappa=args.kappa), progress=progress)
-    return calibration_result_json(result, command=command)
+    return image
+
+
+def _progress_bar(n: int) -> Callable[[Iterable[Any]], Iterable[Any]]:
+    """A progress bar on stderr over the board detection, from ``PROGRESS_MIN_IMAGES`` on."""
+    def progress(items: Iterable[Any]) -> Iterable[Any]:
+        from tqdm import tqdm
+
+        return tqdm(items, total=n, desc="detecting corners", unit="image", file=sys.stderr,
+                    disable=n < PROGRESS_MIN_IMAGES, leave=False)
+    return progress

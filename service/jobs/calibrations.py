@@ -7,7 +7,7 @@ future completes. At most ``Settings.max_queued_calibrations`` solves wait or ru
 beyond, a request is refused (429 ``queue_full``) instead of piling up work and memory.
 
 A solve's progress (the board detected station by station, then the stages of
-``calib.calibrate_stations``) comes back from the worker as ``progress`` events of the
+``calib.calibrate``) comes back from the worker as ``progress`` events of the
 calibration's stream (``GET /calibrations/{id}/events``), which ends with its final ``state``;
 a progress message that arrives after the outcome is stored is dropped, so none follows it.
 """
@@ -21,11 +21,7 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
-from calib import (
-    MIN_IMAGES,
-    board_from_target,
-    calibrate_stations,
-)
+from calib import MIN_IMAGES, CalibrationResult, SolverOptions, Stations, calibrate
 from service.errors import ConflictError, QueueFullError, UnprocessableError
 from service.events import EventBus
 from service.jobs.outcomes import Outcomes
@@ -66,16 +62,16 @@ class Calibrations:
         ``max_queued_calibrations`` are already queued or running)."""
         self._reserve()
         try:
-            cal, payload = self._create(run_id, options)
+            cal, job = self._create(run_id, options)
             with self._events_lock:
                 self._ending[cal.id] = _Ending()
-            future = self._submit(payload)
+            future = self._submit(job)
         except BaseException:
             self._release()
             raise
         future.add_done_callback(lambda f: self._done(cal.id, f))
         lifecycle("started", "calibration", cal.id, run_id=run_id,
-                  method=options.method, stations=len(payload["stations"].stations))
+                  method=options.method, stations=len(job.stations.stations))
         return cal
 
     def _reserve(self) -> None:
@@ -92,8 +88,8 @@ class Calibrations:
             self._pending -= 1
 
     def _create(self, run_id: str, options: CalibrationOptions
-                ) -> tuple[CalibrationRecord, dict[str, Any]]:
-        """The calibration row (committed) and the worker's payload."""
+                ) -> tuple[CalibrationRecord, SolveJob]:
+        """The calibration row (committed) and the worker's job."""
         with self.db.session() as s:
             run = queries.get_run(s, run_id=run_id)
             if run.state == "capturing":
@@ -107,9 +103,9 @@ class Calibrations:
             cal = writes.add_calibration(s, run_id=run_id, cell=run.cell,
                                          instance_id=self.instance_id, state="running",
                                          options=options.model_dump())
-            payload = {"cal_id": cal.id, "run_id": run_id, "stations": stations,
-                       "options": options.model_dump()}
-        return cal, payload
+            job = SolveJob(cal_id=cal.id, run_id=run_id, stations=stations,
+                           options=options.solver())
+        return cal, job
 
     def shutdown(self) -> None:
         """Cancel queued solves and let the worker processes go; no more progress is read,
@@ -123,12 +119,12 @@ class Calibrations:
                 self._pool = None
         self.reports.shutdown()
 
-    def _submit(self, payload: dict[str, Any]) -> cf.Future[dict[str, Any]]:
+    def _submit(self, job: SolveJob) -> cf.Future[dict[str, Any]]:
         with self._pool_lock:
             if self._pool is None:
                 self._pool = WorkerPool(self.settings.calibration_workers,
                                              self._progress)
-            return self._pool.submit(solve_calibration, payload)
+            return self._pool.submit(solve_calibration, job)
 
     def _done(self, cal_id: str, future: cf.Future[dict[str, Any]]) -> None:
         """The outcome of a solve: its result, or why it failed (stored by ``_settle``)."""
@@ -191,23 +187,31 @@ class Calibrations:
         self.outcomes.finish(Topic("calibration", cal_id), ending.outcome)
 
 
-def solve_calibration(payload: dict[str, Any]) -> dict[str, Any]:
-    """Worker-process entry: the run's captured stations (``calib.Stations``: stored detections
-    and robot poses) and the options -> result JSON document.
+@dataclass(frozen=True)
+class SolveJob:
+    """One solve as a worker process receives it (pickled): the calibration and its run, the
+    run's captured stations (stored detections and robot poses) and the solver's options."""
 
-    Top level (picklable) and self-contained: it imports the pipeline in the worker.
+    cal_id: str
+    run_id: str
+    stations: Stations
+    options: SolverOptions
+
+
+def solve_calibration(job: SolveJob) -> dict[str, Any]:
+    """Worker-process entry: a solve's job -> the result JSON document.
+
+    Top level (picklable) and self-contained: it imports the document writer in the worker.
     """
     from service.results.document import calibration_result_json
 
-    stations = payload["stations"]
-    options = CalibrationOptions.model_validate(payload["options"]).pipeline(stations.setup)
-    progress = SolveProgress(payload["cal_id"], len(stations.stations))
+    progress = SolveProgress(job.cal_id, len(job.stations.stations))
     try:
-        result = calibrate_stations(stations.inputs(), board_from_target(stations.target),
-                                    options, progress=progress.detecting,
-                                    on_stage=progress.stage)
+        result = calibrate(job.stations, job.options, progress=progress.detecting,
+                           on_stage=progress.stage)
+        assert isinstance(result, CalibrationResult)  # a run's stations hold detections
         return calibration_result_json(
-            result, command=f"POST /runs/{payload['run_id']}/calibrations")
+            result, command=f"POST /runs/{job.run_id}/calibrations")
     finally:
         progress.end()
 
@@ -233,7 +237,7 @@ class SolveProgress:
         report_progress((self.cal_id, None))
 
     def stage(self, name: str) -> None:
-        """A stage of ``calib.calibrate_stations`` begins."""
+        """A stage of ``calib.calibrate`` begins."""
         self._send(name, name)
 
     def _send(self, stage: str, message: str, **count: int) -> None:

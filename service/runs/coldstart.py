@@ -9,7 +9,7 @@ captures and detects it as any station, and tells the planner what it saw. A vie
 board was lost is stored with its reason (a skipped station) and informs the next choice.
 
 It stops at its station count (``stations``), or for a tolerance run when the hand-eye's honest
-1-σ (what a calibration of the stations so far reports, ``calib.calibrate_stations`` with its
+1-σ (what a calibration of the stations so far reports, ``calib.calibrate`` with its
 jackknife floor) is within tolerance in rotation and translation, or at ``max_stations``, or
 when no feasible view remains. The run's ``cold_start`` column holds the rule, the progress
 and the σ history; each σ is also a ``sigma`` event. Stations already stored are replayed into
@@ -29,13 +29,12 @@ from calib import (
     ColdStart,
     ColdStartScene,
     Guess,
-    PipelineOptions,
     Proposal,
     Station,
-    StationInputs,
+    Stations,
     View,
     board_from_target,
-    calibrate_stations,
+    calibrate,
     camera_position,
     hand_eye_sigma,
     matrix_from_ur_pose,
@@ -240,12 +239,8 @@ class ColdStartCapture(Capture):
         """The hand-eye σ a calibration of the good stations reports (root-sum-square over
         the axes), or None when they cannot be calibrated yet."""
         assert self.board is not None
-        size = next(s.image_size for s in good if s.image_size is not None)
         try:
-            result = calibrate_stations(StationInputs(
-                [s.detection for s in good], [s.T_base_tcp for s in good],
-                ids=[s.id for s in good], image_size=size), self.board,
-                PipelineOptions(setup=self.setup))
+            result = calibrate(Stations(self.setup, tuple(good), self.board.target()))
         except ValueError as exc:
             log.info("run %s: no honest σ yet after %d stations (%s)", self.run_id, len(good),
                      exc)

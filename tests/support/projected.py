@@ -10,12 +10,12 @@ import numpy as np
 from calib import (
     Checkerboard,
     Pinhole,
-    PipelineOptions,
+    SolverOptions,
     StationInputs,
-    calibrate_stations,
     perturb,
     ur_pose_from_matrix,
 )
+from calib.pipeline import calibrate_stations
 from mocks.scene import Noise, Target, camera_pose_for_tcp, default_scene, sample_station_poses
 
 ROT, TRANS = np.deg2rad(0.05), 0.25e-3
@@ -44,9 +44,9 @@ def stations(kappa: float = 1.0, n: int = 16, seed: int = 3, pixel_noise: float 
     return corners, ur_pose_from_matrix(P).tolist()
 
 
-def calibrate(true_kappa: float = 1.0, **options):
+def calibrate(true_kappa: float = 1.0, setup: str = "eye_in_hand", **options):
     corners, poses = stations(true_kappa)
     sc = scene(true_kappa)
     return calibrate_stations(
-        StationInputs(corners, poses, image_size=tuple(sc.camera.image_size)), BOARD,
-        PipelineOptions(**options))
+        StationInputs(corners, poses, image_size=tuple(sc.camera.image_size), setup=setup),
+        BOARD, SolverOptions(**options))

@@ -4,6 +4,7 @@ detections and calibration, and station-set directories written from them."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from functools import cache
 
 import cv2
@@ -11,7 +12,8 @@ import numpy as np
 
 from calib.boards import Checkerboard, Detection, detect_checkerboard
 from calib.geometry import perturb, ur_pose_from_matrix
-from calib.pipeline import PipelineOptions, StationInputs, calibrate_stations
+from calib.options import SolverOptions
+from calib.pipeline import StationInputs, calibrate_stations
 from mocks.render import render_board
 from mocks.scene import Noise, camera_pose_for_tcp, default_scene, sample_station_poses
 
@@ -44,8 +46,10 @@ TARGET = Checkerboard(BOARD, SQUARE)
 
 
 def calibrate_set(inputs: StationInputs, board: Checkerboard = TARGET, **options):
-    """``calibrate_stations`` with the options as plain arguments."""
-    return calibrate_stations(inputs, board, PipelineOptions(**options))
+    """``calibrate_stations`` with the options (and ``setup``) as plain arguments."""
+    if "setup" in options:
+        inputs = replace(inputs, setup=options.pop("setup"))
+    return calibrate_stations(inputs, board, SolverOptions(**options))
 
 
 def calibrate(observations, poses, *, intrinsics=None, **options):
