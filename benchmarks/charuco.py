@@ -15,7 +15,7 @@ each; the figure is the median over images of the ratio.
 κ 1.004, ν 0.998; robot readings 0.05 deg / 0.25 mm as in ``benchmarks.kappa_nu``). Per seed, 15
 stations of which 40 % cut the board at an image corner (``StationSpread.cut_fraction``), every
 image rendered (``mocks.render``, blur 0.7 px, noise 2 grey levels) and read by
-``Charuco.detect``; ``calibrate_stations`` (the default, joint ML with κ, ν) on them gives
+``Charuco.detect``; ``calibrate`` (the default, joint ML with κ, ν) on them gives
 
 - κ and ν against the truth (targets 1e-3 and 2e-4 on every seed);
 - the hand-eye error against the Cramér-Rao bound of the same stations and corners
@@ -50,13 +50,13 @@ import numpy as np
 
 from benchmarks.kappa_nu import bench_scene, corner_noise, rendered_station_set, scene_bound
 from benchmarks.real_cv import StationData, cross_validate, cv_rms
+from benchmarks.stationset import station_set
 from calib import (
     CalibrationResult,
     Charuco,
     Detection,
     Pinhole,
-    StationInputs,
-    calibrate_stations,
+    calibrate,
     cuts_board_at_corner,
     image_corner_error,
     pose_error,
@@ -186,8 +186,8 @@ class RenderedSet:
 
     def calibrate(self, scene: MockScene) -> CalibrationResult:
         """cellcal's default calibration of the set."""
-        return calibrate_stations(StationInputs(self.detections, ur_pose_from_matrix(
-            self.T_base_tcp), image_size=scene.camera.image_size), scene_board(scene))
+        return calibrate(station_set(self.detections, ur_pose_from_matrix(self.T_base_tcp),
+                                     scene_board(scene), image_size=scene.camera.image_size))
 
 
 def rendered_set(scene: MockScene, seed: int, spread: StationSpread) -> RenderedSet:

@@ -10,7 +10,7 @@ cell:
 
 * **cold start**: ``calib.ColdStart`` with the tolerance 0.5 mm / 0.05° and at most 40
   stations, as ``POST /runs {"tolerance_mm": 0.5, "tolerance_deg": 0.05}`` runs it. The honest
-  σ (``calibrate_stations``: the σ a result reports, jackknife floor included; root-sum-square
+  σ (``calibrate``: the σ a result reports, jackknife floor included; root-sum-square
   over the axes) is computed after a station once the planner's formal σ is within 1.3x the
   tolerance (the honest σ is never below the formal one, so an earlier stop is impossible;
   the service computes it after every station from the 8th);
@@ -44,17 +44,16 @@ import matplotlib
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from benchmarks.stationset import station_set
 from calib import (
     CellGuess,
     ColdStart,
     ColdStartScene,
     Pinhole,
-    PipelineOptions,
     PlanOptions,
-    StationInputs,
     View,
     board_from_target,
-    calibrate_stations,
+    calibrate,
     camera_from_robot,
     hand_eye_sigma,
     make_transform,
@@ -104,10 +103,10 @@ def _calibrate(shots: list[Shot], cell: CornerCell, out: Outcome) -> bool:
     """Calibrate the good shots; fill the outcome's error and σ. False if it fails."""
     scene = cell.scene
     try:
-        res = calibrate_stations(StationInputs(
+        res = calibrate(station_set(
             [s.corners for s in shots], [ur_pose_from_matrix(s.T_base_tcp) for s in shots],
-            image_size=scene.camera.image_size), board_from_target(scene.nominal_target()),
-            PipelineOptions(setup=scene.setup))
+            board_from_target(scene.nominal_target()), image_size=scene.camera.image_size,
+            setup=scene.setup))
     except ValueError:
         return False
     rot, trans = pose_error(res.hand_eye, scene.hand_eye_matrix)

@@ -26,6 +26,7 @@ import matplotlib
 import numpy as np
 from tqdm import tqdm
 
+from benchmarks.stationset import station_set
 from calib import (
     OPENCV_HAND_EYE_METHODS,
     Board,
@@ -34,10 +35,9 @@ from calib import (
     Detection,
     JointOptions,
     RobotNoise,
-    StationInputs,
     board_points,
+    calibrate,
     calibrate_hand_eye,
-    calibrate_stations,
     camera_from_robot,
     cramer_rao_bound,
     detect_checkerboard,
@@ -186,8 +186,8 @@ def comparison(seeds: int, stations: int = 15) -> dict[str, np.ndarray]:
         dets = [detect_checkerboard(im, t.inner_corners) for im in images]
         ok = [d for d in dets if d.ok]
         sigma_px = corner_noise(scene, dets, camera_pose_for_tcp(scene, P_true))
-        ours = calibrate_stations(
-            StationInputs(dets, ur_pose_from_matrix(P), image_size=cam.image_size), board)
+        ours = calibrate(station_set(dets, ur_pose_from_matrix(P), board,
+                                     image_size=cam.image_size))
         _, _, _, rv, tv = cv2.calibrateCamera(
             [grid_nominal] * len(ok), [d.corners.astype(np.float32) for d in ok],
             tuple(cam.image_size), None, None)

@@ -13,7 +13,7 @@ from its robot pose alone, ``cam_T_target = inv(X) inv(P_k) Y``, with the fold's
 detected corners (cellcal's detections, the common reference); the figure of a method is the
 RMS over stations of those per-station errors.
 
-- ``cellcal`` — the default pipeline (``calibrate_stations``, joint ML with κ, ν);
+- ``cellcal`` — the default pipeline (``calibrate``, joint ML with κ, ν);
 - ``opencv-<m>`` — OpenCV's pipeline: ``findChessboardCornersSB`` (NORMALIZE | EXHAUSTIVE |
   ACCURACY, or the default flags where those find nothing, as on most KUKA images; its
   corners put in cellcal's corner order so the origin is consistent — a favour to the peer),
@@ -25,7 +25,7 @@ Uncertainty: cellcal's reported 1σ of the hand-eye (full set) against the delet
 jackknife spread of the k fold estimates, ``sqrt((k-1)/k Σ (θ_i - θ̄)²)`` per axis.
 
 Intrinsics only (``opencv-left``): k-fold over images; the fold's camera model (cellcal's
-``calibrate_stations`` without robot poses, or ``calibrateCamera``) and a held-out image's pose
+``calibrate`` without robot poses, or ``calibrateCamera``) and a held-out image's pose
 from ``solvePnP`` on half of its corners (the (i + j) even checkerboard half) predict the other
 half; the figure is the RMS over images of those errors.
 
@@ -53,12 +53,14 @@ import matplotlib
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from benchmarks.stationset import station_set
 from calib.boards import Board, Checkerboard, Detection, detect_checkerboard
+from calib.calibration import calibrate
 from calib.chain import camera_from_robot
 from calib.geometry import check_ur_poses, make_transform
+from calib.options import SolverOptions
 from calib.peers import solve_opencv
-from calib.pipeline import CalibrationResult, PipelineOptions, calibrate_stations
-from calib.stations import StationInputs
+from calib.pipeline import CalibrationResult
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -200,8 +202,8 @@ def fit_cellcal(data: StationData, train: np.ndarray):
     poses = None if data.T_base_tcp is None else [
         np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
         for T in data.T_base_tcp[train]]
-    res = calibrate_stations(
-        StationInputs(data.observations(train), poses, image_size=data.image_size), data.target)
+    res = calibrate(station_set(data.observations(train), poses, data.target,
+                                image_size=data.image_size))
     grid = data.target.points(kappa=res.kappa, nu=res.nu)
     return Fit(res.K, res.dist, grid, res.hand_eye, res.target_pose, res.robot_map), res
 
@@ -332,10 +334,9 @@ def measured_board_check(data: StationData, auto: CalibrationResult) -> dict:
     entered = round(measured, 3)  # what a calliper gives
     poses = [np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
              for T in data.T_base_tcp]
-    fixed = calibrate_stations(StationInputs(data.observations(np.arange(len(poses))), poses,
-                                             image_size=data.image_size),
-                               replace(data.target, square_size=entered),
-                               PipelineOptions(kappa="fixed"))
+    fixed = calibrate(station_set(data.observations(np.arange(len(poses))), poses,
+                                  replace(data.target, square_size=entered),
+                                  image_size=data.image_size), SolverOptions(kappa="fixed"))
     d = _delta(fixed.hand_eye, auto.hand_eye)
     out.update(entered_square_m=entered, fixed_kappa=fixed.kappa,
                fixed_vs_auto_rot_rad=float(np.linalg.norm(d[:3])),

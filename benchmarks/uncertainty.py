@@ -33,7 +33,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from calib import Checkerboard, PipelineOptions, StationInputs, calibrate_stations
+from benchmarks.stationset import station_set
+from calib import Checkerboard, calibrate
 from mocks.cornersim import simulate_corners
 from mocks.scene import MockScene, load_scene
 
@@ -61,10 +62,9 @@ def monte_carlo(scene: MockScene, seeds: int, n: int = 20) -> dict[str, np.ndarr
     for seed in tqdm(range(seeds), desc=label, leave=False):
         rng = np.random.default_rng(1000 + seed)
         corners, poses = simulate_corners(scene, n, rng, PIXEL_NOISE)
-        r = calibrate_stations(
-            StationInputs(corners, poses, image_size=tuple(scene.camera.image_size)),
-            Checkerboard(tuple(t.inner_corners), t.square_size_m),
-            PipelineOptions(setup=scene.setup))
+        r = calibrate(station_set(corners, poses,
+                                  Checkerboard(tuple(t.inner_corners), t.square_size_m),
+                                  image_size=scene.camera.image_size, setup=scene.setup))
         u = r.trust.uncertainty
         out["rot"].append(Rotation.from_matrix(r.hand_eye[:3, :3] @ X_true[:3, :3].T)
                           .as_rotvec())

@@ -207,14 +207,20 @@ def _detect(obs: Observation, board: Board) -> tuple[Detection, tuple[int, int] 
         return obs, None
     arr = np.asarray(obs)
     if arr.ndim == 2 and arr.shape[1] == 2 and np.issubdtype(arr.dtype, np.floating):
-        n_board = len(board.point_ids)
-        if len(arr) != n_board or not np.isfinite(arr).all():
-            return Detection(ok=False, reason=(
-                f"{len(arr)} corners given, the board has {n_board} (or some are not "
-                "finite); give a detection with point ids for a partial view")), None
-        return Detection(ok=True, corners=arr.astype(float), ids=board.point_ids), None
+        return whole_board_detection(arr, board), None
     shape = (arr.shape[1], arr.shape[0]) if arr.ndim >= 2 else None
     return board.detect(arr), shape
+
+
+def whole_board_detection(corners: np.ndarray, board: Board) -> Detection:
+    """Corners (N, 2) of every point of ``board``, in the order of its point ids, as a
+    detection; a rejection when they are not all there or not finite."""
+    n_board = len(board.point_ids)
+    if len(corners) != n_board or not np.isfinite(corners).all():
+        return Detection(ok=False, reason=(
+            f"{len(corners)} corners given, the board has {n_board} (or some are not "
+            "finite); give a detection with point ids for a partial view"))
+    return Detection(ok=True, corners=np.asarray(corners, dtype=float), ids=board.point_ids)
 
 
 def check_intrinsics(K: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
