@@ -18,6 +18,7 @@ from pathlib import Path
 from service.cli import client
 from service.cli.exit_codes import EXIT_FAILED
 from service.exports import FORMATS
+from service.results.schema import Result
 
 _COLUMNS = ["id", "run_id", "state", "verdict", "rms_px", "active", "method", "created_at"]
 
@@ -64,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _list(service: client.Service, args: argparse.Namespace) -> None:
-    page = service.get("/calibrations", run_id=args.run_id, state=args.state,
+    page = service.fetch("/calibrations", run_id=args.run_id, state=args.state,
                        setup=args.setup, limit=args.limit)
     client.print_table(page["items"], _COLUMNS)
 
@@ -84,12 +85,12 @@ def _start(service: client.Service, args: argparse.Namespace) -> int:
         return 0
     final = client.follow(service, f"/calibrations/{cal_id}/events", total=None, unit="station",
                    progress=_detected)
-    if final["state"] != "done":
-        print(f"calibration {cal_id}: {final['state']} ({final.get('error')})", file=sys.stderr)
+    if final.state != "done":
+        print(f"calibration {cal_id}: {final.state} ({final.error})", file=sys.stderr)
         return EXIT_FAILED
-    result = service.get(f"/calibrations/{cal_id}")["result"]
-    verdict = (result.get("quality") or {}).get("verdict")
-    rms = (result.get("camera") or {}).get("rms_px")
+    result = Result.model_validate(service.fetch(f"/calibrations/{cal_id}")["result"])
+    verdict = None if result.quality is None else result.quality.verdict
+    rms = None if result.camera is None else result.camera.rms_px
     print(f"calibration {cal_id}: done, verdict {verdict}, rms "
           f"{'-' if rms is None else f'{rms:.3f}'} px", file=sys.stderr)
     return 0
@@ -118,10 +119,11 @@ def _export(service: client.Service, args: argparse.Namespace) -> None:
 #: Each action's handler: (service, args) -> exit status (None: 0).
 _ACTIONS: dict[str, Callable[[client.Service, argparse.Namespace], int | None]] = {
     "list": _list,
-    "show": lambda service, args: client.print_json(service.get(f"/calibrations/{args.cal_id}")),
+    "show": lambda service, args: client.print_json(
+        service.fetch(f"/calibrations/{args.cal_id}")),
     "start": _start,
     "activate": _activate,
-    "active": lambda service, args: client.print_json(service.get("/calibrations/active",
-                                                           robot=args.robot)),
+    "active": lambda service, args: client.print_json(
+        service.fetch("/calibrations/active", robot=args.robot)),
     "export": _export,
 }

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import httpx
+from pydantic import BaseModel, ValidationError
 from tqdm import tqdm
 
 from service.cli.errors import ServiceCallError
@@ -24,6 +25,25 @@ DEFAULT_URL = "http://127.0.0.1:8000"
 MAX_RECONNECTS = 5
 #: Seconds an event stream may stay silent: the service sends a keep-alive every 15 s.
 STREAM_READ_TIMEOUT_S = 60.0
+
+
+class Problem(BaseModel):
+    """What went wrong, as the service says it: an error answer's ``{"detail", "code"}``
+    (``service.api.openapi.ErrorBody``), a failed run's error, the ``shutdown`` event."""
+
+    detail: str
+    code: str = "error"
+
+
+class StateEvent(BaseModel):
+    """The data of a stream's ``state`` event (``service.events.state_event``): the state; a
+    run's station counts, stop reason and error, a calibration's or validation's error."""
+
+    state: str
+    error: Problem | str | None = None
+    stations_captured: int = 0
+    stations_skipped: int = 0
+    stop_reason: str | None = None
 
 
 @dataclass(frozen=True)
@@ -38,9 +58,9 @@ class Event:
 
 def add_connection_arguments(parser: argparse.ArgumentParser) -> None:
     """``--url`` and ``--api-key``, defaulting to ``CELLCAL_URL`` and ``CELLCAL_API_KEY``."""
-    parser.add_argument("--url", default=os.environ.get("CELLCAL_URL", DEFAULT_URL),
+    parser.add_argument("--url", default=os.getenv("CELLCAL_URL", DEFAULT_URL),
                         help=f"the service (default: CELLCAL_URL or {DEFAULT_URL})")
-    parser.add_argument("--api-key", default=os.environ.get("CELLCAL_API_KEY"),
+    parser.add_argument("--api-key", default=os.getenv("CELLCAL_API_KEY"),
                         help="the service's API key (default: CELLCAL_API_KEY)")
 
 
@@ -82,7 +102,7 @@ class Service:
             raise ServiceCallError(describe_error(r))
         return r
 
-    def get(self, path: str, **params: Any) -> Any:
+    def fetch(self, path: str, **params: Any) -> Any:
         """GET ``path`` as JSON (parameters that are None left out)."""
         return self.call("GET", path, params={k: v for k, v in params.items()
                                                if v is not None}).json()
@@ -108,8 +128,7 @@ class Service:
                         raise ServiceCallError(describe_error(r))
                     for event in parse_events(r.iter_lines()):
                         if event.type == "shutdown":
-                            raise ServiceCallError(str(event.data.get("detail", "the service "
-                                                                      "is shutting down")))
+                            raise ServiceCallError(Problem.model_validate(event.data).detail)
                         last, failures = event.id, 0
                         yield event
                 return
@@ -130,9 +149,9 @@ class Service:
 def describe_error(r: httpx.Response) -> str:
     """An error answer in one line: the service's detail, the status and the code."""
     try:
-        body = r.json()
-        detail, code = str(body["detail"]), str(body.get("code", "error"))
-    except (ValueError, KeyError, TypeError):
+        problem = Problem.model_validate_json(r.content)
+        detail, code = problem.detail, problem.code
+    except ValidationError:
         detail, code = (r.text.strip().splitlines() or [r.reason_phrase])[0], "error"
     text = f"{detail} (HTTP {r.status_code} {code})"
     if r.status_code == 401:
@@ -141,20 +160,26 @@ def describe_error(r: httpx.Response) -> str:
 
 
 def parse_events(lines: Iterator[str]) -> Iterator[Event]:
-    """Server-sent events from the lines of a ``text/event-stream`` (comments skipped)."""
-    fields: dict[str, str] = {}
+    """Server-sent events from the lines of a ``text/event-stream`` (comments and fields other
+    than ``id``, ``event`` and ``data`` skipped)."""
+    event_id: int | None = None
+    kind, data = "message", None
     for line in lines:
         if line.startswith(":"):
             continue
         if line:
             key, _, value = line.partition(":")
-            fields[key] = value.removeprefix(" ")
+            value = value.removeprefix(" ")
+            if key == "id":
+                event_id = int(value)
+            elif key == "event":
+                kind = value
+            elif key == "data":
+                data = value
             continue
-        if "data" in fields:
-            yield Event(id=int(fields["id"]) if "id" in fields else None,
-                        type=fields.get("event", "message"),
-                        data=json.loads(fields["data"]))
-        fields = {}
+        if data is not None:
+            yield Event(id=event_id, type=kind, data=json.loads(data))
+        event_id, kind, data = None, "message", None
 
 
 #: What a stream's event says of the work done: (count done, count in all or None).
@@ -162,11 +187,11 @@ Progress = Callable[[Event], "tuple[int, int | None] | None"]
 
 
 def follow(service: Service, path: str, *, total: int | None, unit: str,
-           progress: Progress = lambda event: None) -> dict[str, Any]:
+           progress: Progress = lambda event: None) -> StateEvent:
     """Follow an event stream with a progress bar on stderr (elapsed time, the count
     ``progress(event)`` says is done, None: no change, and the latest message or state)
-    until the service ends the stream; the data of the last ``state`` event."""
-    final: dict[str, Any] | None = None
+    until the service ends the stream; its last ``state`` event."""
+    final: StateEvent | None = None
     with tqdm(total=total or None, unit=unit, file=sys.stderr, dynamic_ncols=True,
               leave=True) as bar:
         for event in service.events(path):
@@ -178,8 +203,8 @@ def follow(service: Service, path: str, *, total: int | None, unit: str,
             if "message" in event.data:
                 bar.set_postfix_str(str(event.data["message"]))
             if event.type == "state":
-                bar.set_postfix_str(str(event.data.get("state")))
-                final = event.data
+                final = StateEvent.model_validate(event.data)
+                bar.set_postfix_str(final.state)
     if final is None:
         raise ServiceCallError(f"the event stream {path} ended without a state")
     return final
@@ -198,8 +223,9 @@ def _cell(value: Any) -> str:
 
 
 def print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:
-    """Rows as a plain text table on stdout (None shown as -, numbers with 3 decimals)."""
-    cells = [[_cell(row.get(c)) for c in columns] for row in rows]
+    """Rows (a listing's JSON items, each with every column) as a plain text table on stdout
+    (None shown as -, numbers with 3 decimals)."""
+    cells = [[_cell(row[c]) for c in columns] for row in rows]
     widths = [max([len(c), *(len(r[i]) for r in cells)]) for i, c in enumerate(columns)]
     for line in ([columns, *cells]):
         sys.stdout.write("  ".join(v.ljust(w) for v, w in zip(line, widths, strict=True))

@@ -51,10 +51,12 @@ def read_result(path: str) -> Result:
         doc = json.loads(file.read_bytes())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ValueError(f"{path}: not JSON ({exc})") from None
-    if not isinstance(doc, dict) or doc.get("format") != "cellcal/result@1":
-        raise ValueError(f"{path}: not a cellcal result (expected \"format\": "
-                         "\"cellcal/result@1\")")
-    return parse_result(doc, path)
+    match doc:
+        case {"format": "cellcal/result@1"}:
+            return parse_result(doc, path)
+        case _:
+            raise ValueError(f"{path}: not a cellcal result (expected \"format\": "
+                             "\"cellcal/result@1\")")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -55,7 +55,7 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version",
                         version=f"cellcal {software_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    wanted = COMMANDS.get(given or "", ("", ""))[0]
+    wanted = COMMANDS[given][0] if given in COMMANDS else ""
     for name, (module_name, help_line) in COMMANDS.items():
         if module_name != wanted:
             sub.add_parser(name, help=help_line)
@@ -77,7 +77,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return func(args)
     except (ValueError, DeviceError, OSError, ServiceCallError) as exc:
-        if os.environ.get("CELLCAL_DEBUG"):
+        if os.getenv("CELLCAL_DEBUG"):
             raise
         print(f"cellcal: error: {exc}", file=sys.stderr)
         return EXIT_USAGE if isinstance(exc, ValueError) else EXIT_FAILED
@@ -85,7 +85,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("cellcal: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except Exception as exc:  # last line of defence: never show a traceback
-        if os.environ.get("CELLCAL_DEBUG"):
+        if os.getenv("CELLCAL_DEBUG"):
             raise
         print(f"cellcal: internal error ({type(exc).__name__}: {exc}); "
               "rerun with CELLCAL_DEBUG=1 and report it", file=sys.stderr)

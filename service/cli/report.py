@@ -15,6 +15,10 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from service.stationsets.format import StationSet
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -42,15 +46,24 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.result}: cannot read ({exc.strerror or exc})") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ValueError(f"{args.result}: not valid JSON ({exc})") from None
-    if not isinstance(doc, dict) or doc.get("format") != "cellcal/result@1":
-        raise ValueError(f"{args.result}: not a cellcal result (format cellcal/result@1)")
+    match doc:
+        case {"format": "cellcal/result@1"}:
+            pass
+        case _:
+            raise ValueError(f"{args.result}: not a cellcal result (format cellcal/result@1)")
     out = args.out or args.result.with_suffix(".html")
     if args.pdf and not chromium():
         print("cellcal: error: --pdf needs chromium (Debian/Ubuntu: apt install chromium); "
               "the HTML report prints on A4 from any browser", file=sys.stderr)
         return 1
-    images = station_images(args.stations) if args.stations else None
-    identity = station_set_identity(args.stations, images) if args.stations else None
+    images = identity = None
+    if args.stations:
+        from service.stationsets.format import load_station_set
+
+        stations = load_station_set(args.stations)
+        images = {s.id: args.stations / s.image for s in stations.stations
+                  if s.image is not None}
+        identity = station_set_identity(args.stations, stations, images)
     out.write_text(render_report(doc, images, identity))
     print(f"wrote {out}", file=sys.stderr)
     if args.pdf:
@@ -60,28 +73,19 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def station_images(directory: Path) -> dict[str, Path]:
-    """Station id -> image file of the station set in ``directory`` (its stations.json);
-    ValueError (one line) when it is not one."""
-    index = directory / "stations.json"
-    try:
-        doc = json.loads(index.read_text())
-        return {str(s["id"]): directory / s["image"] for s in doc["stations"] if s.get("image")}
-    except OSError as exc:
-        raise ValueError(f"{index}: cannot read ({exc.strerror or exc})") from None
-    except (ValueError, KeyError, TypeError) as exc:
-        raise ValueError(f"{index}: not a station set ({exc})") from None
-
-
-def station_set_identity(directory: Path, images: dict[str, Path]) -> dict[str, str]:
+def station_set_identity(directory: Path, stations: StationSet,
+                         images: dict[str, Path]) -> dict[str, str]:
     """The board, the station count and the input checksum of the station set in
-    ``directory`` (see :func:`station_set_sha256`)."""
+    ``directory`` (see :func:`station_set_sha256`), whose ``images`` are in the order
+    stations.json names them."""
+    from calib import TargetAdapter
     from service.stationsets.format import station_set_sha256
 
     index = directory / "stations.json"
-    doc = json.loads(index.read_text())
-    return {"board": json.dumps(doc.get("target"), sort_keys=True),
-            "stations": f"{len(doc.get('stations') or [])} in {directory.resolve()}",
+    board = None if stations.target is None else TargetAdapter.dump_python(stations.target,
+                                                                           mode="json")
+    return {"board": json.dumps(board, sort_keys=True),
+            "stations": f"{len(stations.stations)} in {directory.resolve()}",
             "input_sha256": station_set_sha256(index.read_bytes(), images.values())}
 
 

@@ -68,9 +68,9 @@ def run(args: argparse.Namespace) -> int:
     if args.action == "start":
         return _start(service, args)
     if args.action == "list":
-        client.print_table(service.get("/runs", limit=args.limit), _COLUMNS)
+        client.print_table(service.fetch("/runs", limit=args.limit), _COLUMNS)
     elif args.action == "show":
-        client.print_json(service.get(f"/runs/{args.run_id}"))
+        client.print_json(service.fetch(f"/runs/{args.run_id}"))
     else:  # pause, resume, cancel: the run's new state
         print(f"run {args.run_id}: {service.post(f'/runs/{args.run_id}/{args.action}')['state']}")
     return 0
@@ -98,16 +98,15 @@ def _start(service: client.Service, args: argparse.Namespace) -> int:
     print(run_id)
     if not args.wait:
         return 0
-    planned = service.get(f"/runs/{run_id}")["stations_planned"]
+    planned = service.fetch(f"/runs/{run_id}")["stations_planned"]
     final = client.follow(service, f"/runs/{run_id}/events", total=planned, unit="station",
-                   progress=StationCount())
-    error = final.get("error") or {}
-    stop = final.get("stop_reason")
-    print(f"run {run_id}: {final['state']}, {final['stations_captured']} captured, "
-          f"{final['stations_skipped']} skipped"
-          + (f", stopped: {stop}" if stop else "")
-          + (f" ({error['detail']})" if error.get("detail") else ""), file=sys.stderr)
-    return 0 if final["state"] == "done" else EXIT_FAILED
+                          progress=StationCount())
+    error = final.error.detail if isinstance(final.error, client.Problem) else final.error
+    print(f"run {run_id}: {final.state}, {final.stations_captured} captured, "
+          f"{final.stations_skipped} skipped"
+          + (f", stopped: {final.stop_reason}" if final.stop_reason else "")
+          + (f" ({error})" if error else ""), file=sys.stderr)
+    return 0 if final.state == "done" else EXIT_FAILED
 
 
 def _read_target(value: str) -> dict[str, Any]:
@@ -133,8 +132,8 @@ class StationCount:
 
     def __call__(self, event: client.Event) -> tuple[int, int | None] | None:
         if event.type == "state":
-            self.done = int(event.data["stations_captured"]) + \
-                int(event.data["stations_skipped"])
+            state = client.StateEvent.model_validate(event.data)
+            self.done = state.stations_captured + state.stations_skipped
         elif event.type == "station":
             self.done += 1
         else:
