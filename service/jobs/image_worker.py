@@ -24,12 +24,11 @@ import concurrent.futures as cf
 import resource
 import threading
 from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
 
-from calib import Detection, Target, TargetAdapter, board_from_target
+from calib import Detection, Target, board_from_target
 from service.api.guard import PayloadTooLargeError
 from service.errors import UnprocessableError
 from service.jobs.workers import WorkerPool
@@ -77,19 +76,30 @@ def check_pixels(data: bytes, max_pixels: int) -> None:
             f"{max_pixels / 1e6:g} MP allowed (CELLCAL_MAX_IMAGE_PIXELS); nothing was stored.")
 
 
-def develop(data: bytes, target: dict[str, Any], max_pixels: int, cpu_s: float) -> Developed:
-    """Worker entry: decode ``data`` and search it for the board ``target`` (JSON), within
-    ``cpu_s`` more seconds of CPU (the kernel ends the worker beyond)."""
+@dataclass(frozen=True)
+class ImageJob:
+    """One posted image as a worker process receives it (pickled): the encoded ``data``, the
+    run's board ``target``, the pixel limit and the CPU budget (seconds) of its search."""
+
+    data: bytes
+    target: Target
+    max_pixels: int
+    cpu_s: float
+
+
+def develop(job: ImageJob) -> Developed:
+    """Worker entry: decode the job's image and search it for its board, within ``cpu_s``
+    more seconds of CPU (the kernel ends the worker beyond)."""
     used = resource.getrusage(resource.RUSAGE_SELF)
-    soft = int(used.ru_utime + used.ru_stime + cpu_s) + 1
+    soft = int(used.ru_utime + used.ru_stime + job.cpu_s) + 1
     resource.setrlimit(resource.RLIMIT_CPU, (soft, resource.RLIM_INFINITY))
     try:
-        image = decode_image_bytes(data, "image", max_pixels=max_pixels)
+        image = decode_image_bytes(job.data, "image", max_pixels=job.max_pixels)
     except ImageFileError as exc:
         return Developed(problem=f"{exc}.")
     except MemoryError:
         return Developed(out_of_memory=True)
-    board = board_from_target(TargetAdapter.validate_python(target))
+    board = board_from_target(job.target)
     try:
         return Developed(image=image, detection=board.detect(image))
     except MemoryError:
@@ -112,7 +122,8 @@ class ImageWorkers:
         """Decode and search ``data`` (whose header ``check_pixels`` passed) in a worker; 413
         if it needs more memory than a worker has, 422 if it runs out of its CPU budget."""
         settings = self.settings
-        future = self._submit(data, target.model_dump(mode="json"))
+        future = self._submit(ImageJob(data, target, settings.max_image_pixels,
+                                       settings.image_cpu_s))
         try:
             developed: Developed = future.result()
         except cf.process.BrokenProcessPool:
@@ -127,14 +138,13 @@ class ImageWorkers:
                 "(CELLCAL_IMAGE_WORKER_MEMORY_MB); nothing was stored.")
         return developed
 
-    def _submit(self, data: bytes, target: dict[str, Any]) -> cf.Future[Developed]:
+    def _submit(self, job: ImageJob) -> cf.Future[Developed]:
         with self._lock:
             if self._pool is None:
                 self._pool = WorkerPool(WORKERS, lambda message: None,
                                         memory_bytes=self.settings.image_worker_memory_mb
                                         * 2**20)
-            return self._pool.submit(develop, data, target, self.settings.max_image_pixels,
-                                     self.settings.image_cpu_s)
+            return self._pool.submit(develop, job)
 
     def _discard(self) -> None:
         """Drop a broken pool; the next image starts a new one."""

@@ -86,7 +86,8 @@ class ColdStartCapture(Capture):
         run = s.get(RunRecord, self.run_id)
         if run is None or run.owner != self.token or run.state != "capturing":
             return None
-        self.board = board_from_target(run_target(run))
+        self.target = run_target(run)
+        self.board = board_from_target(self.target)
         self.setup = run.setup
         rows = queries.list_stations(s, run_id=self.run_id)
         return dict(run.cold_start or {}), [(row.target_pose, station_of(row)) for row in rows]
@@ -238,9 +239,8 @@ class ColdStartCapture(Capture):
     def _honest_sigma(self, good: list[Station]) -> dict[str, Any] | None:
         """The hand-eye σ a calibration of the good stations reports (root-sum-square over
         the axes), or None when they cannot be calibrated yet."""
-        assert self.board is not None
         try:
-            result = calibrate(Stations(self.setup, tuple(good), self.board.target()))
+            result = calibrate(Stations(self.setup, tuple(good), self.target))
         except ValueError as exc:
             log.info("run %s: no honest σ yet after %d stations (%s)", self.run_id, len(good),
                      exc)
