@@ -143,12 +143,14 @@ def test_demo_runs(capsys):
 
 def test_verdict_line_gives_the_honest_figure_and_names_dropped_stations():
     from service.cli.calibrate import verdict_line
+    from service.results.schema import CrossValidationBlock, QualityBlock
     stations = [{"id": f"{k:02d}"} for k in range(5)]
-    cv = {"kind": "k-fold", "rms_px": 2.07, "rms_mm": 1.1, "kept_rms_px": 0.48,
+    cv = {"kind": "k-fold", "folds": 5, "rms_px": 2.07, "rms_mm": 1.1, "kept_rms_px": 0.48,
           "dropped": ["01", "03"], "stations": stations}
-    doc = {"cross_validation": cv, "quality": {"verdict": "warn", "findings": []}}
-    assert verdict_line(doc) == (
+    quality = QualityBlock(verdict="warn")
+    assert verdict_line(quality, CrossValidationBlock.model_validate(cv)) == (
         "cellcal: verdict warn: cross-validated error 2.07 px (1.10 mm at the board), k-fold "
         "over 5 stations; 0.48 px over the 3 kept stations, dropped as outliers: 01, 03")
     cv.update(dropped=[], kept_rms_px=2.07)
-    assert verdict_line(doc).endswith("k-fold over 5 stations")
+    assert verdict_line(quality, CrossValidationBlock.model_validate(cv)).endswith(
+        "k-fold over 5 stations")

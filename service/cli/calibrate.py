@@ -39,7 +39,7 @@ from calib import (
     calibrate,
 )
 from service.cli.exit_codes import EXIT_VERDICT_FAIL
-from service.results.document import cv_dropped_clause
+from service.results.schema import CrossValidationBlock, QualityBlock, parse_result
 from service.stationsets.format import DEFAULT_MAX_STATIONS, load_station_set
 from service.stationsets.images import DEFAULT_MAX_PIXELS, read_station_image
 
@@ -86,16 +86,16 @@ def run(args: argparse.Namespace) -> int:
                        progress=_progress_bar(len(stations.stations)))
     doc = _document(result, " ".join(["cellcal", *sys.argv[1:]]))
     text = json.dumps(doc, indent=2)
-    for rejected in doc.get("rejected") or []:
-        print(f"cellcal: station {rejected['id']} rejected: {rejected['reason']}",
-              file=sys.stderr)
-    print(verdict_line(doc), file=sys.stderr)
+    written = parse_result(doc)
+    for rejected in written.rejected or []:
+        print(f"cellcal: station {rejected.id} rejected: {rejected.reason}", file=sys.stderr)
+    print(verdict_line(written.quality, written.cross_validation), file=sys.stderr)
     if args.out in (None, "-"):
         print(text)
     else:
         Path(args.out).write_text(text + "\n")
         print(f"wrote {args.out}", file=sys.stderr)
-    failed = (doc.get("quality") or {}).get("verdict") == "fail"
+    failed = written.quality is not None and written.quality.verdict == "fail"
     return EXIT_VERDICT_FAIL if failed else 0
 
 
@@ -125,21 +125,20 @@ def check_out_path(out: str) -> None:
         raise ValueError(f"--out {out}: the directory {directory} is not writable")
 
 
-def verdict_line(doc: dict[str, Any]) -> str:
-    """One line for people: the verdict, the cross-validated error and the findings' codes."""
-    quality = doc.get("quality") or {"verdict": "pass", "findings": []}
-    cv = doc.get("cross_validation")
+def verdict_line(quality: QualityBlock | None, cv: CrossValidationBlock | None) -> str:
+    """One line for people: the verdict (pass when there is none), the cross-validated error
+    and the findings' codes."""
+    quality = quality or QualityBlock(verdict="pass")
     if cv is None:
         figure = "no cross-validation (no robot poses)"
-    elif cv.get("rms_px") is not None:
-        figure = (f"cross-validated error {cv['rms_px']:.2f} px ({cv['rms_mm']:.2f} mm at the "
-                  f"board), {cv['kind']} over {len(cv['stations'])} stations"
-                  + cv_dropped_clause(cv))
+    elif cv.rms_px is not None:
+        figure = (f"cross-validated error {cv.rms_px:.2f} px ({cv.rms_mm:.2f} mm at the "
+                  f"board), {cv.kind} over {len(cv.stations)} stations" + cv.dropped_clause())
     else:
-        figure = (f"cross-validated error {cv['trans_mm']:.2f} mm / {cv['rot_deg']:.3f} deg, "
-                  f"{cv['kind']} over {len(cv['stations'])} stations")
-    codes = [f["code"] for f in quality["findings"]]
-    return (f"cellcal: verdict {quality['verdict']}: {figure}"
+        figure = (f"cross-validated error {cv.trans_mm:.2f} mm / {cv.rot_deg:.3f} deg, "
+                  f"{cv.kind} over {len(cv.stations)} stations")
+    codes = [f.code for f in quality.findings]
+    return (f"cellcal: verdict {quality.verdict}: {figure}"
             + (f"; findings: {', '.join(codes)}" if codes else ""))
 
 

@@ -4,7 +4,6 @@ stored result read back as the cell it describes (:func:`stored_cell`)."""
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -26,7 +25,6 @@ from calib import (
     ur_pose_from_matrix,
 )
 from service.errors import UnprocessableError
-from service.results.schema import CrossValidationBlock
 from service.version import software_version
 
 
@@ -214,11 +212,6 @@ def cross_validation_json(cv: CrossValidation) -> dict[str, Any]:
                 "error on the board plane; rot_deg/trans_mm: predicted vs observed "
                 "cam_T_target",
     }
-
-
-def cv_dropped_clause(cv: Mapping[str, Any] | CrossValidationBlock) -> str:
-    """``CrossValidationBlock.dropped_clause`` of a cross-validation block or its JSON."""
-    return CrossValidationBlock.model_validate(cv).dropped_clause()
 
 
 def _candidate_json(c: ModelCandidate, chosen: ModelCandidate) -> dict[str, Any]:
