@@ -64,9 +64,9 @@ def calibrate(stations: Stations, options: SolverOptions | None = None, *,
         few usable stations, or stations that cannot determine the calibration.
     """
     options = SolverOptions() if options is None else options
-    posed = [s.id for s in stations.stations if s.T_cam_target is not None]
-    if posed and len(posed) == len(stations.stations):
+    if stations.pose_only:
         return _pose_only(stations, options)
+    posed = [s.id for s in stations.stations if s.T_cam_target is not None]
     if posed:
         raise ValueError(f"station {posed[0]} has a target_pose while others have images; a "
                          "station set is either pose-only or image-based")

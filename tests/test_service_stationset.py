@@ -72,7 +72,9 @@ def test_cellcal_calibrate_on_an_exported_run_gives_the_service_result(
 
     # The service's report and `cellcal report --stations` on the download name the same input.
     page = client.get(f"/calibrations/{cal['id']}/report").text
-    local = station_set_identity(station_dir, station_images(station_dir))["input_sha256"]
+    stations = load_station_set(station_dir)
+    local = station_set_identity(station_dir, stations,
+                                 station_images(station_dir, stations))["input_sha256"]
     assert re.findall(r"\b[0-9a-f]{64}\b", page) == [local]
 
 

@@ -61,8 +61,7 @@ def run(args: argparse.Namespace) -> int:
         from service.stationsets.format import load_station_set
 
         stations = load_station_set(args.stations)
-        images = {s.id: args.stations / s.image for s in stations.stations
-                  if s.image is not None}
+        images = station_images(args.stations, stations)
         identity = station_set_identity(args.stations, stations, images)
     out.write_text(render_report(doc, images, identity))
     print(f"wrote {out}", file=sys.stderr)
@@ -71,6 +70,11 @@ def run(args: argparse.Namespace) -> int:
         print_pdf(out, pdf)
         print(f"wrote {pdf}", file=sys.stderr)
     return 0
+
+
+def station_images(directory: Path, stations: StationSet) -> dict[str, Path]:
+    """Station id -> image file of the station set ``stations`` in ``directory``."""
+    return {s.id: directory / s.image for s in stations.stations if s.image is not None}
 
 
 def station_set_identity(directory: Path, stations: StationSet,
