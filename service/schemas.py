@@ -14,7 +14,7 @@ from fastapi import Path as PathParam
 from pydantic import BaseModel, ConfigDict, Field, field_serializer, model_validator
 
 from calib import METHODS, Detection, RobotNoise, SolverOptions, Target
-from service.exports import FORMATS
+from service.exports import FORMATS, formats_help
 from service.results.schema import Result
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False, strict=True)]
@@ -407,9 +407,7 @@ class ExportQuery(BaseModel):
     """The format of ``GET /calibrations/{id}/export`` and the names written into it."""
 
     format: ExportFormat = Field(  # type: ignore[valid-type]
-        "json", description="json (the result document), opencv-yaml (cv::FileStorage), "
-                            "ros-camera-info, urdf (camera joint), ur-pose (hand-eye as "
-                            "p[...]), ros2-static-tf (ROS 2 launch file)")
+        "json", description=formats_help())
     camera_name: str = Field("camera", description="ROS camera_name, joint and node prefix")
     parent_frame: str | None = Field(None, description="frame the camera is fixed to; default "
                                                        "tool0 (eye-in-hand) or base")

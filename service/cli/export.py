@@ -14,7 +14,7 @@ import json
 import sys
 from pathlib import Path
 
-from service.exports import FORMATS, ExportNames, export
+from service.exports import FORMATS, ExportNames, export, formats_help
 from service.results.schema import Result, parse_result
 
 #: Larger files are not result documents (a result with 10,000 stations is about 30 MB).
@@ -27,9 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``export`` command's arguments."""
     parser.add_argument("result", help="result JSON file")
     parser.add_argument("--format", required=True, choices=FORMATS, dest="fmt",
-                        help="json, opencv-yaml (cv::FileStorage), ros-camera-info, urdf (camera "
-                             "joint), ur-pose (hand-eye as p[...]), ros2-static-tf (ROS 2 launch "
-                             "file with a static transform publisher)")
+                        help=formats_help())
     parser.add_argument("--out", help="output file (default: stdout)")
     parser.add_argument("--camera-name", default="camera",
                         help="ROS camera_name, prefix of the URDF joint and the ROS 2 node "

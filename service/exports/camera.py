@@ -1,35 +1,35 @@
 """Exports of the camera model: OpenCV ``cv::FileStorage`` YAML and ROS ``camera_info`` YAML.
 
-Each writer takes ``(result, camera, camera_name)``: a result and its camera model (a result
-without one never gets here) and returns ``(content, media_type, filename)``.
+Each writer takes ``(result, names)``: a result with a camera model (``service.exports.export``
+lets no other one here) and the names to write, and returns ``(content, media_type,
+filename)``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import cv2
 import numpy as np
 
-from service.exports.common import FRAMES, matrix, num, robot_map_note
-from service.results.schema import CameraModel, Result
+from service.exports.common import FRAMES, ExportNames, matrix, num, robot_map_note
+from service.results.schema import Result
 
 
-def _camera(cam: CameraModel) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
-    """K (3, 3), dist (n,) and (width, height) of the camera model (shapes checked by the
-    schema)."""
+def _camera(result: Result) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """K (3, 3), dist (n,) and (width, height) of the result's camera model (shapes checked
+    by the schema)."""
+    cam = result.camera
+    assert cam is not None  # the format needs it: export() checked
     w, h = cam.image_size
     return np.asarray(cam.K, dtype=float), np.asarray(cam.dist, dtype=float), (w, h)
 
 
-def opencv_yaml(result: Result, camera: CameraModel,
-                camera_name: str) -> tuple[str, str, str]:
+def opencv_yaml(result: Result, names: ExportNames) -> tuple[str, str, str]:
     """cv::FileStorage YAML, written by OpenCV itself so that OpenCV reads it back; the hand-eye
     and board pose as 4x4 ``!!opencv-matrix`` when the result has them."""
-    K, dist, (w, h) = _camera(camera)
+    K, dist, (w, h) = _camera(result)
     setup = result.setup
     fs = cv2.FileStorage("calibration.yaml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
-    fs.writeComment(f"cellcal calibration of {camera_name}; metres and radians")
+    fs.writeComment(f"cellcal calibration of {names.camera_name}; metres and radians")
     fs.write("image_width", w)
     fs.write("image_height", h)
     fs.write("camera_matrix", K)
@@ -50,10 +50,9 @@ def opencv_yaml(result: Result, camera: CameraModel,
     return fs.releaseAndGetString(), "application/yaml", "camera_calibration.yaml"
 
 
-def ros_camera_info(result: Result, camera: CameraModel,
-                    camera_name: str) -> tuple[str, str, str]:
+def ros_camera_info(result: Result, names: ExportNames) -> tuple[str, str, str]:
     """ROS camera_info YAML; monocular, so R = I and P = [K | 0]."""
-    K, dist, (w, h) = _camera(camera)
+    K, dist, (w, h) = _camera(result)
     if dist.size in (4, 5):
         model, dist = "plumb_bob", np.pad(dist, (0, 5 - dist.size))
     elif dist.size == 8:
@@ -65,7 +64,7 @@ def ros_camera_info(result: Result, camera: CameraModel,
     text = "\n".join([
         f"image_width: {w}",
         f"image_height: {h}",
-        f"camera_name: {camera_name}",
+        f"camera_name: {names.camera_name}",
         _ros_matrix("camera_matrix", K),
         f"distortion_model: {model}",
         _ros_matrix("distortion_coefficients", dist.reshape(1, -1)),
@@ -79,7 +78,3 @@ def _ros_matrix(name: str, M: np.ndarray) -> str:
     data = ", ".join(num(v) for v in M.ravel())
     return f"{name}:\n  rows: {M.shape[0]}\n  cols: {M.shape[1]}\n  data: [{data}]"
 
-
-#: Format name -> writer, in the order the formats are listed.
-WRITERS: dict[str, Callable[[Result, CameraModel, str], tuple[str, str, str]]] = {
-    "opencv-yaml": opencv_yaml, "ros-camera-info": ros_camera_info}

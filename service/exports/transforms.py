@@ -1,9 +1,10 @@
 """Exports of the hand-eye transform: a URDF joint, a UR pose line and a ROS 2 launch file
 publishing it as a static transform.
 
-Each writer takes ``(result, hand_eye, names)``: a result and its hand-eye (a result without
-one never gets here) and returns ``(content, media_type, filename)``. The transform is taken
-from ``hand_eye.matrix`` (the ``pose`` vector is derived from it). The camera frame is
+Each writer takes ``(result, names)``: a result with a hand-eye (``service.exports.export``
+lets no other one here) and the names to write, and returns ``(content, media_type,
+filename)``. The transform is taken from ``hand_eye.matrix`` (the ``pose`` vector is derived
+from it). The camera frame is
 OpenCV's (x right, y down, z along the optical axis), which is ROS's *optical* frame convention
 (REP 103), hence the default ``*_optical_frame`` child name.
 """
@@ -11,13 +12,13 @@ OpenCV's (x right, y down, z along the optical axis), which is ROS's *optical* f
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable
 
+import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calib import ur_pose_from_matrix
 from service.exports.common import FRAMES, ExportNames, matrix, num, robot_map_note
-from service.results.schema import Result, Transform
+from service.results.schema import Result
 
 #: What the default parent frame must stand for, per setup.
 _PARENT_NOTE = {
@@ -28,9 +29,15 @@ _PARENT_NOTE = {
 }
 
 
-def urdf(result: Result, hand_eye: Transform, names: ExportNames) -> tuple[str, str, str]:
+def _hand_eye(result: Result) -> np.ndarray:
+    """The result's hand-eye, (4, 4), checked to be rigid."""
+    assert result.hand_eye is not None  # the format needs it: export() checked
+    return matrix(result.hand_eye, "hand_eye")
+
+
+def urdf(result: Result, names: ExportNames) -> tuple[str, str, str]:
     """A URDF with the camera joint; ``rpy`` is URDF's fixed-axis roll-pitch-yaw."""
-    X, setup = matrix(hand_eye, "hand_eye"), result.setup
+    X, setup = _hand_eye(result), result.setup
     parent, child = names.frames(setup)
     with warnings.catch_warnings():  # at pitch = ±90 deg any split of roll and yaw is exact
         warnings.simplefilter("ignore", UserWarning)
@@ -57,9 +64,9 @@ def urdf(result: Result, hand_eye: Transform, names: ExportNames) -> tuple[str, 
     return text, "application/xml", f"{camera}_joint.urdf"
 
 
-def ur_pose(result: Result, hand_eye: Transform, names: ExportNames) -> tuple[str, str, str]:
+def ur_pose(result: Result, names: ExportNames) -> tuple[str, str, str]:
     """The hand-eye as a UR pose line with a comment saying what it is and how to use it."""
-    pose = ", ".join(num(v) for v in ur_pose_from_matrix(matrix(hand_eye, "hand_eye")))
+    pose = ", ".join(num(v) for v in ur_pose_from_matrix(_hand_eye(result)))
     setup = result.setup
     if setup == "eye_in_hand":
         what = ("tcp_T_cam: the camera's optical frame relative to the TCP used during "
@@ -72,11 +79,10 @@ def ur_pose(result: Result, hand_eye: Transform, names: ExportNames) -> tuple[st
     return text, "text/plain", "hand_eye_ur_pose.txt"
 
 
-def ros2_static_tf(result: Result, hand_eye: Transform,
-                   names: ExportNames) -> tuple[str, str, str]:
+def ros2_static_tf(result: Result, names: ExportNames) -> tuple[str, str, str]:
     """A ROS 2 Python launch file running ``tf2_ros static_transform_publisher`` with the
     hand-eye as T_parent_child (translation in m, unit quaternion x, y, z, w with w >= 0)."""
-    X, setup = matrix(hand_eye, "hand_eye"), result.setup
+    X, setup = _hand_eye(result), result.setup
     parent, child = names.frames(setup)
     q = Rotation.from_matrix(X[:3, :3]).as_quat(canonical=True)
     values = dict(zip(("x", "y", "z", "qx", "qy", "qz", "qw"), (*X[:3, 3], *q), strict=True))
@@ -110,7 +116,3 @@ def generate_launch_description():
 '''
     return text, "text/x-python", f"{node}.launch.py"
 
-
-#: Format name -> writer, in the order the formats are listed.
-WRITERS: dict[str, Callable[[Result, Transform, ExportNames], tuple[str, str, str]]] = {
-    "urdf": urdf, "ur-pose": ur_pose, "ros2-static-tf": ros2_static_tf}
