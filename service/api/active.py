@@ -8,6 +8,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query
 
 from service.api.deps import SessionDep, SettingsDep
+from service.api.routing import OneThreadRoute
 from service.schemas import (
     ActiveCalibration,
     CalibrationPage,
@@ -18,7 +19,7 @@ from service.schemas import (
 from service.store import active, queries
 from service.store.pages import Cursor
 
-router = APIRouter(prefix="/calibrations", tags=["calibrations"])
+router = APIRouter(prefix="/calibrations", tags=["calibrations"], route_class=OneThreadRoute)
 
 
 @router.get("")

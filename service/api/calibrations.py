@@ -13,6 +13,7 @@ from fastapi.responses import FileResponse, HTMLResponse, StreamingResponse
 from drivers.base import RobotIdentity
 from service.api.deps import CalibrationsDep, EventsDep, SessionDep, SettingsDep
 from service.api.reads import Read, add_reads
+from service.api.routing import OneThreadRoute
 from service.api.streams import LastEventId, event_stream, stream_doc
 from service.errors import ConflictError, UnprocessableError
 from service.exports import ExportNames, export
@@ -23,7 +24,7 @@ from service.store import queries
 from service.store.records import Topic
 from service.store.stations import captured_station_set
 
-router = APIRouter(tags=["calibrations"])
+router = APIRouter(tags=["calibrations"], route_class=OneThreadRoute)
 
 
 @router.post("/runs/{run_id}/calibrations", status_code=status.HTTP_202_ACCEPTED, responses={

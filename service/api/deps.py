@@ -1,11 +1,16 @@
 """Request dependencies as ``Annotated`` aliases, so tests can swap them with
-``app.dependency_overrides``; the app keeps the shared objects in ``app.state``."""
+``app.dependency_overrides``; the app keeps the shared objects in ``app.state``.
+
+They are coroutines that do no I/O, so FastAPI runs them on the event loop instead of handing
+each to a worker thread (``service.api.routing`` says why that matters).
+"""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import AsyncIterator
 from typing import Annotated
 
+import anyio.to_thread
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
@@ -21,32 +26,41 @@ from service.settings import Settings
 _bearer = HTTPBearer(auto_error=False, description="CELLCAL_API_KEY")
 
 
-def get_settings(request: Request) -> Settings:
+async def get_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
-def get_session(request: Request) -> Iterator[Session]:
-    with request.app.state.db.session() as session:
+async def get_session(request: Request) -> AsyncIterator[Session]:
+    """A session for the request, made on the event loop (it connects on first use). The
+    route closes it in its worker thread (``service.api.routing.OneThreadRoute``); one still
+    holding a connection here is closed in a worker thread, never on the loop."""
+    session = request.app.state.db.new_session()
+    try:
         yield session
+    finally:
+        if session.in_transaction():
+            await anyio.to_thread.run_sync(session.close)
+        else:
+            session.close()
 
 
-def get_runs(request: Request) -> RunManager:
+async def get_runs(request: Request) -> RunManager:
     return request.app.state.runtime.runs
 
 
-def get_calibrations(request: Request) -> Calibrations:
+async def get_calibrations(request: Request) -> Calibrations:
     return request.app.state.runtime.calibrations
 
 
-def get_validations(request: Request) -> Validations:
+async def get_validations(request: Request) -> Validations:
     return request.app.state.runtime.validations
 
 
-def get_events(request: Request) -> EventBus:
+async def get_events(request: Request) -> EventBus:
     return request.app.state.runtime.events
 
 
-def get_devices(request: Request) -> Devices:
+async def get_devices(request: Request) -> Devices:
     return request.app.state.devices
 
 
@@ -59,9 +73,9 @@ DevicesDep = Annotated[Devices, Depends(get_devices)]
 EventsDep = Annotated[EventBus, Depends(get_events)]
 
 
-def require_api_key(settings: SettingsDep,
-                    credentials: Annotated[HTTPAuthorizationCredentials | None,
-                                           Depends(_bearer)]) -> None:
+async def require_api_key(settings: SettingsDep,
+                          credentials: Annotated[HTTPAuthorizationCredentials | None,
+                                                 Depends(_bearer)]) -> None:
     """Accept only ``Authorization: Bearer <CELLCAL_API_KEY>`` (401 otherwise).
 
     ``service.api.guard.RequestGuard`` already checked it before the body was read; this

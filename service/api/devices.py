@@ -6,9 +6,10 @@ from fastapi import APIRouter
 
 from drivers.errors import CameraError, DeviceError, RobotError
 from service.api.deps import DevicesDep, SettingsDep
+from service.api.routing import OneThreadRoute
 from service.schemas import CameraInfo, DevicesPublic, ErrorInfo, RobotInfo
 
-router = APIRouter(prefix="/devices", tags=["devices"])
+router = APIRouter(prefix="/devices", tags=["devices"], route_class=OneThreadRoute)
 
 
 def _error(exc: Exception) -> ErrorInfo:

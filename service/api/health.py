@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Request
 
+from service.api.routing import OneThreadRoute
 from service.schemas import ErrorInfo, Health
 from service.version import software_version
 
-router = APIRouter(tags=["health"])
+router = APIRouter(tags=["health"], route_class=OneThreadRoute)
 
 
 @router.get("/health")

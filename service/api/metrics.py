@@ -5,9 +5,10 @@ from __future__ import annotations
 from fastapi import APIRouter, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
+from service.api.routing import OneThreadRoute
 from service.metrics import CONTENT_TYPE_LATEST, exposition
 
-router = APIRouter(tags=["metrics"])
+router = APIRouter(tags=["metrics"], route_class=OneThreadRoute)
 
 
 @router.get("/metrics", response_class=Response, responses={

@@ -12,6 +12,7 @@ from fastapi.responses import FileResponse, StreamingResponse
 from starlette.background import BackgroundTask
 
 from service.api.deps import EventsDep, RunsDep, SessionDep, SettingsDep
+from service.api.routing import OneThreadRoute
 from service.api.streams import LastEventId, event_stream, stream_doc
 from service.errors import ConflictError, NotFoundError
 from service.schemas import (
@@ -28,7 +29,7 @@ from service.store.pages import Cursor
 from service.store.records import RunRecord, Topic
 from service.store.stations import captured_station_set, run_target
 
-router = APIRouter(prefix="/runs", tags=["runs"])
+router = APIRouter(prefix="/runs", tags=["runs"], route_class=OneThreadRoute)
 
 def run_public(session: SessionDep, run: RunRecord) -> RunPublic:
     """The public view of a run; station counts and errors come from small SQL queries, never

@@ -11,6 +11,7 @@ from fastapi.responses import FileResponse
 from pydantic import TypeAdapter, ValidationError
 
 from service.api.deps import RunsDep, SessionDep, SettingsDep
+from service.api.routing import OneThreadRoute
 from service.errors import NotFoundError, UnprocessableError
 from service.runs.external import PostedStation
 from service.schemas import (
@@ -24,7 +25,7 @@ from service.store import queries
 from service.store.records import StationRecord
 from service.store.stations import station_of
 
-router = APIRouter(prefix="/runs/{run_id}/stations", tags=["stations"])
+router = APIRouter(prefix="/runs/{run_id}/stations", tags=["stations"], route_class=OneThreadRoute)
 
 
 def station_public(row: StationRecord, *, corners: bool) -> StationPublic:

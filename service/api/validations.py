@@ -11,12 +11,13 @@ from fastapi.responses import StreamingResponse
 
 from service.api.deps import EventsDep, ValidationsDep
 from service.api.reads import Read, add_reads
+from service.api.routing import OneThreadRoute
 from service.api.streams import LastEventId, event_stream, stream_doc
 from service.schemas import CheckCreate, Created, ValidationCreate, ValidationPublic
 from service.store import queries
 from service.store.records import Topic
 
-router = APIRouter(tags=["validations"])
+router = APIRouter(tags=["validations"], route_class=OneThreadRoute)
 F = TypeVar("F", bound=Callable[..., Created])
 
 

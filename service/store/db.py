@@ -96,6 +96,10 @@ class Database:
         with self._sessions() as session:
             yield session
 
+    def new_session(self) -> Session:
+        """A session the caller closes (no I/O until it is first used)."""
+        return self._sessions()
+
     def close(self) -> None:
         self.engine.dispose()
 
