@@ -78,9 +78,10 @@ class Database:
         is_sqlite = url.startswith("sqlite")
         connect_args: dict[str, Any] = (
             {"check_same_thread": False, "timeout": busy_timeout_s} if is_sqlite else {})
-        # pre-ping: a connection dropped by a restarted server is replaced, not handed out
+        # pre-ping: a connection dropped by a restarted server is replaced, not handed out (a
+        # SQLite file has no server; its ping would only cost every request a statement)
         self.engine: Engine = create_engine(with_driver(url), connect_args=connect_args,
-                                            pool_pre_ping=True)
+                                            pool_pre_ping=not is_sqlite)
         if is_sqlite:
             event.listen(self.engine, "connect", _sqlite_pragmas)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)

@@ -119,7 +119,12 @@ class StationRecord(Base):
     """One visited pose: the robot reading, the image file and the detection, or why not."""
 
     __tablename__ = "stations"
-    __table_args__ = (UniqueConstraint("run_id", "index", name="uq_stations_run_index"),)
+    __table_args__ = (
+        UniqueConstraint("run_id", "index", name="uq_stations_run_index"),
+        # a run's counts by state from the index alone; its errors without reading the rest
+        Index("ix_stations_run_state", "run_id", "state"),
+        Index("ix_stations_run_errors", "run_id", "index", sqlite_where=text("error IS NOT NULL"),
+              postgresql_where=text("error IS NOT NULL")))
 
     id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
     run_id: Mapped[str] = mapped_column(ForeignKey("runs.id", ondelete="CASCADE"))
