@@ -18,7 +18,6 @@ from pathlib import Path
 from service.cli import client
 from service.cli.exit_codes import EXIT_FAILED
 from service.exports import FORMATS
-from service.results.schema import Result
 
 _COLUMNS = ["id", "run_id", "state", "verdict", "rms_px", "active", "method", "created_at"]
 
@@ -88,6 +87,8 @@ def _start(service: client.Service, args: argparse.Namespace) -> int:
     if final.state != "done":
         print(f"calibration {cal_id}: {final.state} ({final.error})", file=sys.stderr)
         return EXIT_FAILED
+    from service.results.schema import Result
+
     result = Result.model_validate(service.fetch(f"/calibrations/{cal_id}")["result"])
     verdict = None if result.quality is None else result.quality.verdict
     rms = None if result.camera is None else result.camera.rms_px

@@ -12,38 +12,21 @@ import os
 import sys
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import httpx
-from pydantic import BaseModel, ValidationError
 from tqdm import tqdm
 
 from service.cli.errors import ServiceCallError
+
+if TYPE_CHECKING:
+    from service.cli.answers import StateEvent
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 #: Reconnects of an event stream in a row (each after a dropped connection) before giving up.
 MAX_RECONNECTS = 5
 #: Seconds an event stream may stay silent: the service sends a keep-alive every 15 s.
 STREAM_READ_TIMEOUT_S = 60.0
-
-
-class Problem(BaseModel):
-    """What went wrong, as the service says it: an error answer's ``{"detail", "code"}``
-    (``service.api.openapi.ErrorBody``), a failed run's error, the ``shutdown`` event."""
-
-    detail: str
-    code: str = "error"
-
-
-class StateEvent(BaseModel):
-    """The data of a stream's ``state`` event (``service.events.state_event``): the state; a
-    run's station counts, stop reason and error, a calibration's or validation's error."""
-
-    state: str
-    error: Problem | str | None = None
-    stations_captured: int = 0
-    stations_skipped: int = 0
-    stop_reason: str | None = None
 
 
 @dataclass(frozen=True)
@@ -128,6 +111,8 @@ class Service:
                         raise ServiceCallError(describe_error(r))
                     for event in parse_events(r.iter_lines()):
                         if event.type == "shutdown":
+                            from service.cli.answers import Problem
+
                             raise ServiceCallError(Problem.model_validate(event.data).detail)
                         last, failures = event.id, 0
                         yield event
@@ -148,6 +133,10 @@ class Service:
 
 def describe_error(r: httpx.Response) -> str:
     """An error answer in one line: the service's detail, the status and the code."""
+    from pydantic import ValidationError
+
+    from service.cli.answers import Problem
+
     try:
         problem = Problem.model_validate_json(r.content)
         detail, code = problem.detail, problem.code
@@ -191,6 +180,8 @@ def follow(service: Service, path: str, *, total: int | None, unit: str,
     """Follow an event stream with a progress bar on stderr (elapsed time, the count
     ``progress(event)`` says is done, None: no change, and the latest message or state)
     until the service ends the stream; its last ``state`` event."""
+    from service.cli.answers import StateEvent
+
     final: StateEvent | None = None
     with tqdm(total=total or None, unit=unit, file=sys.stderr, dynamic_ncols=True,
               leave=True) as bar:

@@ -101,7 +101,9 @@ def _start(service: client.Service, args: argparse.Namespace) -> int:
     planned = service.fetch(f"/runs/{run_id}")["stations_planned"]
     final = client.follow(service, f"/runs/{run_id}/events", total=planned, unit="station",
                           progress=StationCount())
-    error = final.error.detail if isinstance(final.error, client.Problem) else final.error
+    from service.cli.answers import Problem
+
+    error = final.error.detail if isinstance(final.error, Problem) else final.error
     print(f"run {run_id}: {final.state}, {final.stations_captured} captured, "
           f"{final.stations_skipped} skipped"
           + (f", stopped: {final.stop_reason}" if final.stop_reason else "")
@@ -132,7 +134,9 @@ class StationCount:
 
     def __call__(self, event: client.Event) -> tuple[int, int | None] | None:
         if event.type == "state":
-            state = client.StateEvent.model_validate(event.data)
+            from service.cli.answers import StateEvent
+
+            state = StateEvent.model_validate(event.data)
             self.done = state.stations_captured + state.stations_skipped
         elif event.type == "station":
             self.done += 1

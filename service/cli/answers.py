@@ -1,0 +1,26 @@
+"""What the commands against a running service read from its answers, typed: an error, and
+the ``state`` event that ends a run's or a calibration's stream. Imported when an answer is
+read, so ``cellcal runs --help`` does not load pydantic."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel
+
+
+class Problem(BaseModel):
+    """What went wrong, as the service says it: an error answer's ``{"detail", "code"}``
+    (``service.api.openapi.ErrorBody``), a failed run's error, the ``shutdown`` event."""
+
+    detail: str
+    code: str = "error"
+
+
+class StateEvent(BaseModel):
+    """The data of a stream's ``state`` event (``service.events.state_event``): the state; a
+    run's station counts, stop reason and error, a calibration's or validation's error."""
+
+    state: str
+    error: Problem | str | None = None
+    stations_captured: int = 0
+    stations_skipped: int = 0
+    stop_reason: str | None = None
