@@ -32,12 +32,11 @@ def list_calibrations(session: SessionDep,
                                                setup=query.setup),
         limit=query.limit, offset=query.offset,
         cursor=None if query.cursor is None else Cursor.decode(query.cursor))
-    active_ids = queries.active_calibration_ids(session, cal_ids=[r[0].id for r in rows])
     items = [CalibrationSummary(
         id=cal.id, run_id=cal.run_id, cell=cal.cell, setup=setup, robot=robot, state=cal.state,
-        method=cal.options.get("method"), rms_px=rms, verdict=verdict, active=cal.id in active_ids,
+        method=cal.options.get("method"), rms_px=rms, verdict=verdict, active=current,
         error=cal.error, created_at=cal.created_at, finished_at=cal.finished_at)
-        for cal, setup, robot, rms, verdict in rows]
+        for cal, setup, robot, rms, verdict, current in rows]
     end = query.offset + len(items)
     more = len(items) == query.limit
     return CalibrationPage(items=items, total=total, limit=query.limit, offset=query.offset,

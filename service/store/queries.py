@@ -120,8 +120,9 @@ class CalibrationFilter:
 
 
 #: A listed calibration: the row without its result document, its run's setup and robot, the
-#: calibration's RMS reprojection error (px; None for pose-only results) and its verdict.
-CalibrationRow = tuple[CalibrationRecord, str, str, float | None, str | None]
+#: calibration's RMS reprojection error (px; None for pose-only results), its verdict and
+#: whether it is some cell's current calibration.
+CalibrationRow = tuple[CalibrationRecord, str, str, float | None, str | None, bool]
 
 
 def page_calibrations(s: Session, *, where: CalibrationFilter, limit: int, offset: int,
@@ -145,9 +146,12 @@ def page_calibrations(s: Session, *, where: CalibrationFilter, limit: int, offse
         query = query.where(CalibrationRecord.id.in_(current) if where.active
                             else CalibrationRecord.id.not_in(current))
     total = s.scalar(select(func.count()).select_from(query.subquery())) or 0
-    rows = s.execute(newest_first(query, CalibrationRecord, cursor=cursor, limit=limit)
-                     .offset(offset)).all()
-    return [(cal, setup, robot, rms, verdict) for cal, setup, robot, rms, verdict in rows], total
+    # "active" in the same statement: no second query naming the page's 50 ids
+    is_current = CalibrationRecord.id.in_(select(ActiveCalibrationRecord.calibration_id))
+    rows = s.execute(newest_first(query.add_columns(is_current), CalibrationRecord,
+                                  cursor=cursor, limit=limit).offset(offset)).all()
+    return [(cal, setup, robot, rms, verdict, bool(current))
+            for cal, setup, robot, rms, verdict, current in rows], total
 
 
 # ---- which calibration is active -----------------------------------------------------------
@@ -162,11 +166,6 @@ def activations(s: Session, *, cell: str, setup: str,
         .order_by(ActivationRecord.id.desc())
     return list(s.scalars(query if limit is None else query.limit(limit)))
 
-
-def active_calibration_ids(s: Session, *, cal_ids: list[str]) -> set[str]:
-    """Those of ``cal_ids`` that are some cell's current calibration."""
-    return set(s.scalars(select(ActiveCalibrationRecord.calibration_id)
-                         .where(ActiveCalibrationRecord.calibration_id.in_(cal_ids))))
 
 
 # ---- counts --------------------------------------------------------------------------------
