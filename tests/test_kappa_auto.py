@@ -33,7 +33,13 @@ def with_board(kappa: float, kinematic_errors: bool) -> MockScene:
     return scene.model_copy(update=update)
 
 
-@pytest.mark.parametrize(("n", "seed"), [(8, 1), (12, 0), (12, 3), (20, 1)])
+#: Two scenes of each test run in ``make test``; the other two are further Monte-Carlo draws of
+#: the same claim (20 stations cost twice as much as 12), run by ``make test-slow``.
+MORE = pytest.mark.slow
+
+
+@pytest.mark.parametrize(("n", "seed"), [(8, 1), (12, 3), pytest.param(12, 0, marks=MORE),
+                                         pytest.param(20, 1, marks=MORE)])
 def test_a_board_half_a_percent_large_is_estimated_and_reported(n, seed):
     res = calibrate(with_board(1.005, kinematic_errors=False), n, seed)
     chosen = res.trust.model_selection.chosen.model
@@ -47,7 +53,8 @@ def test_a_board_half_a_percent_large_is_estimated_and_reported(n, seed):
     assert np.linalg.norm(res.hand_eye[:3, 3] - X[:3, 3]) < 0.6e-3
 
 
-@pytest.mark.parametrize(("n", "seed"), [(12, 0), (12, 1), (20, 0), (20, 3)])
+@pytest.mark.parametrize(("n", "seed"), [(12, 0), (12, 1), pytest.param(20, 0, marks=MORE),
+                                         pytest.param(20, 3, marks=MORE)])
 def test_an_exact_board_on_an_arm_with_kinematic_errors_passes(n, seed):
     res = calibrate(with_board(1.0, kinematic_errors=True), n, seed)
     quality = res.trust.quality
