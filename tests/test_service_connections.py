@@ -117,9 +117,18 @@ def test_idle_flood_leaves_health_and_capture_working(tmp_path: Path) -> None:
     assert "more like this" in "".join(lines[1:]) or len(lines) == 1
 
 
-def test_a_connection_without_a_request_is_closed(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def header_timeout_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalService]:
+    """One service with a 1 s header timeout for the tests below, whose connections are
+    their own (each waits for its own sockets to be closed)."""
     options = ServeOptions(env={**os.environ, "CELLCAL_HEADER_TIMEOUT_S": "1"})
-    with local_service(tmp_path / "data", KEY, options) as service, _sockets() as held:
+    with local_service(tmp_path_factory.mktemp("header") / "data", KEY, options) as service:
+        yield service
+
+
+def test_a_connection_without_a_request_is_closed(header_timeout_service: LocalService) -> None:
+    service = header_timeout_service
+    with _sockets() as held:
         silent = socket.create_connection(_address(service), timeout=HANG_S)
         slow = socket.create_connection(_address(service), timeout=HANG_S)
         held += [silent, slow]
@@ -128,11 +137,12 @@ def test_a_connection_without_a_request_is_closed(tmp_path: Path) -> None:
         assert httpx.get(f"{service.url}/health", timeout=HANG_S).status_code == 200
 
 
-def test_a_client_trickling_its_next_request_is_closed(tmp_path: Path) -> None:
+def test_a_client_trickling_its_next_request_is_closed(
+        header_timeout_service: LocalService) -> None:
     """After an answer on a kept-alive connection, the next request's headers come one byte
     at a time (each byte restarts uvicorn's keep-alive timer): the header timeout ends it."""
-    options = ServeOptions(env={**os.environ, "CELLCAL_HEADER_TIMEOUT_S": "1"})
-    with local_service(tmp_path / "data", KEY, options) as service, _sockets() as held:
+    service = header_timeout_service
+    with _sockets() as held:
         sock = socket.create_connection(_address(service), timeout=HANG_S)
         held.append(sock)
         sock.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\n\r\n")
