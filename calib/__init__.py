@@ -100,12 +100,14 @@ from calib.screw import solve_sm
 from calib.selection import KAPPA_MODES, ModelCandidate, Selection
 from calib.selection import RULE as SELECTION_RULE
 from calib.stations import Station, StationInputs, Stations
+from calib.uncertainty import COVERAGE_90
 from calib.validation import dot_hit, leave_one_out, motion_residuals, reprojection_rms
 from calib.viewselect import Scene as ColdStartScene
 from calib.viewselect import hand_eye_sigma
 
 __all__ = [
     "CAMERA_PARAMS",
+    "COVERAGE_90",
     "COVERAGE_GRID",
     "KAPPA_MODES",
     "METHODS",

@@ -124,3 +124,15 @@ def honest(formal: dict[str, float | np.ndarray], estimates: Sequence[FoldEstima
         source[name] = "jackknife" if wider else "formal"
     return UncertaintyEstimate(sigmas=sigmas, formal=dict(formal), jackknife=jk, source=source,
                        folds=len(estimates) if jk else 0)
+
+
+#: The 90 % bound on the norm of a 3-vector error (a pose's rotation or translation) as a
+#: multiple of its reported σ, the root-sum-square of the per-axis σ (σ² = tr Σ, the mean
+#: square of the norm). ``|e|² = Σ λᵢ zᵢ²`` (λ the eigenvalues of Σ, zᵢ standard normal), so
+#: ``P(|e| ≤ k σ)`` depends on how Σ splits over its axes: k = 1.443 when it splits evenly
+#: (``sqrt(χ²₃(0.9) / 3)``) and at most k = 1.645 (``z₀.₉₅``, all of it on one axis; above
+#: ``k² ≈ 1.54`` one axis is the worst case, Székely & Bakirov 2003). The reported σ carries
+#: neither the split nor the axes' correlations, so the worst case is taken: ``k σ`` bounds
+#: the norm of the error with at least 90 % probability whatever the covariance's shape.
+COVERAGE_90 = 1.645
+

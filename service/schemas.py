@@ -13,7 +13,7 @@ import numpy as np
 from fastapi import Path as PathParam
 from pydantic import BaseModel, ConfigDict, Field, field_serializer, model_validator
 
-from calib import METHODS, Detection, RobotNoise, SolverOptions, Target
+from calib import COVERAGE_90, METHODS, Detection, RobotNoise, SolverOptions, Target
 from service.exports import FORMATS, formats_help
 from service.results.schema import Result
 
@@ -28,6 +28,10 @@ MAX_INDEX = 2**31 - 1
 StationIndex = Annotated[int, PathParam(ge=0, le=MAX_INDEX, description="station index")]
 #: T_tcp_probe of the default dot-hit probe: 10 cm along tool z.
 DEFAULT_PROBE = (0.0, 0.0, 0.1, 0.0, 0.0, 0.0)
+#: A tolerance run's stop rule in words (``StopRule.rule``).
+STOP_RULE = (f"stop when the 90 % bound ({COVERAGE_90} x the hand-eye's honest 1-sigma) is "
+             "within the tolerance in rotation and translation, at max_stations, or when no "
+             "feasible view remains")
 
 
 class _Input(BaseModel):
@@ -94,8 +98,9 @@ class RunCreate(_Input):
     poses: Annotated[list[Pose], Field(min_length=1)] | None = Field(
         None, description="TCP poses to visit in order")
     tolerance_mm: Annotated[float, Field(gt=0.0, le=100.0)] | None = Field(
-        None, description="stop once the hand-eye translation's honest 1-sigma (root-sum-"
-                          "square over the axes) is within this many mm; with tolerance_deg")
+        None, description="stop once the 90 % bound on the hand-eye translation error "
+                          "(1.645x its honest 1-sigma, root-sum-square over the axes) is "
+                          "within this many mm; with tolerance_deg")
     tolerance_deg: Annotated[float, Field(gt=0.0, le=10.0)] | None = Field(
         None, description="... and its rotation's within this many degrees")
     max_stations: Annotated[int, Field(ge=3, le=500)] | None = Field(
@@ -141,19 +146,29 @@ DEFAULT_MAX_STATIONS = 40
 
 
 class StopRule(BaseModel):
-    """When a tolerance run stops: both σ within tolerance, or ``max_stations``."""
+    """When a tolerance run stops: the 90 % bound on both hand-eye errors within tolerance,
+    or ``max_stations``."""
 
     tolerance_mm: float
     tolerance_deg: float
     max_stations: int
+    coverage_factor: float = Field(COVERAGE_90, description="the 90 % bound in honest σ "
+                                   "(calib.COVERAGE_90): the run stops when the bound is within "
+                                   "the tolerance, so the true error is in >= 90 % of runs")
+    rule: str = Field(STOP_RULE, description="the rule in words")
 
 
 class SigmaPoint(BaseModel):
-    """The hand-eye's 1-σ after a station: root-sum-square over the axes."""
+    """The hand-eye's 1-σ after a station: root-sum-square over the axes, and its 90 %
+    bound."""
 
     stations: int = Field(description="good stations so far (exploratory views included)")
     rot_deg: float
     trans_mm: float
+    bound_rot_deg: float | None = Field(
+        None, description="90 % bound on the rotation error: coverage_factor x rot_deg")
+    bound_trans_mm: float | None = Field(
+        None, description="90 % bound on the translation error: coverage_factor x trans_mm")
     kind: Literal["honest", "estimate"] = Field(
         description="honest: the σ a calibration of these stations reports (jackknife floor "
                     "included); estimate: the planner's formal σ before enough stations")

@@ -161,10 +161,12 @@ def test_a_tolerance_run_from_the_command_line(served: LocalService) -> None:
     assert started.returncode == 0, started.stderr
     run = rest(served, f"/runs/{started.stdout.strip()}").json()
     cold = run["cold_start"]
-    assert cold["stop_rule"] == {"tolerance_mm": 2.0, "tolerance_deg": 0.2, "max_stations": 8}
+    rule = cold["stop_rule"]
+    assert (rule["tolerance_mm"], rule["tolerance_deg"], rule["max_stations"]) == (2.0, 0.2, 8)
     assert cold["stop_reason"] in ("tolerance_met", "max_stations")
     assert f"stopped: {cold['stop_reason']}" in started.stderr
     assert "tolerance 0.2° / 2 mm" in started.stderr  # the σ against the tolerance, live
+    assert "90 % bound" in started.stderr
     half = cellcal("runs", "start", "--tolerance-mm", "2", url=served.url)
     assert half.returncode != 0
     assert_one_line_error(half.stderr, "--tolerance-mm and --tolerance-deg together")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from calib import pose_error, ur_pose_from_matrix
+from calib import COVERAGE_90, pose_error, ur_pose_from_matrix
 from mocks.blindcells import random_blind_scene
 from service.app import create_app
 from service.settings import Settings
@@ -80,17 +80,24 @@ def test_a_wrong_guess_is_logged_and_ignored(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_tolerance_run_stops_when_the_honest_sigma_meets_it(tmp_path):
+def test_a_tolerance_run_stops_when_the_90_percent_bound_meets_it(tmp_path):
     scene = random_blind_scene(3, "eye_to_hand")
     body = {"tolerance_mm": 1.0, "tolerance_deg": 0.1, "max_stations": 30}
     run, (rot_deg, trans_mm, result) = _run(tmp_path, scene, body)
     cold = run["cold_start"]
     assert run["state"] == "done" and cold["stop_reason"] == "tolerance_met", run
-    assert cold["stop_rule"] == {"tolerance_mm": 1.0, "tolerance_deg": 0.1, "max_stations": 30}
+    rule = cold["stop_rule"]
+    assert {k: rule[k] for k in ("tolerance_mm", "tolerance_deg", "max_stations")} == {
+        "tolerance_mm": 1.0, "tolerance_deg": 0.1, "max_stations": 30}
+    assert rule["coverage_factor"] == COVERAGE_90 and "90 % bound" in rule["rule"]
     assert run["stations_planned"] == 30 and run["stations_captured"] < 30
     last = cold["sigma_history"][-1]
     assert last["kind"] == "honest" and last["stations"] == run["stations_captured"]
-    assert last["rot_deg"] <= 0.1 and last["trans_mm"] <= 1.0
+    assert last["bound_rot_deg"] <= 0.1 and last["bound_trans_mm"] <= 1.0
+    assert last["bound_trans_mm"] == pytest.approx(COVERAGE_90 * last["trans_mm"])
+    # before the stop the bound was not yet within the tolerance
+    assert not any(p["kind"] == "honest" and p["bound_rot_deg"] <= 0.1
+                   and p["bound_trans_mm"] <= 1.0 for p in cold["sigma_history"][:-1])
     # the last σ of the history is the σ the calibration of the same stations reports
     sigma = result["uncertainty"]
     assert last["rot_deg"] == pytest.approx(
@@ -126,3 +133,4 @@ def test_a_short_cold_start_run_explores_then_plans_inside_the_box(tmp_path):
     assert 2 <= cold["exploratory_moves"] <= 8
     assert run["stations_planned"] == 8
     assert '"stop_reason": "max_stations"' in events
+

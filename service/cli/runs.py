@@ -40,8 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     plan.add_argument("--external", action="store_true",
                       help="a cell controller posts the stations (POST /runs/{id}/stations)")
     plan.add_argument("--tolerance-mm", type=float, metavar="MM",
-                      help="plan stations until the hand-eye translation's honest 1-sigma is "
-                           "within MM (with --tolerance-deg)")
+                      help="plan stations until the 90 %% bound on the hand-eye translation "
+                           "error (1.645x its honest 1-sigma) is within MM (with "
+                           "--tolerance-deg)")
     start.add_argument("--tolerance-deg", type=float, metavar="DEG",
                        help="... and its rotation's within DEG degrees")
     start.add_argument("--max-stations", type=int, metavar="N",

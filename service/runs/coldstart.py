@@ -8,11 +8,13 @@ box (the tcp, and eye-in-hand the camera under the current estimate) before the 
 captures and detects it as any station, and tells the planner what it saw. A view where the
 board was lost is stored with its reason (a skipped station) and informs the next choice.
 
-It stops at its station count (``stations``), or for a tolerance run when the hand-eye's honest
-1-σ (what a calibration of the stations so far reports, ``calib.calibrate`` with its
-jackknife floor) is within tolerance in rotation and translation, or at ``max_stations``, or
-when no feasible view remains. The run's ``cold_start`` column holds the rule, the progress
-and the σ history; each σ is also a ``sigma`` event. Stations already stored are replayed into
+It stops at its station count (``stations``), or for a tolerance run when the 90 % bound on the
+hand-eye's error (``calib.COVERAGE_90`` times its honest 1-σ: what a calibration of the stations
+so far reports, ``calib.calibrate`` with its jackknife floor) is within tolerance in
+rotation and translation, or at ``max_stations``, or when no feasible view remains. (A stop at
+σ <= tolerance would leave the true error beyond the tolerance in about half the runs.) The
+run's ``cold_start`` column holds the rule, the progress and the σ history with the bound; each
+σ is also a ``sigma`` event. Stations already stored are replayed into
 the planner on ``resume``, so a paused or interrupted run continues where it was.
 """
 
@@ -26,6 +28,7 @@ import numpy as np
 from sqlalchemy.orm import Session
 
 from calib import (
+    COVERAGE_90,
     ColdStart,
     ColdStartScene,
     Guess,
@@ -210,7 +213,8 @@ class ColdStartCapture(Capture):
                                  "robot was not moved.")
 
     def _sigma(self, planner: ColdStart, good: list[Station], rule: dict[str, Any]) -> bool:
-        """Record the hand-eye's σ after a good station; True when it meets the tolerance."""
+        """Record the hand-eye's σ and its 90 % bound after a good station; True when the
+        bound (from an honest σ) is within the tolerance."""
         point = None
         if len(good) >= MIN_HONEST_STATIONS:
             point = self._honest_sigma(good)
@@ -220,16 +224,20 @@ class ColdStartCapture(Capture):
                      "trans_mm": trans * 1e3, "kind": "estimate"}
         if point is None:
             return False
+        k = rule.get("coverage_factor", COVERAGE_90)
+        point |= {"bound_rot_deg": k * point["rot_deg"], "bound_trans_mm": k * point["trans_mm"]}
         history = [*self._history(), point]
         self._update(sigma_history=history)
         self._publish({"type": "sigma", "run_id": self.run_id, **point,
                        "tolerance_deg": rule["tolerance_deg"],
                        "tolerance_mm": rule["tolerance_mm"],
-                       "message": f"σ {point['rot_deg']:.3f}° / {point['trans_mm']:.2f} mm "
-                                  f"({point['kind']}; tolerance {rule['tolerance_deg']:g}° / "
+                       "message": f"σ {point['rot_deg']:.3f}° / {point['trans_mm']:.2f} mm, "
+                                  f"90 % bound {point['bound_rot_deg']:.3f}° / "
+                                  f"{point['bound_trans_mm']:.2f} mm ({point['kind']}; "
+                                  f"tolerance {rule['tolerance_deg']:g}° / "
                                   f"{rule['tolerance_mm']:g} mm)"})
-        return (point["kind"] == "honest" and point["rot_deg"] <= rule["tolerance_deg"]
-                and point["trans_mm"] <= rule["tolerance_mm"])
+        return (point["kind"] == "honest" and point["bound_rot_deg"] <= rule["tolerance_deg"]
+                and point["bound_trans_mm"] <= rule["tolerance_mm"])
 
     def _history(self) -> list[dict[str, Any]]:
         return self._in_session(

@@ -146,8 +146,9 @@ async function refreshRun() {
   if (last) await drawStation(last.index);
 }
 
-// A tolerance run's hand-eye σ after each station, in units of its tolerance (rotation and
-// translation), against the line where it is met; log scale, newest on the right.
+// A tolerance run's 90 % bound on the hand-eye error after each station (coverage_factor x σ),
+// in units of its tolerance (rotation and translation), against the line where the run stops;
+// log scale, newest on the right.
 function drawSigma(cold) {
   const rule = cold?.stop_rule;
   $("#sigma-view").hidden = !rule;
@@ -158,8 +159,8 @@ function drawSigma(cold) {
   const w = canvas.width, h = canvas.height, pad = 30;
   g.clearRect(0, 0, w, h);
   const series = [
-    { color: "#c0392b", label: "rotation", values: history.map((p) => p.rot_deg / rule.tolerance_deg) },
-    { color: "#2c7fb8", label: "translation", values: history.map((p) => p.trans_mm / rule.tolerance_mm) },
+    { color: "#c0392b", label: "rotation", values: history.map((p) => (p.bound_rot_deg ?? p.rot_deg) / rule.tolerance_deg) },
+    { color: "#2c7fb8", label: "translation", values: history.map((p) => (p.bound_trans_mm ?? p.trans_mm) / rule.tolerance_mm) },
   ];
   const all = series.flatMap((s) => s.values).concat([1]);
   const top = Math.log10(Math.max(...all) * 1.2), bottom = Math.log10(Math.min(...all) / 1.2);
@@ -176,7 +177,7 @@ function drawSigma(cold) {
   g.fillText(`stations (of at most ${rule.max_stations})`, pad, h - 8);
   series.forEach((s, k) => {
     g.fillStyle = s.color;
-    g.fillText(`${s.label} σ / tolerance`, pad + 150 * k, 14);
+    g.fillText(`${s.label}: 90 % bound / tolerance`, pad + 200 * k, 14);
   });
   for (const s of series) {
     g.strokeStyle = g.fillStyle = s.color;
@@ -187,8 +188,9 @@ function drawSigma(cold) {
   }
   const last = history[history.length - 1];
   $("#sigma-caption").textContent = (last
-    ? `σ ${last.rot_deg.toFixed(3)}° / ${last.trans_mm.toFixed(2)} mm (${last.kind}) after ` +
-      `${last.stations} stations; tolerance ${rule.tolerance_deg}° / ${rule.tolerance_mm} mm`
+    ? `σ ${last.rot_deg.toFixed(3)}° / ${last.trans_mm.toFixed(2)} mm (${last.kind}), 90 % ` +
+      `bound ${(last.bound_rot_deg ?? NaN).toFixed(3)}° / ${(last.bound_trans_mm ?? NaN).toFixed(2)} mm ` +
+      `after ${last.stations} stations; tolerance ${rule.tolerance_deg}° / ${rule.tolerance_mm} mm`
     : `tolerance ${rule.tolerance_deg}° / ${rule.tolerance_mm} mm; no σ yet`) +
     (cold.stop_reason ? `; stopped: ${cold.stop_reason}` : "");
 }
