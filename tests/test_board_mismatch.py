@@ -17,7 +17,7 @@ from tests.support.stations import BOARD, rendered_stations
 SCENE_BOARD = tuple(default_scene().target.inner_corners)
 WRONG = {"type": "checkerboard", "inner_corners": [SCENE_BOARD[0] + 1, SCENE_BOARD[1] + 1],
          "square_size_m": 0.03}
-SEEN = (f"found a {SCENE_BOARD[0]}x{SCENE_BOARD[1]} grid of inner corners, you configured "
+SEEN = (f"found an {SCENE_BOARD[0]}x{SCENE_BOARD[1]} grid of inner corners, you configured "
         f"{SCENE_BOARD[0] + 1}x{SCENE_BOARD[1] + 1}")
 
 
@@ -27,7 +27,7 @@ def test_the_configured_board_either_way_round_is_no_mismatch() -> None:
     assert grid_mismatch(image, (cols, rows)) is None
     assert grid_mismatch(image, (rows, cols)) is None
     assert grid_mismatch(image, (cols + 2, rows)) == (
-        f"found a {cols}x{rows} grid of inner corners, you configured {cols + 2}x{rows}")
+        f"found an {cols}x{rows} grid of inner corners, you configured {cols + 2}x{rows}")
 
 
 @pytest.mark.timeout(60)

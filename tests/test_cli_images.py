@@ -73,7 +73,7 @@ def test_wrong_inner_corners_is_told_from_the_first_image(tmp_path, capsys, monk
     assert main(["calibrate", str(d)]) == 2
     err = capsys.readouterr().err
     cols, rows = inner_corners
-    assert err == (f"cellcal: error: {d}: station 000: found a 11x8 grid of inner corners, "
+    assert err == (f"cellcal: error: {d}: station 000: found an 11x8 grid of inner corners, "
                    f"you configured {cols}x{rows}: correct the target in stations.json\n")
     assert solved == []
 

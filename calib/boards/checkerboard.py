@@ -451,4 +451,10 @@ def grid_mismatch(image: np.ndarray, inner_corners: tuple[int, int]) -> str | No
     found, _ = cv2.findChessboardCornersSB(survey.grey, tuple(seen))
     if not found:
         return None
-    return f"found a {seen[0]}x{seen[1]} grid of inner corners, you configured {cols}x{rows}"
+    return (f"found {_article(seen[0])} {seen[0]}x{seen[1]} grid of inner corners, you "
+            f"configured {cols}x{rows}")
+
+
+def _article(n: int) -> str:
+    """'an' before a number said with a vowel first (8, 11, 18, 80-89, ...), else 'a'."""
+    return "an" if str(n).startswith("8") or n in (11, 18) else "a"
