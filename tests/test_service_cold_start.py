@@ -134,3 +134,35 @@ def test_a_short_cold_start_run_explores_then_plans_inside_the_box(tmp_path):
     assert run["stations_planned"] == 8
     assert '"stop_reason": "max_stations"' in events
 
+
+@pytest.mark.slow
+def test_an_interrupted_cold_start_run_resumes_where_it_was(tmp_path):
+    """A service stopped mid-run (as by SIGTERM) leaves the run interrupted with its stations;
+    a new service resumes it: the stored stations are replayed into the planner, so planning
+    goes on from them, with no exploration repeated, no station lost or taken twice."""
+    scene = random_blind_scene(4, "eye_to_hand")
+    settings = _settings(tmp_path, scene)
+    with TestClient(create_app(settings)) as client:
+        client.headers.update(AUTH)
+        run_id = client.post("/runs", json={"stations": 10}).json()["id"]
+        wait_for("planned stations", lambda: (r := client.get(f"/runs/{run_id}").json())[
+            "stations_captured"] >= r["cold_start"]["exploratory_moves"] + 3, timeout=600)
+    with TestClient(create_app(settings)) as client:  # the old service has stopped
+        client.headers.update(AUTH)
+        before = client.get(f"/runs/{run_id}").json()
+        kept = client.get(f"/runs/{run_id}/stations").json()
+        assert before["state"] == "interrupted" and 0 < before["stations_captured"] < 10
+        assert client.post(f"/runs/{run_id}/resume").status_code == 200
+        run = _finished(client, run_id)
+        stations = client.get(f"/runs/{run_id}/stations").json()
+        assert client.app.state.devices.get()[0].refused_moves == 0
+    assert run["state"] == "done" and run["stations_captured"] == 10, run
+    assert [s["index"] for s in stations] == list(range(len(stations)))
+    assert [s["commanded_tcp_pose"] for s in stations[:len(kept)]] == \
+        [s["commanded_tcp_pose"] for s in kept]  # nothing captured before was lost
+    explored = before["cold_start"]["exploratory_moves"]
+    assert run["cold_start"]["exploratory_moves"] == explored  # no exploration again
+    new = np.array([s["commanded_tcp_pose"] for s in stations[len(kept):]])
+    old = np.array([s["commanded_tcp_pose"] for s in kept])
+    # each new station is a new pose, none a replay of an earlier one (the start included)
+    assert len(new) and np.min(np.linalg.norm(new[:, None] - old[None], axis=2)) > 1e-3

@@ -93,7 +93,8 @@ class ColdStartCapture(Capture):
         self.board = board_from_target(self.target)
         self.setup = run.setup
         rows = queries.list_stations(s, run_id=self.run_id)
-        return dict(run.cold_start or {}), [(row.target_pose, station_of(row)) for row in rows]
+        return dict(run.cold_start or {}), [(row.commanded_tcp_pose, station_of(row))
+                                         for row in rows]
 
     def _update(self, **values: Any) -> None:
         """Merge ``values`` into the run's ``cold_start`` record (while the run is ours)."""
