@@ -80,6 +80,7 @@ def test_a_wrong_guess_is_logged_and_ignored(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)
 def test_a_tolerance_run_stops_when_the_90_percent_bound_meets_it(tmp_path):
     scene = random_blind_scene(3, "eye_to_hand")
     body = {"tolerance_mm": 1.0, "tolerance_deg": 0.1, "max_stations": 30}
@@ -136,6 +137,7 @@ def test_a_short_cold_start_run_explores_then_plans_inside_the_box(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)
 def test_an_interrupted_cold_start_run_resumes_where_it_was(tmp_path):
     """A service stopped mid-run (as by SIGTERM) leaves the run interrupted with its stations;
     a new service resumes it: the stored stations are replayed into the planner, so planning
