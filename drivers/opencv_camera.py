@@ -25,8 +25,12 @@ is discarded too, and frame B + 2 is returned. This needs no timing heuristics; 
 about one frame period when the queue was full (the usual case after a move) and up to B + 2
 periods when it was empty. A network stream's buffer has no known length and its frames arrive
 late, so its frames are grabbed until two consecutive ones that had to be waited for agree
-(``drivers.freshness``). ``freshness`` says, after each grab, how the frame was made fresh; the
-capture stores it with the station.
+(``drivers.freshness``). Between grabs the capture thread keeps reading a stream and drops what
+it reads, so that frames sent while the robot moved do not pile up in the socket: otherwise a
+backlog of large frames, each read a little slowly on a busy machine, passes for frames waited
+for, and old frames of a robot at rest at the previous station agree with each other.
+``freshness`` says, after each grab, how the frame was made fresh; the capture stores it with
+the station.
 
 Timeouts. A ``grab`` on a device that stopped streaming can block inside OpenCV for many
 seconds, so every ``cv2.VideoCapture`` call runs on one worker thread (OpenCV releases the GIL)
@@ -46,6 +50,7 @@ recording then restarts from its first frame).
 from __future__ import annotations
 
 import re
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -139,6 +144,7 @@ class OpenCVCamera(CameraSession):
         self._stall = StallCounter(stall_after)
         self._lost: CameraError | None = None  # why the device was closed behind our back
         self._releasing: Future | None = None  # a release queued by a loss, not yet awaited
+        self._draining = threading.Event()  # a stream is read and dropped until the next grab
 
     @property
     def live(self) -> bool:
@@ -215,6 +221,7 @@ class OpenCVCamera(CameraSession):
         call stuck there returns. Returns that release (None if nothing was open), or the one a
         loss queued earlier, so that ``open()`` after a loss waits for the device to be let go
         before opening it again, as a real V4L2 device requires."""
+        self._draining.clear()
         worker, cap = self._worker, self._cap
         self._worker = self._cap = None
         if worker is None:
@@ -234,6 +241,7 @@ class OpenCVCamera(CameraSession):
         deadline = time.monotonic() + timeout
         no_frame = (f"{self.url} delivered no frame within {timeout:g} s: is the camera still "
                     "connected and streaming?")
+        self._draining.clear()
         try:
             frame = self._call(lambda: self._read(deadline, no_frame), timeout, no_frame)
         except CameraTimeoutError as err:
@@ -246,7 +254,16 @@ class OpenCVCamera(CameraSession):
                 self._lose(err)
             raise
         self._stall.delivered()
+        if self._kind == "stream" and self._worker is not None:
+            self._draining.set()
+            self._worker.submit(self._drain, self._cap)
         return frame
+
+    def _drain(self, cap: Any) -> None:
+        """Read and drop a stream's frames until the next grab (or close) asks for the
+        capture thread (module docstring); stops at the end of the stream."""
+        while self._draining.is_set() and cap.grab():
+            pass
 
     def _lose(self, reason: CameraError) -> None:
         """The device is gone or stalled: close it without waiting (``opened`` is False)."""

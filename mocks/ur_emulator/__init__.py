@@ -38,7 +38,12 @@ Faults (``--fault`` at start, or at run time over the dashboard as
 - ``program_status_lag=SECONDS``: ``robot_status_bits`` shows a started program running only
   SECONDS later (``runtime_state`` at once), like a receive stream that lags the control one.
 
+``--box X0,Y0,Z0,X1,Y1,Z1`` (with ``--tool-point X,Y,Z`` for points fixed to the flange, a
+camera's) is the safety configuration: a move that would take the flange or a tool point out of
+the box is refused with a protective stop before it starts (``safety``). ``--start-pose`` puts
+the arm at a UR pose on start, as if jogged there.
+
 The dashboard commands ``unlock protective stop`` and ``close safety popup`` clear a protective
 stop as on a real controller. ``emulator state`` answers one JSON line (process id, joints,
-pose, runtime state, safety bits, faults).
+pose, runtime state, safety bits, faults, and why each move the box refused was refused).
 """

@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from calib import matrix_from_ur_pose, ur_pose_from_matrix
 from mocks import ur_kinematics as kin
+from mocks.ur_emulator.safety import SafetyBox
 from mocks.ur_emulator.wire import (
     CMD_MOVEJ,
     CMD_MOVEJ_IK,
@@ -97,21 +98,25 @@ class Faults:
 class Motion:
     """One motion: path length (m or rad), speed and acceleration limits, and the path itself.
 
-    ``path(s)`` gives (joints (6,), pose (6,)) at path fraction ``s`` in [0, 1].
+    ``path(s)`` gives (joints (6,), pose (6,)) at path fraction ``s`` in [0, 1]; ``pose_at(s)``
+    the pose alone, without moving the IK seed (for the safety box).
     """
 
     distance: float
     speed: float
     acceleration: float
     path: Callable[[float], tuple[np.ndarray, np.ndarray]]
+    pose_at: Callable[[float], np.ndarray]
 
 
 class Controller:
     """Robot state and the native twin of the ``rtde_control`` script; thread-safe."""
 
     def __init__(self, *, instant: bool, settle_time: float, faults: Faults,
-                 on_drop: Callable[[float], None]) -> None:
+                 on_drop: Callable[[float], None], box: SafetyBox | None = None) -> None:
         self.lock = threading.RLock()
+        self.box = box
+        self.box_stops: list[str] = []  # why each move the safety box refused was refused
         self.instant = instant
         self.settle_time = settle_time
         self.faults = faults
@@ -185,6 +190,7 @@ class Controller:
                 "pid": os.getpid(), "q": self.q.tolist(), "pose": self.pose.tolist(),
                 "runtime_state": self.runtime_state, "safety_status_bits": self.safety_bits,
                 "reg_offset": self.reg_offset, "faults": self.faults.__dict__,
+                "box_stops": self.box_stops,
             })
 
     # ---- program lifecycle -----------------------------------------------------------------
@@ -260,6 +266,12 @@ class Controller:
             self.stop_program()
             return
         motion = self._plan(cmd, target, speed, accel)
+        if motion is not None and self.box is not None and (
+                why := self.box.refuses(motion.pose_at)) is not None:
+            with self.lock:
+                self.box_stops.append(why)
+                self._safety_stop("protective")
+            return
         if motion is None:
             with self.lock:
                 if self._alive(program_id):
@@ -291,7 +303,7 @@ class Controller:
                 q = q0 + s * (q1 - q0)
                 return q, kin.fk_pose(q)
 
-            return Motion(distance, speed, accel, joint_path)
+            return Motion(distance, speed, accel, joint_path, lambda s: joint_path(s)[1])
         if cmd in (CMD_MOVEL, CMD_MOVEL_FK):
             q_goal = target if cmd == CMD_MOVEL_FK else None
             pose1 = kin.fk_pose(target) if cmd == CMD_MOVEL_FK else target
@@ -302,11 +314,14 @@ class Controller:
             distance = lin if lin > 1e-6 else ang
             seed = [q0]
 
-            def line_path(s: float) -> tuple[np.ndarray, np.ndarray]:
+            def line_pose(s: float) -> np.ndarray:
                 T = np.eye(4)
                 T[:3, :3] = slerp(s).as_matrix()
                 T[:3, 3] = T0[:3, 3] + s * (T1[:3, 3] - T0[:3, 3])
-                pose = ur_pose_from_matrix(T)
+                return ur_pose_from_matrix(T)
+
+            def line_path(s: float) -> tuple[np.ndarray, np.ndarray]:
+                pose = line_pose(s)
                 if s >= 1.0 and q_goal is not None:
                     return q_goal.copy(), pose1.copy()
                 q = kin.ik(pose, seed[0], iterations=20)
@@ -314,7 +329,7 @@ class Controller:
                     seed[0] = q
                 return seed[0].copy(), pose
 
-            return Motion(distance, speed, accel, line_path)
+            return Motion(distance, speed, accel, line_path, line_pose)
         return None
 
     def _run_motion(self, motion: Motion, off: int, program_id: int) -> bool:

@@ -16,8 +16,12 @@ import threading
 import time
 from collections.abc import Callable
 
+import numpy as np
+
+from mocks import ur_kinematics as kin
 from mocks.ur_emulator.controller import Controller, Faults
 from mocks.ur_emulator.rtde import RtdeSession, bind_port
+from mocks.ur_emulator.safety import SafetyBox, parse_floats
 from mocks.ur_emulator.wire import (
     AUTO_HOSTS,
     CONTROLLER_VERSION,
@@ -34,10 +38,11 @@ from mocks.ur_emulator.wire import (
 class Emulator:
     """The three servers on one address, connection tracking and the drop fault."""
 
-    def __init__(self, host: str, *, instant: bool, settle_time: float, faults: Faults) -> None:
+    def __init__(self, host: str, *, instant: bool, settle_time: float, faults: Faults,
+                 box: SafetyBox | None = None) -> None:
         self.host = host
         self.ctrl = Controller(instant=instant, settle_time=settle_time, faults=faults,
-                               on_drop=self.drop)
+                               on_drop=self.drop, box=box)
         self._conns: set[socket.socket] = set()
         self._conns_lock = threading.Lock()
         self._refuse_until = 0.0
@@ -209,6 +214,14 @@ class Emulator:
         return f"could not understand: '{command}'"
 
 
+def start_joints(pose: str) -> np.ndarray:
+    """The joints (6,) of ``--start-pose`` (IK from the home joints); ValueError if none."""
+    q = kin.ik(np.array(parse_floats(pose, 6, "--start-pose")), kin.HOME_Q)
+    if q is None:
+        raise ValueError(f"--start-pose {pose}: beyond the UR5e's reach")
+    return q
+
+
 def main(argv: list[str] | None = None) -> None:
     """Command line entry: parse options, start the servers, serve until killed."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -220,7 +233,19 @@ def main(argv: list[str] | None = None) -> None:
                         help="seconds the reported TCP speed rings out after a timed motion")
     parser.add_argument("--fault", action="append", default=[], metavar="NAME[=VALUE]",
                         help=f"inject a fault at start; one of {', '.join(FAULT_NAMES)}")
+    parser.add_argument("--box", metavar="X0,Y0,Z0,X1,Y1,Z1",
+                        help="safety box (m, base frame): a move that would take the flange or "
+                             "a tool point outside it is refused with a protective stop")
+    parser.add_argument("--tool-point", action="append", default=[], metavar="X,Y,Z",
+                        help="with --box: a point in the flange frame kept inside it too (m)")
+    parser.add_argument("--start-pose", metavar="X,Y,Z,RX,RY,RZ",
+                        help="UR pose the arm stands at on start (default: the home joints)")
     args = parser.parse_args(argv)
+    try:
+        box = None if args.box is None else SafetyBox.parse(args.box, args.tool_point)
+        start_q = None if args.start_pose is None else start_joints(args.start_pose)
+    except ValueError as err:
+        parser.error(str(err))
     faults = Faults()
     for spec in args.fault:
         try:
@@ -228,7 +253,9 @@ def main(argv: list[str] | None = None) -> None:
         except ValueError as err:
             parser.error(str(err))
     emulator = Emulator(args.host, instant=args.instant, settle_time=args.settle_time,
-                        faults=faults)
+                        faults=faults, box=box)
+    if start_q is not None:
+        emulator.ctrl.q, emulator.ctrl.pose = start_q, kin.fk_pose(start_q)
     try:
         emulator.serve_forever()
     except OSError as err:  # typically: the address is taken by another emulator
