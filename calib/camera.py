@@ -25,10 +25,6 @@ import numpy as np
 from calib import so3
 from calib.geometry import make_transform
 
-#: Names of the columns of :attr:`ProjectionJacobian.intrinsics`.
-INTRINSIC_NAMES = ("fx", "fy", "cx", "cy")
-#: Names of the columns of :attr:`ProjectionJacobian.dist`.
-DIST_NAMES = ("k1", "k2", "p1", "p2", "k3")
 
 @dataclass(frozen=True)
 class ProjectionJacobian:

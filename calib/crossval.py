@@ -6,14 +6,14 @@ full solution, so a fold costs a few solver iterations — and every held-out st
 predicted from its robot reading alone, with the fold's camera, κ and ν
 (``docs/conventions.md``)::
 
-    eye-in-hand:  cam_T_target = inv(X) inv(P_k) Y          (X = tcp_T_cam, Y = base_T_target)
-    eye-to-hand:  cam_T_target = inv(X) P_k Y               (X = base_T_cam, Y = tcp_T_target)
+    eye-in-hand:  T_cam_target = inv(X) inv(P_k) Y          (X = T_tcp_cam, Y = T_base_target)
+    eye-to-hand:  T_cam_target = inv(X) P_k Y               (X = T_base_cam, Y = T_tcp_target)
 
 Image stations compare the projected true-size corners (κν i s, κ j s, 0) with the detected
 ones: the RMS pixel error of each station, and the same error in metres on the board plane
 (each detected corner's ray cut with the predicted board plane, compared with the predicted
 corner), which a person can read without knowing the camera. Pose-only stations compare the
-predicted with the measured ``cam_T_target`` (at the fold's κ).
+predicted with the measured ``T_cam_target`` (at the fold's κ).
 
 This is Zhao & Liu's pose prediction (eq. 23) and Strobl & Hirzinger's projection error of a
 held-out view, made the measure by which models are chosen (``calib.selection``) and by which

@@ -27,8 +27,9 @@ from calib.crossval import (
 from calib.handeye import HandEyeResult, calibrate_hand_eye
 from calib.joint import CellParameters, JointResult
 from calib.jointfit import JointData, JointModel
-from calib.quality import Quality, QualityInputs, assess, irreconcilable
+from calib.quality import QualityInputs, assess, irreconcilable
 from calib.refine import RefineOptions, scale_translations
+from calib.result import Quality
 from calib.selection import ModelCandidate, Modes, Selection, select_joint_model
 from calib.uncertainty import UncertaintyEstimate, honest
 

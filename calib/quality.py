@@ -3,7 +3,7 @@
 Each check looks at one thing a user cannot see in the numbers alone and says what to do:
 
 * ``setup_mismatch`` (fail) — the robot readings need corrections no real arm needs before the
-  images fit them: wrong ``setup``, poses that are not base_T_tcp in metres and radians, or
+  images fit them: wrong ``setup``, poses that are not T_base_tcp in metres and radians, or
   images that do not belong to their poses.
 * ``board_scale`` (warn) — the board's true size differs from the entered one (κ ≠ 1 beyond
   3σ and ``BOARD_SCALE_MIN``); the message names the measured square size.
@@ -18,13 +18,14 @@ Each check looks at one thing a user cannot see in the numbers alone and says wh
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calib.crossval import CrossValidation
+from calib.result import Finding, Quality
 
 #: κ must differ from 1 by more than this (and 3σ) for ``board_scale``.
 BOARD_SCALE_MIN = 0.002
@@ -45,29 +46,6 @@ HIGH_ERROR_FACTOR, HIGH_ERROR_MIN_PX = 10.0, 2.0
 #: accuracy over a calibration workspace (systematic kinematic errors of a few 0.01 deg and
 #: 0.1 mm predict held-out corners to 0.5-1 mm); below it the finding is information.
 ROBOT_ACCURACY_M = 1e-3
-
-SEVERITIES = ("info", "warn", "fail")
-
-
-@dataclass(frozen=True)
-class QualityFinding:
-    """One finding: a stable ``code``, its severity, a message for people, and its figures."""
-
-    code: str
-    severity: str
-    message: str
-    values: dict[str, Any] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class Quality:
-    findings: tuple[QualityFinding, ...]
-
-    @property
-    def verdict(self) -> str:
-        worst = max((SEVERITIES.index(f.severity) for f in self.findings), default=0)
-        return ("pass", "warn", "fail")[worst]
-
 
 @dataclass(frozen=True)
 class QualityInputs:
@@ -98,10 +76,15 @@ def assess(ev: QualityInputs) -> Quality:
     """All checks on ``ev``; a mismatch makes the others moot, so it is reported alone."""
     mismatch = _setup_mismatch(ev)
     if mismatch is not None:
-        return Quality(findings=(mismatch,))
+        return Quality.of([mismatch])
     checks = (_board_scale, _robot_translation_map, _few_stations, _weak_rotation,
               _poor_coverage, _outliers, _high_prediction_error)
-    return Quality(findings=tuple(f for check in checks if (f := check(ev)) is not None))
+    return Quality.of([f for check in checks if (f := check(ev)) is not None])
+
+
+def _finding(code: str, severity: str, message: str, figures: dict[str, Any]) -> Finding:
+    """A finding of ``code`` with its figures as fields."""
+    return Finding(code=code, severity=severity, message=message, **figures)
 
 
 def irreconcilable(corrections: np.ndarray) -> bool:
@@ -110,7 +93,7 @@ def irreconcilable(corrections: np.ndarray) -> bool:
     return bool(rot > MISMATCH_ROT_RAD or trans > MISMATCH_TRANS_M)
 
 
-def _robot_translation_map(ev: QualityInputs) -> QualityFinding | None:
+def _robot_translation_map(ev: QualityInputs) -> Finding | None:
     """The arm's positions are distorted (the chosen model maps them): say by how much over
     the stations' span, and that hand_eye and target_pose hold for the mapped readings."""
     if ev.robot_map is None or ev.T_base_tcp is None:
@@ -119,7 +102,7 @@ def _robot_translation_map(ev: QualityInputs) -> QualityFinding | None:
     shift = float(np.linalg.norm((t - t.mean(axis=0)) @ np.asarray(ev.robot_map).T,
                                  axis=1).max())
     largest = float(np.abs(ev.robot_map).max())
-    return QualityFinding("robot_translation_map", "info", (
+    return _finding("robot_translation_map", "info", (
         f"the arm's positions are off by a linear map (scale and skew up to "
         f"{100 * largest:.2f} %), {shift * 1e3:.1f} mm at most over the stations' span: "
         f"predicting held-out stations clearly better with it, the calibration estimated it "
@@ -129,21 +112,21 @@ def _robot_translation_map(ev: QualityInputs) -> QualityFinding | None:
         {"largest_entry": largest, "largest_shift_m": shift})
 
 
-def _setup_mismatch(ev: QualityInputs) -> QualityFinding | None:
+def _setup_mismatch(ev: QualityInputs) -> Finding | None:
     if ev.corrections is None or not irreconcilable(ev.corrections):
         return None
     rot, trans = (float(v) for v in np.median(ev.corrections, axis=0))
-    return QualityFinding("setup_mismatch", "fail", (
+    return _finding("setup_mismatch", "fail", (
         f"robot poses and images cannot be reconciled: the readings need a median correction "
         f"of {np.degrees(rot):.1f} deg / {trans * 1e3:.0f} mm to fit the images (a robot is "
         f"accurate to about 0.1 deg / 1 mm). Check the setup (now {ev.setup}; eye_in_hand: "
-        f"camera on the tool, eye_to_hand: camera fixed), that every tcp_pose is base_T_tcp in "
+        f"camera on the tool, eye_to_hand: camera fixed), that every tcp_pose is T_base_tcp in "
         f"metres and radians, and that each image was taken at its pose."),
         {"median_correction_rot_rad": rot, "median_correction_trans_m": trans,
          "setup": ev.setup})
 
 
-def _board_scale(ev: QualityInputs) -> QualityFinding | None:
+def _board_scale(ev: QualityInputs) -> Finding | None:
     if ev.kappa_sigma is None or not np.isfinite(ev.kappa_sigma):
         return None
     off = abs(ev.kappa - 1.0)
@@ -154,7 +137,7 @@ def _board_scale(ev: QualityInputs) -> QualityFinding | None:
     what = ("the board is" if measured is None else
             f"the board's squares measure {measured * 1e3:.2f} mm, not the {size * 1e3:g} mm "
             f"entered,")
-    return QualityFinding("board_scale", "warn", (
+    return _finding("board_scale", "warn", (
         f"{what} {100 * (ev.kappa - 1):+.1f} % off its nominal size (kappa {ev.kappa:.4f} ± "
         f"{ev.kappa_sigma:.4f}). The result is corrected for it; to make it exact, measure the "
         f"printed squares (e.g. 10 squares with a calliper), enter the true square size and "
@@ -163,17 +146,17 @@ def _board_scale(ev: QualityInputs) -> QualityFinding | None:
          "square_size_m": size, "measured_square_size_m": measured})
 
 
-def _few_stations(ev: QualityInputs) -> QualityFinding | None:
+def _few_stations(ev: QualityInputs) -> Finding | None:
     n = len(ev.T_base_tcp if ev.T_base_tcp is not None else ev.corners or ())
     if n >= FEW_STATIONS:
         return None
-    return QualityFinding("few_stations", "warn", (
+    return _finding("few_stations", "warn", (
         f"only {n} usable stations: the estimate and its check (leave-one-out) rest on few "
         f"views; capture at least {FEW_STATIONS}, better 15-25."),
         {"stations": n, "recommended": FEW_STATIONS})
 
 
-def _weak_rotation(ev: QualityInputs) -> QualityFinding | None:
+def _weak_rotation(ev: QualityInputs) -> Finding | None:
     """Spread of the tool orientations about their mean: principal angles (deg)."""
     if ev.T_base_tcp is None:
         return None
@@ -182,7 +165,7 @@ def _weak_rotation(ev: QualityInputs) -> QualityFinding | None:
     spread = np.degrees(np.sqrt(np.linalg.eigvalsh(np.cov(dev.T) + 1e-18)[::-1]))
     if spread[0] >= WEAK_ROTATION_DEG and spread[1] >= WEAK_SECOND_AXIS_DEG:
         return None
-    return QualityFinding("weak_rotation", "warn", (
+    return _finding("weak_rotation", "warn", (
         f"the tool orientations vary little (spread {spread[0]:.1f} / {spread[1]:.1f} / "
         f"{spread[2]:.1f} deg about their principal axes): the hand-eye rotation and its "
         f"translation are poorly determined. Tilt the tool 15-35 deg about at least two "
@@ -202,21 +185,21 @@ def image_coverage(uv: np.ndarray, image_size: tuple[int, int]) -> tuple[float, 
     return float(hit.mean()), int(4 - hit[0, 0] - hit[0, -1] - hit[-1, 0] - hit[-1, -1])
 
 
-def _poor_coverage(ev: QualityInputs) -> QualityFinding | None:
+def _poor_coverage(ev: QualityInputs) -> Finding | None:
     if ev.corners is None or ev.image_size is None:
         return None
     g = COVERAGE_GRID
     fraction, empty_corners = image_coverage(np.concatenate(ev.corners), ev.image_size)
     if fraction >= MIN_COVERAGE and empty_corners == 0:
         return None
-    return QualityFinding("poor_coverage", "warn", (
+    return _finding("poor_coverage", "warn", (
         f"the corners cover {100 * fraction:.0f} % of the image ({g}x{g} cells) and "
         f"{empty_corners} of its 4 corner regions are empty: lens distortion there is "
         f"extrapolated. Add stations that put the board near the image corners and edges."),
         {"covered_fraction": fraction, "empty_image_corners": empty_corners})
 
 
-def _outliers(ev: QualityInputs) -> QualityFinding | None:
+def _outliers(ev: QualityInputs) -> Finding | None:
     ids = [sid for sid, reason in ev.rejected if "robot pose inconsistent" in reason]
     if ev.cv is not None:
         err = ev.cv.station_errors()
@@ -227,14 +210,14 @@ def _outliers(ev: QualityInputs) -> QualityFinding | None:
     ids = list(dict.fromkeys(ids))  # a dropped station is also in the cross-validation
     if not ids:
         return None
-    return QualityFinding("outlier_stations", "warn", (
+    return _finding("outlier_stations", "warn", (
         f"stations {', '.join(ids)} disagree with the others (dropped, or predicted more than "
         f"{OUTLIER_FACTOR:g}x worse than the median): check their images and poses (motion "
         f"blur, robot not settled, board moved)."),
         {"stations": ids})
 
 
-def _high_prediction_error(ev: QualityInputs) -> QualityFinding | None:
+def _high_prediction_error(ev: QualityInputs) -> Finding | None:
     if ev.cv is None or ev.cv.rms_px is None or ev.sigma_px is None:
         return None
     px = ev.cv.rms_px
@@ -243,7 +226,7 @@ def _high_prediction_error(ev: QualityInputs) -> QualityFinding | None:
     metric = ev.cv.rms_m
     within = metric is not None and metric <= ROBOT_ACCURACY_M
     mm = metric * 1e3 if metric is not None else float("nan")
-    return QualityFinding("high_prediction_error", "info" if within else "warn", (
+    return _finding("high_prediction_error", "info" if within else "warn", (
         f"held-out stations are predicted from their robot poses to {px:.2f} px "
         f"({mm:.2f} mm at the board), {px / ev.sigma_px:.0f}x the corner noise: the robot's "
         f"own accuracy limits the result. Expect errors of this size in use" + (

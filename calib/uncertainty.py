@@ -32,16 +32,14 @@ from calib.crossval import FoldEstimate
 #: The jackknife replaces the formal σ only when it is larger by more than this factor (its
 #: sampling noise and upward bias with 5 folds, see the module docstring).
 JACKKNIFE_NOISE = 1.3
-#: Parameters with a jackknife: vectors (3,) in the frame of the transform's first index.
-POSE_SIGMAS = ("hand_eye_rot_rad", "hand_eye_trans_m", "target_pose_rot_rad",
-               "target_pose_trans_m")
 
 
 @dataclass(frozen=True)
 class UncertaintyEstimate:
     """Reported σ per parameter, the two figures it was taken from, and which one won.
 
-    ``sigmas`` holds floats (κ, ν, camera) and arrays (3,) (``POSE_SIGMAS``); ``formal`` and
+    ``sigmas`` holds floats (κ, ν, camera) and arrays (3,) (``hand_eye_rot_rad``,
+    ``hand_eye_trans_m``, ``target_pose_rot_rad``, ``target_pose_trans_m``); ``formal`` and
     ``jackknife`` the same names; ``source`` maps each name to ``formal`` or ``jackknife``
     (the larger as a block; a jackknife vector is reported as the formal one scaled to its
     size). ``folds`` is the number of jackknife groups (0: none).

@@ -13,12 +13,21 @@ import numpy as np
 from fastapi import Path as PathParam
 from pydantic import BaseModel, ConfigDict, Field, field_serializer, model_validator
 
-from calib import COVERAGE_90, METHODS, Detection, RobotNoise, SolverOptions, Target
+from calib import (
+    COVERAGE_90,
+    METHODS,
+    Detection,
+    FiniteFloat,
+    Result,
+    RobotNoise,
+    SolverOptions,
+    Target,
+)
 from service.exports import FORMATS, formats_help
-from service.results.schema import Result
 
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False, strict=True)]
-Pose = Annotated[list[FiniteFloat], Field(min_length=6, max_length=6,
+#: Request bodies take numbers only as numbers (strict: no "1.5" text).
+StrictFiniteFloat = Annotated[FiniteFloat, Field(strict=True)]
+Pose = Annotated[list[StrictFiniteFloat], Field(min_length=6, max_length=6,
                                           description="[x, y, z, rx, ry, rz], m and rad")]
 RunState = Literal["capturing", "paused", "done", "failed", "cancelled", "interrupted"]
 ExportFormat = Literal[FORMATS]  # type: ignore[valid-type]

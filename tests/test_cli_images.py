@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from calib.geometry import pose_error
+from calib.result import parse_result
 from service.cli.main import main
-from service.results.schema import parse_result
 from tests.support.helpers import undeclared_fields
 from tests.support.stations import N_IMAGES, SCENE, write_image_set
 

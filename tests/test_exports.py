@@ -38,7 +38,7 @@ def test_opencv_yaml_round_trips_through_filestorage():
     np.testing.assert_array_equal(fs.getNode("target_pose").mat(), SCENE.target_pose_matrix)
     assert fs.getNode("setup").string() == "eye_in_hand"
     assert fs.getNode("kappa").real() == 1.005
-    assert "hand_eye = tcp_T_cam" in content
+    assert "hand_eye = T_tcp_cam" in content
 
 
 def test_ros_camera_info_has_the_ros_layout():
@@ -116,7 +116,7 @@ def test_ur_pose_is_the_hand_eye_as_a_pose_vector():
     content, media, name = export(pose_only_result(), "ur-pose")
     assert media == "text/plain" and name.endswith(".txt")
     comment, line = content.splitlines()
-    assert comment.startswith("# ") and "tcp_T_cam" in comment and "TCP offset" in comment
+    assert comment.startswith("# ") and "T_tcp_cam" in comment and "TCP offset" in comment
     assert line.startswith("p[") and line.endswith("]")
     pose = np.array(line[2:-1].split(","), dtype=float)
     np.testing.assert_allclose(matrix_from_ur_pose(pose), SCENE.hand_eye_matrix, atol=1e-15)

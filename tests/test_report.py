@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from calib import image_coverage
+from calib.result import parse_result
 from service.cli import report as report_cli
 from service.cli.main import main
 from service.results.report import render_report, report_plots
-from service.results.schema import parse_result
 from tests.support.helpers import wait_for
 from tests.support.service import finished, start_run, wait_run
 

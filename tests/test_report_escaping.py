@@ -19,9 +19,9 @@ from typing import Any
 
 import pytest
 
+from calib.result import parse_result
 from service.cli.main import main
 from service.results.report import render_report
-from service.results.schema import parse_result
 from tests.support.browser import Browser
 
 #: Markup that breaks out of text and of a quoted attribute, each way it could run.

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
+from calib.result import parse_result
 from service.exports import CAMERA_FORMATS, FORMATS, TRANSFORM_FORMATS, export
 from service.results.report import render_report
-from service.results.schema import parse_result
 
 DATA = Path(__file__).parent / "data"
 #: Documents written by an earlier version and the export formats each one supports.

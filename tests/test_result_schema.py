@@ -1,4 +1,4 @@
-"""The typed result document (``service.results.schema``): what cellcal writes validates and
+"""The typed result document (``calib.result``): what cellcal writes validates and
 has no field the schema does not declare, minimal and older documents validate, bad ones are
 refused in one line, and the OpenAPI document shows the result's fields."""
 
@@ -11,9 +11,9 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
+from calib.result import Result, parse_result
 from service.app import create_app
 from service.results.document import calibration_result_json
-from service.results.schema import Result, parse_result
 from tests.support.helpers import undeclared_fields
 from tests.support.results import full_result, intrinsics_only_result, pose_only_result
 from tests.support.service import settings
@@ -80,4 +80,4 @@ def test_openapi_documents_the_result(tmp_path: Path) -> None:
                                        "target_pose"}
     camera = schemas["CameraModel"]["properties"]
     assert camera["K"]["minItems"] == camera["K"]["maxItems"] == 3
-    assert schemas["QualityBlock"]["properties"]["verdict"]["enum"] == ["pass", "warn", "fail"]
+    assert schemas["Quality"]["properties"]["verdict"]["enum"] == ["pass", "warn", "fail"]

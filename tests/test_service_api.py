@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from calib.result import parse_result
 from drivers.base import Camera, Robot
 from drivers.errors import CameraError, RobotConnectionError
 from mocks.scene import default_scene
 from service.app import create_app
 from service.cell.devices import settings_opener
-from service.results.schema import parse_result
 from service.settings import Settings
 from tests.support.helpers import undeclared_fields
 from tests.support.service import (

@@ -10,6 +10,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Response, status
 from fastapi.responses import FileResponse, HTMLResponse, StreamingResponse
 
+from calib import parse_result
 from drivers.base import RobotIdentity
 from service.api.deps import CalibrationsDep, EventsDep, SessionDep, SettingsDep
 from service.api.reads import Read, add_reads
@@ -17,7 +18,6 @@ from service.api.routing import OneThreadRoute
 from service.api.streams import LastEventId, event_stream, stream_doc
 from service.errors import ConflictError, UnprocessableError
 from service.exports import ExportNames, export
-from service.results.schema import parse_result
 from service.schemas import CalibrationCreate, CalibrationPublic, Created, ExportQuery
 from service.stationsets.format import captured_set_sha256
 from service.store import queries

@@ -17,9 +17,9 @@ from service.runs.external import PostedStation
 from service.schemas import (
     DetectionPublic,
     ErrorInfo,
-    FiniteFloat,
     StationIndex,
     StationPublic,
+    StrictFiniteFloat,
 )
 from service.store import queries
 from service.store.records import StationRecord
@@ -81,7 +81,7 @@ def post_station(
     return station_public(station, corners=False)
 
 
-_VECTOR = TypeAdapter(list[FiniteFloat])
+_VECTOR = TypeAdapter(list[StrictFiniteFloat])
 
 
 def _vector(text: str | None, name: str) -> list[float] | None:

@@ -30,16 +30,18 @@ from calib import (
     METHODS,
     Calibration,
     ChecksConfiguration,
+    CrossValidationBlock,
     Detection,
     PoseOnlyResult,
+    Quality,
     SolverOptions,
     Station,
     Stations,
     board_from_target,
     calibrate,
+    parse_result,
 )
 from service.cli.exit_codes import EXIT_VERDICT_FAIL
-from service.results.schema import CrossValidationBlock, QualityBlock, parse_result
 from service.stationsets.format import DEFAULT_MAX_STATIONS, load_station_set
 from service.stationsets.images import DEFAULT_MAX_PIXELS, read_station_image
 
@@ -125,10 +127,10 @@ def check_out_path(out: str) -> None:
         raise ValueError(f"--out {out}: the directory {directory} is not writable")
 
 
-def verdict_line(quality: QualityBlock | None, cv: CrossValidationBlock | None) -> str:
+def verdict_line(quality: Quality | None, cv: CrossValidationBlock | None) -> str:
     """One line for people: the verdict (pass when there is none), the cross-validated error
     and the findings' codes."""
-    quality = quality or QualityBlock(verdict="pass")
+    quality = quality or Quality(verdict="pass")
     if cv is None:
         figure = "no cross-validation (no robot poses)"
     elif cv.rms_px is not None:

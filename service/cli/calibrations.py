@@ -15,6 +15,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from calib import Result
 from service.cli import client
 from service.cli.exit_codes import EXIT_FAILED
 from service.exports import FORMATS

@@ -14,8 +14,8 @@ import json
 import sys
 from pathlib import Path
 
+from calib import Result, parse_result
 from service.exports import FORMATS, ExportNames, export, formats_help
-from service.results.schema import Result, parse_result
 
 #: Larger files are not result documents (a result with 10,000 stations is about 30 MB).
 MAX_RESULT_BYTES = 256 * 1024 * 1024

@@ -26,8 +26,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
+from calib import Result, parse_result
 from service.exports.common import ExportNames
-from service.results.schema import Result, parse_result
 
 __all__ = ["CAMERA_FORMATS", "FORMATS", "TABLE", "TRANSFORM_FORMATS", "ExportNames", "export",
            "formats_help"]
@@ -92,7 +92,7 @@ def export(result: Result | Mapping[str, Any], fmt: str,
 
     Parameters
     ----------
-    result : the result (``service.results.schema.Result``), or its JSON document, which is
+    result : the result (``calib.Result``), or its JSON document, which is
         validated first (ValueError naming the first problem).
     fmt : one of ``FORMATS``.
     names : camera and frame names (default ``ExportNames()``).

@@ -10,8 +10,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from calib import Result
 from service.exports.common import FRAMES, ExportNames, matrix, num, robot_map_note
-from service.results.schema import Result
 
 
 def _camera(result: Result) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
@@ -37,7 +37,7 @@ def opencv_yaml(result: Result, names: ExportNames) -> tuple[str, str, str]:
     fs.write("setup", setup)
     if result.hand_eye is not None:
         he_name, tp_name = FRAMES[setup]
-        fs.writeComment(f"hand_eye = {he_name}, target_pose = {tp_name} (a_T_b maps b to a)")
+        fs.writeComment(f"hand_eye = {he_name}, target_pose = {tp_name} (T_a_b maps b to a)")
         fs.write("hand_eye", matrix(result.hand_eye, "hand_eye"))
         if result.target_pose is not None:
             fs.write("target_pose", matrix(result.target_pose, "target_pose"))

@@ -8,12 +8,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib import check_transforms
-from service.results.schema import Result, Transform
+from calib import Result, Transform, check_transforms
 
 #: What ``hand_eye`` / ``target_pose`` mean in each setup (``docs/conventions.md``).
-FRAMES = {"eye_in_hand": ("tcp_T_cam", "base_T_target"),
-          "eye_to_hand": ("base_T_cam", "tcp_T_target")}
+FRAMES = {"eye_in_hand": ("T_tcp_cam", "T_base_target"),
+          "eye_to_hand": ("T_base_cam", "T_tcp_target")}
 
 
 def matrix(transform: Transform, name: str) -> np.ndarray:

@@ -16,9 +16,8 @@ import warnings
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calib import ur_pose_from_matrix
+from calib import Result, ur_pose_from_matrix
 from service.exports.common import FRAMES, ExportNames, matrix, num, robot_map_note
-from service.results.schema import Result
 
 #: What the default parent frame must stand for, per setup.
 _PARENT_NOTE = {
@@ -69,11 +68,11 @@ def ur_pose(result: Result, names: ExportNames) -> tuple[str, str, str]:
     pose = ", ".join(num(v) for v in ur_pose_from_matrix(_hand_eye(result)))
     setup = result.setup
     if setup == "eye_in_hand":
-        what = ("tcp_T_cam: the camera's optical frame relative to the TCP used during "
+        what = ("T_tcp_cam: the camera's optical frame relative to the TCP used during "
                 "calibration (the flange if its TCP offset was zero); set it as the TCP offset "
                 "to make the camera the TCP")
     else:
-        what = "base_T_cam: the camera's optical frame in the robot base frame"
+        what = "T_base_cam: the camera's optical frame in the robot base frame"
     text = (f"# cellcal hand-eye ({setup}), {what}; metres, rotation vector in radians\n"
             + "".join(f"# {line}\n" for line in robot_map_note(result)) + f"p[{pose}]\n")
     return text, "text/plain", "hand_eye_ur_pose.txt"

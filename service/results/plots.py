@@ -17,8 +17,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from calib import COVERAGE_GRID, image_coverage
-from service.results.schema import BoardScale, Result
+from calib import COVERAGE_GRID, BoardScale, Result, image_coverage
 
 log = logging.getLogger("cellcal.service")
 

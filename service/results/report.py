@@ -7,7 +7,7 @@ selection) and the station table with every rejected station and its reason. Plo
 matplotlib PNGs embedded as base64 ``data:`` URIs and the style is inline, so the file needs
 nothing else: no network, no other file. Units for people: mm, degrees, pixels.
 
-It reads the typed result (``service.results.schema.Result``): its ``quality``,
+It reads the typed result (``calib.result.Result``): its ``quality``,
 ``cross_validation``, ``model_selection`` and ``uncertainty`` blocks when they are there, and
 says so when they are not (older results).
 """
@@ -22,17 +22,18 @@ from typing import Any
 
 import numpy as np
 
-from calib import OUTLIER_FACTOR, ur_pose_from_matrix
-from service.results.plots import Plot, cv_by_station, report_plots
-from service.results.schema import (
+from calib import (
+    OUTLIER_FACTOR,
     CrossValidationBlock,
     ModelSelection,
-    QualityBlock,
+    Quality,
     Result,
     StationFit,
     Transform,
     parse_result,
+    ur_pose_from_matrix,
 )
+from service.results.plots import Plot, cv_by_station, report_plots
 from service.results.thumbnails import thumbnails_section
 
 _VERDICT_COLOURS = {"pass": "#1b7a3a", "warn": "#b26a00", "fail": "#b3261e"}
@@ -151,7 +152,7 @@ def _header(result: Result) -> str:
             f"<p class=\"sub\">{' · '.join(facts)}</p>")
 
 
-def _verdict(quality: QualityBlock | None, cv: CrossValidationBlock | None) -> str:
+def _verdict(quality: Quality | None, cv: CrossValidationBlock | None) -> str:
     if quality is None:
         return ("<div class=\"verdict\" style=\"border-color:#888\"><span class=\"word\">"
                 "no verdict</span><p class=\"finding\">This result carries no quality "

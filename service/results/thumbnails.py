@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from service.results.schema import Result, StationFit
+from calib import Result, StationFit
 
 #: Thumbnail width (px) and JPEG quality: readable corners, a few tens of kB each.
 WIDTH_PX = 320

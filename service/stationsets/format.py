@@ -30,7 +30,7 @@ from pydantic import (
     model_validator,
 )
 
-from calib import Station, Stations, Target, TargetAdapter, check_ur_pose
+from calib import FiniteFloat, Station, Stations, Target, TargetAdapter, check_ur_pose
 from drivers.config_files import describe_validation_error
 
 STATIONS_FILE = "stations.json"
@@ -39,7 +39,6 @@ DEFAULT_MAX_STATIONS = 50_000
 #: ``stations.json`` bytes allowed per station (a pose-only station takes about 250).
 FILE_BYTES_PER_STATION = 2048
 
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 PoseVector = Annotated[list[FiniteFloat], Field(min_length=6, max_length=6)]
 
 

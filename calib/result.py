@@ -1,6 +1,8 @@
-"""The result document ``cellcal/result@1`` as pydantic models: what ``service.results.document``
-writes, ``GET /calibrations/{id}`` answers (so the OpenAPI document shows every field) and the
-exports read.
+"""The calibration result ``cellcal/result@1`` as pydantic models, one type per block: the
+quality checks (``calib.quality``) make its ``Finding`` and ``Quality``, the service's
+document builder (``service.results.document``) the whole ``Result``, which the service stores
+as JSON and answers at ``GET /calibrations/{id}`` (so the OpenAPI document shows every field),
+and the report, plots, exports and validations read as typed attributes.
 
 Only ``format``, ``setup``, ``camera``, ``target``, ``hand_eye`` and ``target_pose`` are required
 (product.md, "Result"); every other block is optional, so older and hand-written documents
@@ -20,6 +22,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 RESULT_FORMAT = "cellcal/result@1"
 
+#: A float that is neither NaN nor infinite (JSON has neither); every pydantic model of
+#: cellcal that takes numbers takes these.
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 #: A 1-sigma figure: a scalar, or a small-angle / translation vector (3,); None = not estimated.
 Sigma = float | list[float] | None
@@ -32,7 +36,7 @@ class _Block(BaseModel):
 
 
 class Transform(_Block):
-    """A rigid transform ``a_T_b`` (maps points of b into a), docs/conventions.md."""
+    """A rigid transform ``T_a_b`` (maps points of b into a), docs/conventions.md."""
 
     matrix: Annotated[list[Row4], Field(min_length=4, max_length=4,
                                         description="4x4 homogeneous matrix, metres")]
@@ -186,17 +190,37 @@ class ModelSelection(_Block):
     candidates: list[Candidate] = Field(default_factory=list)
 
 
+#: Severities of a finding, mildest first; a result's verdict is its worst finding's.
+SEVERITIES = ("info", "warn", "fail")
+Verdict = Literal["pass", "warn", "fail"]
+
+
 class Finding(_Block):
-    """One quality finding; its figures (named per code) follow as further fields."""
+    """One quality finding: a stable code, its severity (info, warn or fail), a message for
+    people; its figures (named per code) follow as further fields."""
 
     code: str
     severity: str
     message: str
 
+    @property
+    def values(self) -> dict[str, Any]:
+        """The finding's figures, by name."""
+        return dict(self.model_extra or {})
 
-class QualityBlock(_Block):
-    verdict: Literal["pass", "warn", "fail"]
+
+class Quality(_Block):
+    """The verdict and the findings it rests on."""
+
+    verdict: Verdict
     findings: list[Finding] = Field(default_factory=list)
+
+    @classmethod
+    def of(cls, findings: list[Finding]) -> Quality:
+        """The quality of ``findings``: the verdict is the worst severity among them."""
+        worst = max((SEVERITIES.index(f.severity) for f in findings), default=0)
+        verdict: Verdict = ("pass", "warn", "fail")[worst]
+        return cls(verdict=verdict, findings=findings)
 
 
 class Software(_Block):
@@ -213,10 +237,10 @@ class Result(_Block):
     camera: CameraModel | None = Field(description="None: pose-only hand-eye calibration")
     target: BoardScale
     hand_eye: Transform | None = Field(
-        description="tcp_T_cam (eye-in-hand) or base_T_cam (eye-to-hand); None: intrinsics "
+        description="T_tcp_cam (eye-in-hand) or T_base_cam (eye-to-hand); None: intrinsics "
                     "only")
     target_pose: Transform | None = Field(
-        description="base_T_target (eye-in-hand) or tcp_T_target (eye-to-hand)")
+        description="T_base_target (eye-in-hand) or T_tcp_target (eye-to-hand)")
     robot_translation_map: list[list[float]] | None = Field(
         None, description="S (3x3, base frame): the robot's translation readings t are "
                           "corrected to t + S t before hand_eye and target_pose apply (scale "
@@ -234,7 +258,7 @@ class Result(_Block):
     options: dict[str, Any] | None = Field(None, description="the solver options used")
     cross_validation: CrossValidationBlock | None = None
     model_selection: ModelSelection | None = None
-    quality: QualityBlock | None = None
+    quality: Quality | None = None
     software: Software | None = None
     created: str | None = Field(None, description="ISO 8601 time, UTC")
 
