@@ -214,13 +214,13 @@ def test_intrinsics_only_and_pose_only_results_have_reports(ur_result, tmp_path)
     from calib.pipeline import calibrate_stations
     from calib.stations import StationInputs
     from mocks.posesim import default_cell, simulate
-    from service.results.document import calibration_result_json
+    from service.results.document import calibration_result
     from service.results.report import render_report
     from tests.support.stations import write_station_set
 
     _, result = ur_result
     corners = [np.asarray(s["corners_px"]) for s in result["stations"]]
-    intrinsics = calibration_result_json(calibrate_stations(
+    intrinsics = calibration_result(calibrate_stations(
         StationInputs(corners, image_size=(1280, 720)), Checkerboard((11, 8), 0.03)))
     page = assert_self_contained(render_report(intrinsics))
     assert page.figures == ["fig-station-errors", "fig-residuals", "fig-coverage"]

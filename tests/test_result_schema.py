@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 
 from calib.result import Result, parse_result
 from service.app import create_app
-from service.results.document import calibration_result_json
+from service.results.document import calibration_result
 from tests.support.helpers import undeclared_fields
 from tests.support.results import full_result, intrinsics_only_result, pose_only_result
 from tests.support.service import settings
@@ -21,7 +21,8 @@ from tests.support.stations import calibrate, detections
 
 
 def test_a_real_intrinsics_only_result_validates_with_every_field_declared() -> None:
-    doc = calibration_result_json(calibrate(detections(), None), command="test")
+    written = calibration_result(calibrate(detections(), None), command="test")
+    doc = json.loads(json.dumps(written.document()))
     result = parse_result(doc)
     assert result.camera is not None and result.hand_eye is None and result.target_pose is None
     assert result.stations is not None and len(result.stations) == 15

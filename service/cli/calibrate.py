@@ -28,18 +28,15 @@ import numpy as np
 from calib import (
     KAPPA_MODES,
     METHODS,
-    Calibration,
     ChecksConfiguration,
     CrossValidationBlock,
     Detection,
-    PoseOnlyResult,
     Quality,
     SolverOptions,
     Station,
     Stations,
     board_from_target,
     calibrate,
-    parse_result,
 )
 from service.cli.exit_codes import EXIT_VERDICT_FAIL
 from service.stationsets.format import DEFAULT_MAX_STATIONS, load_station_set
@@ -86,9 +83,10 @@ def run(args: argparse.Namespace) -> int:
                             kappa="estimate" if args.estimate_kappa else args.kappa)
     result = calibrate(stations, options, images=_image_reader(args, stations),
                        progress=_progress_bar(len(stations.stations)))
-    doc = _document(result, " ".join(["cellcal", *sys.argv[1:]]))
-    text = json.dumps(doc, indent=2)
-    written = parse_result(doc)
+    from service.results.document import result_of  # the writer's imports: after the solve
+
+    written = result_of(result, command=" ".join(["cellcal", *sys.argv[1:]]))
+    text = json.dumps(written.document(), indent=2)
     for rejected in written.rejected or []:
         print(f"cellcal: station {rejected.id} rejected: {rejected.reason}", file=sys.stderr)
     print(verdict_line(written.quality, written.cross_validation), file=sys.stderr)
@@ -99,17 +97,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {args.out}", file=sys.stderr)
     failed = written.quality is not None and written.quality.verdict == "fail"
     return EXIT_VERDICT_FAIL if failed else 0
-
-
-def _document(result: Calibration, command: str) -> dict[str, Any]:
-    """The result document of either kind of calibration."""
-    from service.results.document import calibration_result_json, hand_eye_result_json
-
-    if isinstance(result, PoseOnlyResult):
-        return hand_eye_result_json(result.fit, list(result.station_ids),
-                                    options=result.options, command=command,
-                                    trust=result.trust)
-    return calibration_result_json(result, command=command)
 
 
 def check_out_path(out: str) -> None:

@@ -21,7 +21,7 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
-from calib import MIN_IMAGES, CalibrationResult, SolverOptions, Stations, calibrate
+from calib import MIN_IMAGES, SolverOptions, Stations, calibrate
 from service.errors import ConflictError, QueueFullError, UnprocessableError
 from service.events import EventBus
 from service.jobs.outcomes import Outcomes
@@ -203,15 +203,13 @@ def solve_calibration(job: SolveJob) -> dict[str, Any]:
 
     Top level (picklable) and self-contained: it imports the document writer in the worker.
     """
-    from service.results.document import calibration_result_json
+    from service.results.document import result_of
 
     progress = SolveProgress(job.cal_id, len(job.stations.stations))
     try:
         result = calibrate(job.stations, job.options, progress=progress.detecting,
                            on_stage=progress.stage)
-        assert isinstance(result, CalibrationResult)  # a run's stations hold detections
-        return calibration_result_json(
-            result, command=f"POST /runs/{job.run_id}/calibrations")
+        return result_of(result, command=f"POST /runs/{job.run_id}/calibrations").document()
     finally:
         progress.end()
 

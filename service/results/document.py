@@ -19,6 +19,7 @@ from calib import (
     RESULT_FORMAT,
     SELECTION_RULE,
     BoardScale,
+    Calibration,
     CalibrationResult,
     CameraModel,
     Candidate,
@@ -30,6 +31,7 @@ from calib import (
     ModelSelection,
     Motions,
     PoseError,
+    PoseOnlyResult,
     Quality,
     Rejected,
     Result,
@@ -100,10 +102,20 @@ def _provenance(command: str | None) -> dict[str, Any]:
             "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds")}
 
 
+def result_of(calibration: Calibration, *, command: str | None = None) -> Result:
+    """The result of what ``calib.calibrate`` returned; ``command`` says how it was asked for
+    (the command line, or the service's request)."""
+    if isinstance(calibration, PoseOnlyResult):
+        return hand_eye_result(calibration.fit, list(calibration.station_ids),
+                               options=calibration.options, command=command,
+                               trust=calibration.trust)
+    return calibration_result(calibration, command=command)
+
+
 def hand_eye_result(result: HandEyeResult, station_ids: list[str], *,
                     options: dict[str, Any], command: str | None = None,
                     trust: Trust | None = None) -> Result:
-    """The result of a pose-only hand-eye calibration (no camera model)."""
+    """The result of a pose-only hand-eye fit (no camera model)."""
     sigmas = result.sigmas if trust is None or trust.uncertainty is None \
         else trust.uncertainty.sigmas
     return Result(
@@ -146,20 +158,6 @@ def calibration_result(result: CalibrationResult, *, command: str | None = None)
         rejected=[Rejected(id=sid, reason=reason) for sid, reason in result.rejected],
         validation=_plain(result.validation), method=result.method,
         options=_plain(result.options), **_evidence(result.trust), **_provenance(command))
-
-
-def hand_eye_result_json(result: HandEyeResult, station_ids: list[str], *,
-                         options: dict[str, Any], command: str | None = None,
-                         trust: Trust | None = None) -> dict[str, Any]:
-    """:func:`hand_eye_result` as its JSON document."""
-    return hand_eye_result(result, station_ids, options=options, command=command,
-                           trust=trust).document()
-
-
-def calibration_result_json(result: CalibrationResult, *,
-                            command: str | None = None) -> dict[str, Any]:
-    """:func:`calibration_result` as its JSON document."""
-    return calibration_result(result, command=command).document()
 
 
 def _station(station: StationReport) -> StationFit:

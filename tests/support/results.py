@@ -8,7 +8,7 @@ from typing import Any
 from calib.geometry import ur_pose_from_matrix
 from calib.handeye import HandEyeResult
 from mocks.scene import default_scene
-from service.results.document import hand_eye_result_json
+from service.results.document import hand_eye_result
 
 SCENE = default_scene()
 
@@ -30,7 +30,7 @@ def full_result(setup="eye_in_hand", hand_eye=None, dist=None):
 def pose_only_result():
     fit = HandEyeResult(setup="eye_in_hand", method="sm", hand_eye=SCENE.hand_eye_matrix,
                         target_pose=SCENE.target_pose_matrix)
-    return hand_eye_result_json(fit, [], options={})
+    return hand_eye_result(fit, [], options={}).document()
 
 
 def intrinsics_only_result() -> dict[str, Any]:
