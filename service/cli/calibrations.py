@@ -15,7 +15,6 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from calib import Result
 from service.cli import client
 from service.cli.exit_codes import EXIT_FAILED
 from service.exports import FORMATS
@@ -88,7 +87,7 @@ def _start(service: client.Service, args: argparse.Namespace) -> int:
     if final.state != "done":
         print(f"calibration {cal_id}: {final.state} ({final.error})", file=sys.stderr)
         return EXIT_FAILED
-    from service.results.schema import Result
+    from calib import Result
 
     result = Result.model_validate(service.fetch(f"/calibrations/{cal_id}")["result"])
     verdict = None if result.quality is None else result.quality.verdict
