@@ -37,6 +37,13 @@ def striped_png(width: int, height: int) -> bytes:
     return cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 9])[1].tobytes()
 
 
+def checker_png(width: int, height: int, square: int = 16) -> bytes:
+    """A PNG of ``square``-pixel checkers: a board-like texture, a few kB on the wire."""
+    y, x = np.ogrid[:height, :width]
+    image = ((x // square + y // square) % 2 * 255).astype(np.uint8)
+    return cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 9])[1].tobytes()
+
+
 def peak_rss_mb(pid: int) -> float:
     """The process's peak resident memory so far (``VmHWM``), MB."""
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
@@ -115,4 +122,19 @@ def test_a_search_beyond_its_cpu_budget_is_refused(tmp_path: Path) -> None:
         r = post(client, run_id, pose=pose, image=striped_png(1920, 1200))
         assert r.status_code == 422, r.text
         assert r.json()["code"] == "image_too_complex"
+        assert_serves_a_next_image(client, run_id, pose)
+
+
+@pytest.mark.slow  # the default budget: 20 CPU-s of search before the refusal
+@pytest.mark.timeout(900)
+def test_a_dense_checker_texture_under_the_pixel_cap_is_refused_by_default(tmp_path: Path) -> None:
+    """24 MP of 16-pixel checkers, 37 kB on the wire and under the 25 MP cap, so it is decoded
+    and searched: every fallback search runs at full size, 45 CPU-s and 4.8 GB without limits
+    (``tools/image-attack``). The default worker limits refuse it, and serve the next image."""
+    with limited(tmp_path) as client:
+        run_id, pose = external_run(client), robot_pose(client)
+        r = post(client, run_id, pose=pose, image=checker_png(6000, 4000))
+        assert (r.status_code, r.json()["code"]) in {(422, "image_too_complex"),
+                                                     (413, "image_too_large")}, r.text
+        assert client.get(f"/runs/{run_id}/stations").json() == []
         assert_serves_a_next_image(client, run_id, pose)
