@@ -384,9 +384,8 @@ class JointProblem(CachedProblem):
             R, t, inverse, Jl = links[name]
             if name == "M" and self.has_map:
                 blocks["S"] = self._map_block(H, s)[:, :, self.free[-len(MAP_PARAMS):]]
-            Rb = np.broadcast_to(R, (len(p), 3, 3))
             if inverse:
-                HRt = np.einsum("mki,mji->mkj", H, Rb)
+                HRt = _rows_times(H, np.swapaxes(R, -1, -2))
                 if Jl is not None:
                     lever = inputs[name] - t
                     blocks[name] = (_rows_times(np.cross(HRt, lever[:, None, :]), Jl), -HRt)
@@ -395,7 +394,7 @@ class JointProblem(CachedProblem):
                 if Jl is not None:
                     lever = _apply(R, np.zeros(3), inputs[name], False)
                     blocks[name] = (_rows_times(-np.cross(H, lever[:, None, :]), Jl), H)
-                H = np.einsum("mki,mij->mkj", H, Rb)
+                H = _rows_times(H, R)
         # H is now d uv / d p with p = (κν x, κ y, 0).
         d_nu = H[:, :, 0] * (kappa * self.obj[:, None, 0])
         d_kappa = H[:, :, 0] * (nu * self.obj[:, None, 0]) + H[:, :, 1] * self.obj[:, None, 1]
@@ -496,5 +495,7 @@ def _apply(R: np.ndarray, t: np.ndarray, v: np.ndarray, inverse: bool) -> np.nda
 
 
 def _rows_times(G: np.ndarray, M: np.ndarray) -> np.ndarray:
-    """Stacked ``G @ M``, shapes (m, 2, 3), (3, 3) or (m, 3, 3) -> (m, 2, 3)."""
-    return np.einsum("mki,ij->mkj", G, M) if M.ndim == 2 else np.einsum("mki,mij->mkj", G, M)
+    """Stacked ``G @ M``, shapes (m, 2, 3), (3, 3) or (m, 3, 3) -> (m, 2, 3): one (2m, 3)
+    product for a shared M, a batched one per row pair otherwise (both several times faster
+    than ``einsum`` here)."""
+    return (G.reshape(-1, 3) @ M).reshape(G.shape) if M.ndim == 2 else G @ M

@@ -19,6 +19,7 @@ every calibration. The minimum is that of :func:`calib.joint.solve_joint` (same 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import pairwise
 from typing import Protocol
 
 import numpy as np
@@ -74,13 +75,15 @@ def _normal_equations(problem: BlockProblem, x: np.ndarray) -> _Normal:
     Jg = blocks[:, :, :g].reshape(2 * m, g)
     Js = blocks[:, :, g:].reshape(2 * m, 6)
     rc, rp = r[:2 * m], r[2 * m:].reshape(n, 6)
-    starts = 2 * np.asarray(problem.starts)
+    rows = np.append(2 * np.asarray(problem.starts), 2 * m)
     w = 1.0 / np.asarray(problem.prior_sigma)
-    V = np.add.reduceat(Js[:, :, None] * Js[:, None, :], starts, axis=0) + np.diag(w * w)
+    # per station one product Js_iᵀ [Jg_i | Js_i | rc_i] (6, g + 7): W_iᵀ, V_i and b_vi at
+    # once, instead of (2m, g, 6) outer products summed by station (30x slower)
+    full = np.concatenate([Jg, Js, rc[:, None]], axis=1)
+    A = np.stack([Js[a:b].T @ full[a:b] for a, b in pairwise(rows)])
     return _Normal(
-        cost=float(r @ r), U=Jg.T @ Jg,
-        W=np.add.reduceat(Jg[:, :, None] * Js[:, None, :], starts, axis=0), V=V,
-        b_g=Jg.T @ rc, b_v=np.add.reduceat(Js * rc[:, None], starts, axis=0) + rp * w)
+        cost=float(r @ r), U=Jg.T @ Jg, W=A[:, :, :g].transpose(0, 2, 1),
+        V=A[:, :, g:g + 6] + np.diag(w * w), b_g=Jg.T @ rc, b_v=A[:, :, -1] + rp * w)
 
 
 def _reduced(ne: _Normal, damping: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
