@@ -164,12 +164,14 @@ def cross_validate_joint(data: JointData, station_ids: Sequence[str], model: Joi
 @dataclass(frozen=True)
 class JointFolds:
     """What the folds of a joint cross-validation share: the data, the station ids, the
-    model, and its fit on all stations (the start of every fold)."""
+    model, and its fit on all stations (the start of every fold); ``corrections`` (n, 6) that
+    fit's robot corrections, where each fold starts its stations' (``fit_joint``)."""
 
     data: JointData
     station_ids: tuple[str, ...]
     model: JointModel
     full: CellParameters
+    corrections: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -205,7 +207,8 @@ def _joint_fold(job: JointFolds, test: np.ndarray, fold: int
     and each of them predicted from its robot reading."""
     data = job.data
     train = np.setdiff1d(np.arange(len(data)), test)
-    cell = fit_joint(data.subset(train), job.model, job.full).cell
+    start = None if job.corrections is None else job.corrections[train]
+    cell = fit_joint(data.subset(train), job.model, job.full, corrections=start).cell
     return FoldEstimate.of(cell), [
         predict_image_station(cell, data, int(k), job.station_ids[k], fold) for k in test]
 

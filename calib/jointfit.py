@@ -87,6 +87,11 @@ class JointFit:
     solution: BlockSolution
     problem: JointProblem
 
+    @property
+    def corrections(self) -> np.ndarray:
+        """The fitted robot corrections δ (n, 6)."""
+        return self.solution.x[self.problem.n_free_global:].reshape(-1, 6)
+
     def result(self, stations: np.ndarray, rejected: tuple[tuple[int, str], ...] = (), *,
                noise: tuple[float, float, float] | None = None) -> JointResult:
         """The fit as ``calib.joint.JointResult`` (covariance, sigmas, corrections).
@@ -114,19 +119,29 @@ class JointFit:
 
 
 def fit_joint(data: JointData, model: JointModel, start: CellParameters, *,
-              max_nfev: int = 40) -> JointFit:
-    """Fit ``model`` to ``data`` from ``start``; parameters in ``model.fix`` keep their start."""
+              corrections: np.ndarray | None = None, max_nfev: int = 40) -> JointFit:
+    """Fit ``model`` to ``data`` from ``start``; parameters in ``model.fix`` keep their start.
+
+    ``corrections`` (n, 6) start the robot corrections δ, e.g. at those of a fit on more
+    stations; else they start at zero. From there the minimum is the same and is reached in
+    about 5 evaluations instead of 8 (a fold of 18 rendered stations), for from zero the
+    first steps only undo the robot's errors again.
+    """
     cell = start if model.robot_map else replace(start, robot_map=None)
     sigmas = [data.sigma_px, model.noise.rot_rad, model.noise.trans_m]
     grids = data.stations.grids()
+    delta = None if corrections is None else np.asarray(corrections, dtype=float)
     for _ in range(NOISE_ROUNDS if model.estimate_noise else 1):
         options = JointOptions(sigma_px=sigmas[0], setup=data.setup,
                                noise=RobotNoise(sigmas[1], sigmas[2]), fix=model.fix,
                                outlier_sigma=None, robot_map=model.robot_map)
         problem = JointProblem(grids, list(data.stations.image_points),
                                data.stations.T_base_tcp, cell, options)
-        sol = solve_blocks(problem, problem.x0(), max_nfev=max_nfev)
-        cell, _ = problem.unpack(sol.x)
+        x0 = problem.x0()
+        if delta is not None:  # each noise round starts where the last one ended
+            x0[problem.n_free_global:] = delta.ravel()
+        sol = solve_blocks(problem, x0, max_nfev=max_nfev)
+        cell, delta = problem.unpack(sol.x)
         if not model.estimate_noise:
             break
         factors = variance_factors(problem, sol.x)

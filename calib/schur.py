@@ -112,17 +112,28 @@ def _step(ne: _Normal, damping: float) -> np.ndarray:
     return -np.concatenate([dg, dv.ravel()])
 
 
+#: Floor of the Marquardt damping λ, and where it starts: the Gauss-Newton step.
+_MIN_DAMPING = 1e-9
+#: λ after a failed step at the floor.
+_FIRST_DAMPING = 1e-4
+
+
 def solve_blocks(problem: BlockProblem, x0: np.ndarray, *, max_nfev: int = 50,
                  ftol: float = 1e-10) -> BlockSolution:
     """Minimise ``Σ r(x)²`` from ``x0`` by Levenberg-Marquardt on the reduced system.
 
     Marquardt's damping (the diagonal scaled by ``1 + λ``); λ shrinks after a successful step
-    and grows after a failed one. Converged when a step lowers the cost by less than ``ftol``
-    relative (the ``ftol`` of ``least_squares``) or the step is negligible.
+    and grows after a failed one. The first step is Gauss-Newton's (λ at its floor): from the
+    nearby starts of cross-validation and model selection it lands on the minimum, where a
+    start at λ = 1e-4 crawls along the problem's ill-conditioned directions (κ, ν and the
+    focal length) for 5-8 steps; a first step that fails goes on from λ = 1e-4. Converged
+    when a step changes the cost by less than ``ftol`` relative (the ``ftol`` of
+    ``least_squares``; at the minimum rounding may make that a rise, which no damping could
+    undo) or the step is negligible.
     """
     x = np.asarray(x0, dtype=float).copy()
     ne = _normal_equations(problem, x)
-    nfev, damping = 1, 1e-4
+    nfev, damping = 1, _MIN_DAMPING
     while nfev < max_nfev:
         try:
             dx = _step(ne, damping)
@@ -131,15 +142,16 @@ def solve_blocks(problem: BlockProblem, x0: np.ndarray, *, max_nfev: int = 50,
         x_new = x + dx
         trial = _normal_equations(problem, x_new)
         nfev += 1
-        if np.isfinite(trial.cost) and trial.cost <= ne.cost:
-            small = (ne.cost - trial.cost) <= ftol * ne.cost or \
+        if np.isfinite(trial.cost) and trial.cost <= ne.cost * (1.0 + ftol):
+            small = abs(ne.cost - trial.cost) <= ftol * ne.cost or \
                 np.abs(dx).max() <= 1e-14 * (1.0 + np.abs(x).max())
-            x, ne = x_new, trial
-            damping = max(damping / 5.0, 1e-9)
+            if trial.cost <= ne.cost:
+                x, ne = x_new, trial
+            damping = max(damping / 5.0, _MIN_DAMPING)
             if small:
                 return BlockSolution(x=x, cost=ne.cost, nfev=nfev, converged=True)
         else:
-            damping *= 8.0
+            damping = max(8.0 * damping, _FIRST_DAMPING)
             if damping > 1e8:
                 return BlockSolution(x=x, cost=ne.cost, nfev=nfev, converged=True)
     return BlockSolution(x=x, cost=ne.cost, nfev=nfev, converged=False)

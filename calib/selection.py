@@ -21,7 +21,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from calib.crossval import CrossValidation, FoldEstimate, JointFolds, submit_joint_folds
-from calib.joint import CellParameters
+from calib.joint import CellParameters, JointResult
 from calib.jointfit import JointData, JointFit, JointModel, fit_joint, held_at_one
 from calib.parallel import fit_pool
 from calib.quality import BOARD_SCALE_MIN
@@ -149,7 +149,8 @@ def select_joint_model(data: JointData, station_ids: Sequence[str], base: JointM
     """Cross-validate the base model and its simpler/richer neighbours; pick one.
 
     ``base`` estimates everything it may (κ unless ``kappa='fixed'``, ν unless held) with the
-    assumed noise levels; ``start`` its solution on all stations; ``modes`` which choices
+    assumed noise levels; ``start`` its solution on all stations (a ``JointResult``'s robot
+    corrections start every fit's too, else they start at zero); ``modes`` which choices
     are forced. The candidates and their folds are fitted on all cores
     (``calib.parallel``), with the same results as one after the other.
     """
@@ -161,10 +162,12 @@ def select_joint_model(data: JointData, station_ids: Sequence[str], base: JointM
         models.append(replace(base, name="robot noise estimated", estimate_noise=True))
     if modes.robot_map != "off":
         models.append(replace(base, name="robot translation map", robot_map=True))
+    corrections = start.corrections if isinstance(start, JointResult) else None
     with fit_pool() as pool:
 
         def run(models: Sequence[JointModel]) -> list[ModelCandidate]:
-            return _run_candidates(_Start(data, tuple(station_ids), base, start), models, pool)
+            return _run_candidates(_Start(data, tuple(station_ids), base, start, corrections),
+                                   models, pool)
 
         tried = dict(zip((m.name for m in models), run(models), strict=True))
         base_c = tried[base.name]
@@ -216,12 +219,13 @@ def select_joint_model(data: JointData, station_ids: Sequence[str], base: JointM
 @dataclass(frozen=True)
 class _Start:
     """What every candidate starts from: the data, the station ids, the base model and its
-    solution on all stations."""
+    solution on all stations (``cell`` and the robot ``corrections`` (n, 6), or None)."""
 
     data: JointData
     station_ids: tuple[str, ...]
     base: JointModel
     cell: CellParameters
+    corrections: np.ndarray | None = None
 
 
 def _run_candidates(start: _Start, models: Sequence[JointModel],
@@ -231,13 +235,14 @@ def _run_candidates(start: _Start, models: Sequence[JointModel],
     folds fitted at its assumed or estimated noise levels; every fit a task of ``pool``."""
     data, base = start.data, start.base
     fits = [pool.submit(fit_joint, data, model, held_at_one(
-        start.cell, [p for p in ("kappa", "nu") if p in model.fix and p not in base.fix]))
-        for model in models]
+        start.cell, [p for p in ("kappa", "nu") if p in model.fix and p not in base.fix]),
+        corrections=start.corrections) for model in models]
     pending = []
     for model, task in zip(models, fits, strict=True):
         fit = task.result()
         job = JointFolds(replace(data, sigma_px=fit.sigma_px), start.station_ids,
-                         replace(model, noise=fit.noise, estimate_noise=False), fit.cell)
+                         replace(model, noise=fit.noise, estimate_noise=False), fit.cell,
+                         fit.corrections)
         pending.append((model, fit, submit_joint_folds(job, pool)))
     return [ModelCandidate(name=model.name, cv=folds.result(), model=model, fit=fit)
             for model, fit, folds in pending]
