@@ -10,6 +10,8 @@ import sys
 import pytest
 
 HEAVY = ("numpy", "scipy", "cv2", "calib", "fastapi", "sqlalchemy")
+#: Not needed to say the version: it is a constant (service.version), not package metadata.
+METADATA = "importlib.metadata"
 _PROBE = """
 import sys
 from service.cli.main import main
@@ -17,7 +19,8 @@ try:
     main({argv!r})
 except SystemExit:
     pass
-print(" ".join(sorted({{m.split(".")[0] for m in sys.modules}})))
+print(" ".join(sorted({{m.split(".")[0] for m in sys.modules}} | {{m for m in sys.modules
+                                                             if m == "importlib.metadata"}})))
 """
 
 
@@ -32,7 +35,20 @@ def test_version_help_and_client_commands_load_no_numerics(argv):
     assert not _modules_after(argv) & set(HEAVY)
 
 
+@pytest.mark.parametrize("argv", [["--version"], ["--help"]])
+def test_version_and_help_read_no_package_metadata(argv):
+    assert METADATA not in _modules_after(argv)
+
+
 def test_a_command_loads_what_it_needs():
     loaded = _modules_after(["calibrate", "--help"])
     assert {"calib", "numpy", "cv2"} <= loaded
     assert "fastapi" not in loaded
+
+
+def test_the_installed_package_has_the_version_the_command_says():
+    from importlib.metadata import version
+
+    from service.version import VERSION
+
+    assert version("cellcal") == VERSION
