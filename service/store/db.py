@@ -24,6 +24,10 @@ TRANSIENT_ERRORS = (OperationalError, InterfaceError)
 #: First pause between attempts (s); doubled after each failure up to ``_MAX_DELAY_S``.
 _FIRST_DELAY_S = 0.1
 _MAX_DELAY_S = 2.0
+#: Connections a service keeps open once it needed them (at most twice as many at a peak).
+#: With SQLAlchemy's 5, 20 clients made PostgreSQL connections open and close 3-5 times a
+#: second, and a GET that opened one took 3-4x as long (issue 21, benchmarks/README.md).
+POOL_SIZE = 20
 
 
 class DatabaseUnavailableError(Exception):
@@ -81,7 +85,8 @@ class Database:
         # pre-ping: a connection dropped by a restarted server is replaced, not handed out (a
         # SQLite file has no server; its ping would only cost every request a statement)
         self.engine: Engine = create_engine(with_driver(url), connect_args=connect_args,
-                                            pool_pre_ping=not is_sqlite)
+                                            pool_pre_ping=not is_sqlite, pool_size=POOL_SIZE,
+                                            max_overflow=POOL_SIZE)
         if is_sqlite:
             event.listen(self.engine, "connect", _sqlite_pragmas)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
