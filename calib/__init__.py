@@ -84,7 +84,7 @@ from calib.joint import (
 from calib.nu import NuSearch, nu_from_extrinsics
 from calib.options import METHODS, SolverOptions
 from calib.peers import OPENCV_HAND_EYE_METHODS, OPENCV_ROBOT_WORLD_METHODS
-from calib.pipeline import CalibrationResult, StationReport
+from calib.pipeline import CalibrationResult
 from calib.planning import (
     CellGuess,
     Plan,
@@ -197,7 +197,6 @@ __all__ = [
     "StationCheck",
     "StationFit",
     "StationInputs",
-    "StationReport",
     "Stations",
     "StoredCell",
     "Target",

@@ -35,7 +35,7 @@ from calib.chain import (
 )
 from calib.crossval import predict_dropped
 from calib.evidence import JointChoice, Trust, choose_joint, method_cross_validation
-from calib.geometry import PoseError, check_ur_poses
+from calib.geometry import check_ur_poses
 from calib.handeye import calibrate_hand_eye
 from calib.intrinsics import IntrinsicsOptions, calibrate_intrinsics
 from calib.joint import (
@@ -50,6 +50,7 @@ from calib.nu import NuSearch, nu_from_extrinsics
 from calib.options import SolverOptions
 from calib.quality import QualityInputs, assess, irreconcilable
 from calib.refine import RefineOptions, scale_translations
+from calib.result import StationFit
 from calib.stations import (
     Observation,
     StationInputs,
@@ -67,35 +68,6 @@ from calib.validation import (
 
 #: Leave-one-out validation holds out at most this many stations (evenly spread).
 MAX_HELD_OUT = 15
-
-@dataclass(frozen=True)
-class StationReport:
-    """Per-station residuals of a calibration.
-
-    ``corners_px`` holds the detected corners (N, 2), ``point_ids`` their board point ids (N,)
-    and ``residuals_px`` the fitted model's projection minus them (N, 2), pixels, in the same
-    order. ``rms_px`` is the
-    reprojection RMS of the fitted model (the joint model with the robot correction, or the
-    intrinsic stage's own pose); ``chain_rms_px`` predicts the image from the uncorrected robot
-    reading through X and Y (validation, includes the robot's noise). ``correction`` and
-    ``mahalanobis`` are the joint estimate's robot-pose correction; ``loo`` the eq. (23)
-    leave-one-out prediction error (NaN if not held out).
-    """
-
-    id: str
-    corners_px: np.ndarray
-    residuals_px: np.ndarray
-    rms_px: float
-    chain_rms_px: float | None = None
-    correction: PoseError | None = None
-    mahalanobis: float | None = None
-    loo: PoseError | None = None
-    point_ids: np.ndarray | None = None
-
-    @property
-    def n_corners(self) -> int:
-        return len(self.corners_px)
-
 
 @dataclass(frozen=True)
 class CalibrationResult:
@@ -127,7 +99,7 @@ class CalibrationResult:
     hand_eye: np.ndarray | None
     target_pose: np.ndarray | None
     sigmas: dict[str, float | np.ndarray]
-    stations: tuple[StationReport, ...]
+    stations: tuple[StationFit, ...]
     rejected: tuple[tuple[str, str], ...]
     validation: dict[str, float]
     options: dict[str, Any] = field(default_factory=dict)
@@ -206,8 +178,8 @@ def calibrate_stations(stations: StationInputs, board: Board,
             method="intrinsics", K=stage.K, dist=stage.dist, sigma_px=stage.sigma_px,
             rms_px=float(np.sqrt(np.mean(stage.rms_img ** 2))), nu=stage.nu, kappa=1.0,
             hand_eye=None, target_pose=None, sigmas=stage.sigmas,
-            stations=tuple(StationReport(ids[k], corners[i], res[i], float(stage.rms_img[i]),
-                                         point_ids=measured.ids()[i])
+            stations=tuple(StationFit.of_image(ids[k], corners[i], res[i], measured.ids()[i],
+                                               rms_px=stage.rms_img[i])
                            for i, k in enumerate(usable)),
             rejected=tuple(rejected), validation={}, trust=Trust(
                 cross_validation=None, model_selection=None, uncertainty=None,
@@ -355,7 +327,7 @@ def _trust(stage: _Stage, stations: CornerStations, ids: list[str],
 
 
 def _validate(stage: _Stage, stations: CornerStations, ids: list[str]
-              ) -> tuple[list[StationReport], dict[str, Any]]:
+              ) -> tuple[list[StationFit], dict[str, Any]]:
     """Reports of the kept stations and the validation figures, camera poses at true scale."""
     keep, joint, X, Y = stage.keep, stage.joint, stage.hand_eye, stage.target_pose
     setup = stage.setup
@@ -380,13 +352,13 @@ def _validate(stage: _Stage, stations: CornerStations, ids: list[str]
     reports = []
     for j, i in enumerate(keep):
         extra = {} if joint is None else dict(
-            correction=PoseError(float(np.linalg.norm(joint.corrections[j, :3])),
-                                 float(np.linalg.norm(joint.corrections[j, 3:]))),
-            mahalanobis=float(joint.mahalanobis[j]))
-        reports.append(StationReport(ids[i], pts[j], fit_res[j], float(fit_rms[j]),
-                                     chain_rms_px=float(chain[j]),
-                                     loo=PoseError(float(loo_rot[j]), float(loo_trans[j])),
-                                     point_ids=point_ids[j], **extra))
+            correction_rot_rad=np.linalg.norm(joint.corrections[j, :3]),
+            correction_trans_m=np.linalg.norm(joint.corrections[j, 3:]),
+            mahalanobis=joint.mahalanobis[j])
+        reports.append(StationFit.of_image(ids[i], pts[j], fit_res[j], point_ids[j],
+                                           rms_px=fit_rms[j], chain_rms_px=chain[j],
+                                           loo_rot_rad=loo_rot[j], loo_trans_m=loo_trans[j],
+                                           **extra))
     validation = {
         "E_R": motion.E_R, "E_t": motion.E_t, "n_motions": motion.n_motions,
         "loo_rot_rad_mean": float(np.nanmean(loo.rot_rad)),

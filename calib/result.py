@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 RESULT_FORMAT = "cellcal/result@1"
@@ -86,8 +87,12 @@ class Uncertainty(_Block):
 
 
 class StationFit(_Block):
-    """Per-station residuals. Image-based: corners and their residuals; pose-only: the
-    residual of the robot pose predicted through the estimate."""
+    """Per-station residuals. Image-based: corners and their residuals, ``rms_px`` the
+    fitted model's reprojection RMS (the joint model with the robot correction, or the
+    intrinsic stage's own pose), ``chain_rms_px`` the image predicted from the uncorrected
+    robot reading through hand-eye and target pose, ``correction_*`` and ``mahalanobis`` the
+    joint estimate's robot-pose correction, ``loo_*`` the eq. (23) leave-one-out prediction
+    error; pose-only: the residual of the robot pose predicted through the estimate."""
 
     id: str
     n_corners: int | None = None
@@ -104,6 +109,28 @@ class StationFit(_Block):
     point_ids: list[int] | None = Field(None, description="board point id of each corner")
     residual_rot_rad: float | None = None
     residual_trans_m: float | None = None
+
+    @classmethod
+    def of_image(cls, id: str, corners_px: np.ndarray, residuals_px: np.ndarray,
+                 point_ids: np.ndarray, **figures: float | None) -> StationFit:
+        """An image station's fit: its detected corners (N, 2), the fitted model's projection
+        minus them (N, 2), both to 0.001 px (far below their noise, to keep the result small),
+        and their board point ids (N,). ``figures``: any of ``IMAGE_FIGURES``; every one is
+        written, None where not given or not finite."""
+        given = {k: figures.pop(k, None) for k in IMAGE_FIGURES}
+        if figures:
+            raise TypeError(f"not a figure of an image station: {', '.join(figures)}")
+        return cls(id=id, n_corners=len(corners_px),
+                   **{k: None if v is None or not np.isfinite(v) else float(v)
+                      for k, v in given.items()},
+                   corners_px=np.round(corners_px, 3).tolist(),
+                   residuals_px=np.round(residuals_px, 3).tolist(),
+                   point_ids=np.asarray(point_ids).tolist())
+
+
+#: The per-station figures of an image station (``StationFit.of_image``).
+IMAGE_FIGURES = ("rms_px", "chain_rms_px", "correction_rot_rad", "correction_trans_m",
+                 "mahalanobis", "loo_rot_rad", "loo_trans_m")
 
 
 class Rejected(_Block):

@@ -87,7 +87,7 @@ def test_partial_views_calibrate_kappa_nu_and_hand_eye():
     # every report keeps its station's ids, and the residuals are at the corner noise
     for report, det in zip(res.stations, detections, strict=False):
         assert np.array_equal(report.point_ids, det.ids)
-        assert report.residuals_px.shape == (len(det.ids), 2)
+        assert np.shape(report.residuals_px) == (len(det.ids), 2)
         assert report.rms_px < 3 * SIGMA_PX
 
 

@@ -128,7 +128,7 @@ def test_other_hand_eye_methods_use_the_per_image_poses(method):
 def test_refine_is_the_pose_level_estimate_without_the_joint_stage():
     res = calibrate(detections(), rendered_stations()[1], method="refine")
     assert res.method == "refine" and res.variance_factor is None
-    assert res.stations[0].correction is None  # no robot corrections: not joint
+    assert res.stations[0].correction_rot_rad is None  # no robot corrections: not joint
     assert res.sigmas["kappa"] > 0 and res.sigmas["hand_eye_trans_m"].shape == (3,)
     assert abs(res.kappa - SCENE.target.kappa) < 4 * res.sigmas["kappa"]
     rot, _ = pose_error(res.hand_eye, SCENE.hand_eye_matrix)
@@ -180,13 +180,14 @@ def test_method_2_recovers_nu_from_the_extrinsics():
 @pytest.mark.parametrize("method", ["joint", "park", None])
 def test_stations_carry_their_corners_and_fit_residuals(method):
     """Per-corner residuals (for the report's plots) agree with the per-station RMS and with
-    the detections; None is the intrinsics-only calibration."""
+    the detections, both kept to 0.001 px; None is the intrinsics-only calibration."""
     poses = None if method is None else rendered_stations()[1]
     res = calibrate(detections(), poses, **({} if method is None else {"method": method}))
     by_id = {f"{k:03d}": d for k, d in enumerate(detections())}
     for s in res.stations:
-        np.testing.assert_array_equal(s.corners_px, by_id[s.id].corners)
-        assert s.residuals_px.shape == (BOARD[0] * BOARD[1], 2)
-        rms = np.sqrt(np.mean(np.sum(s.residuals_px ** 2, axis=1)))
-        assert rms == pytest.approx(s.rms_px, rel=1e-6)
+        np.testing.assert_allclose(s.corners_px, by_id[s.id].corners, rtol=0, atol=5e-4)
+        residuals = np.asarray(s.residuals_px)
+        assert residuals.shape == (BOARD[0] * BOARD[1], 2)
+        rms = np.sqrt(np.mean(np.sum(residuals ** 2, axis=1)))
+        assert rms == pytest.approx(s.rms_px, abs=5e-4)
         assert 0.0 < rms < 0.2

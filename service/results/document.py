@@ -30,7 +30,6 @@ from calib import (
     ModelCandidate,
     ModelSelection,
     Motions,
-    PoseError,
     PoseOnlyResult,
     Quality,
     Rejected,
@@ -38,7 +37,6 @@ from calib import (
     Selection,
     Software,
     StationFit,
-    StationReport,
     StoredCell,
     Target,
     Transform,
@@ -154,28 +152,10 @@ def calibration_result(result: CalibrationResult, *, command: str | None = None)
                     f"{_FRAMES_NOTE}; 0 = held fixed",
             "variance_factor": result.variance_factor, "camera": camera_sigmas,
             **pose_sigmas, **_uncertainty_extras(result.trust)})),
-        stations=[_station(s) for s in result.stations],
+        stations=list(result.stations),
         rejected=[Rejected(id=sid, reason=reason) for sid, reason in result.rejected],
         validation=_plain(result.validation), method=result.method,
         options=_plain(result.options), **_evidence(result.trust), **_provenance(command))
-
-
-def _station(station: StationReport) -> StationFit:
-    """A station's fit; corner positions and residuals to 0.001 px (far below their noise)
-    to keep the file small."""
-    return StationFit(
-        id=station.id, n_corners=station.n_corners, rms_px=_plain(station.rms_px),
-        chain_rms_px=_plain(station.chain_rms_px),
-        **_pose_error("correction", station.correction),
-        mahalanobis=_plain(station.mahalanobis), **_pose_error("loo", station.loo),
-        point_ids=_plain(station.point_ids), corners_px=_plain(np.round(station.corners_px, 3)),
-        residuals_px=_plain(np.round(station.residuals_px, 3)))
-
-
-def _pose_error(name: str, error: PoseError | None) -> dict[str, float | None]:
-    """``NAME_rot_rad`` and ``NAME_trans_m`` of a pose difference (None when there is none)."""
-    return {f"{name}_rot_rad": None if error is None else _plain(error.rot_rad),
-            f"{name}_trans_m": None if error is None else _plain(error.trans_m)}
 
 
 # ---- evidence (product.md "Trust"): every block below is built here and only here ----------
