@@ -37,7 +37,7 @@ from service.results.plots import Plot, cv_by_station, report_plots
 from service.results.thumbnails import thumbnails_section
 
 _VERDICT_COLOURS = {"pass": "#1b7a3a", "warn": "#b26a00", "fail": "#b3261e"}
-_SEVERITY_ORDER = {"fail": 0, "error": 0, "warn": 1, "warning": 1, "info": 2}
+_WORST_FIRST = ("fail", "warn", "pass")
 
 _CSS = """
 body { font: 13px/1.45 -apple-system, "Segoe UI", Helvetica, Arial, sans-serif; color: #1d1d1f;
@@ -159,10 +159,10 @@ def _verdict(quality: Quality | None, cv: CrossValidationBlock | None) -> str:
                 "assessment (made by an older cellcal); judge it by the figures below.</p>"
                 "</div>")
     colour = _VERDICT_COLOURS[quality.verdict]
-    findings = sorted(quality.findings, key=lambda f: _SEVERITY_ORDER.get(f.severity, 3))
+    findings = sorted(quality.findings, key=lambda f: _WORST_FIRST.index(_verdict_of(f.severity)))
     items = "".join(
         f"<p class=\"finding\"><span class=\"sev\" style=\"color:"
-        f"{_VERDICT_COLOURS.get(_verdict_of(f.severity), '#555')}\">"
+        f"{_VERDICT_COLOURS[_verdict_of(f.severity)]}\">"
         f"{_esc(f.severity)}</span> {_esc(f.message)} "
         f"<span class=\"code\">[{_esc(f.code)}]</span></p>" for f in findings)
     if not findings:
@@ -179,6 +179,8 @@ def _verdict(quality: Quality | None, cv: CrossValidationBlock | None) -> str:
 
 
 def _verdict_of(severity: str) -> str:
+    """The verdict a finding of ``severity`` makes (older documents say "error" and "warning";
+    info passes)."""
     return {"fail": "fail", "error": "fail", "warn": "warn", "warning": "warn"}.get(
         severity, "pass")
 
