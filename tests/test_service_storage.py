@@ -65,7 +65,10 @@ def test_a_deleted_data_directory_fails_the_run_and_new_ones(tmp_path: Path) -> 
         assert client.get("/health").json()["status"] == "ok"
         run_id = start_run(client, 40)
         wait_run(client, run_id, lambda r: r["stations_captured"] >= 2)
-        shutil.rmtree(tmp_path / "data")
+        # Gone from its path at once: a plain rmtree races the capture, which may write a new
+        # file between rmtree's listing and its rmdir (ENOTEMPTY in the test, not the service).
+        (tmp_path / "data").rename(tmp_path / "deleted")
+        shutil.rmtree(tmp_path / "deleted", ignore_errors=True)
         run = wait_run(client, run_id, finished)
         assert run["state"] == "failed" and run["error"]["code"] == "storage_unavailable"
         assert "deleted or replaced" in run["error"]["detail"]
