@@ -394,39 +394,6 @@ class ValidationPublic(BaseModel):
     finished_at: dt.datetime | None
 
 
-class RobotInfo(BaseModel):
-    url: str
-    connected: bool
-    ready: bool = False
-    mode: str | None = None
-    protective_stop: bool = False
-    emergency_stop: bool = False
-    tcp_pose: list[float] | None = None
-    error: ErrorInfo | None = None
-
-
-class CameraInfo(BaseModel):
-    url: str
-    opened: bool
-    resolution: list[int] | None = None
-    error: ErrorInfo | None = None
-
-
-class DevicesPublic(BaseModel):
-    robot: RobotInfo
-    camera: CameraInfo
-    workspace: dict[str, list[float]] = Field(description="TCP box, base frame, metres")
-
-
-class Health(BaseModel):
-    status: Literal["ok", "degraded"] = Field(
-        "ok", description="degraded: the service answers, but its data directory takes no "
-                          "writes (new runs are refused 503 until it is fixed)")
-    version: str
-    problem: ErrorInfo | None = Field(None, description="what is degraded (storage_unavailable, "
-                                                        "disk_full)")
-
-
 class ExportQuery(BaseModel):
     """The format of ``GET /calibrations/{id}/export`` and the names written into it."""
 

@@ -3,11 +3,37 @@
 from __future__ import annotations
 
 from fastapi import APIRouter
+from pydantic import BaseModel, Field
 
 from drivers.errors import CameraError, DeviceError, RobotError
 from service.api.deps import DevicesDep, SettingsDep
 from service.api.routing import OneThreadRoute
-from service.schemas import CameraInfo, DevicesPublic, ErrorInfo, RobotInfo
+from service.schemas import ErrorInfo
+
+
+class RobotInfo(BaseModel):
+    url: str
+    connected: bool
+    ready: bool = False
+    mode: str | None = None
+    protective_stop: bool = False
+    emergency_stop: bool = False
+    tcp_pose: list[float] | None = None
+    error: ErrorInfo | None = None
+
+
+class CameraInfo(BaseModel):
+    url: str
+    opened: bool
+    resolution: list[int] | None = None
+    error: ErrorInfo | None = None
+
+
+class DevicesPublic(BaseModel):
+    robot: RobotInfo
+    camera: CameraInfo
+    workspace: dict[str, list[float]] = Field(description="TCP box, base frame, metres")
+
 
 router = APIRouter(prefix="/devices", tags=["devices"], route_class=OneThreadRoute)
 

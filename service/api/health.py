@@ -2,11 +2,24 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from fastapi import APIRouter, Request
+from pydantic import BaseModel, Field
 
 from service.api.routing import OneThreadRoute
-from service.schemas import ErrorInfo, Health
+from service.schemas import ErrorInfo
 from service.version import software_version
+
+
+class Health(BaseModel):
+    status: Literal["ok", "degraded"] = Field(
+        "ok", description="degraded: the service answers, but its data directory takes no "
+                          "writes (new runs are refused 503 until it is fixed)")
+    version: str
+    problem: ErrorInfo | None = Field(None, description="what is degraded (storage_unavailable, "
+                                                        "disk_full)")
+
 
 router = APIRouter(tags=["health"], route_class=OneThreadRoute)
 
