@@ -2,6 +2,7 @@
 
     .venv/bin/python -m benchmarks.end_to_end          # 18 stations, 7 pairs, real sets, 200
     .venv/bin/python -m benchmarks.end_to_end --quick  # 3 pairs, one real set
+    .venv/bin/python -m benchmarks.end_to_end --startup  # cellcal --version / --help alone
 
 (a) ``cellcal calibrate DIR`` with its default options (detection, intrinsics, hand-eye, joint
 fit, cross-validation and model selection) against ``benchmarks/opencv_pipeline.py DIR``
@@ -9,10 +10,11 @@ fit, cross-validation and model selection) against ``benchmarks/opencv_pipeline.
 rendered 1280x1024 stations; (b) ``cellcal --version``; (c) detection alone on the real sets
 (``../shared/data``): one process runs ``calib``'s detector over every image, its peer
 ``findChessboardCornersSB`` with default flags, each timing its own loop after reading the
-images. Each pair runs its two processes one after the other, the order alternating; CPU time
-is the process's and its children's (``getrusage``), wall time the caller's clock. Medians
-over the pairs, and the median of the per-pair ratios. Writes
-``benchmarks/results/end_to_end.{md,png}``.
+images; (d) ``--startup``: ``cellcal --version`` and ``cellcal --help`` alone, 10 runs each,
+best and median wall time (``startup.md``). Each pair runs its two processes one after the
+other, the order alternating; CPU time is the process's and its children's (``getrusage``),
+wall time the caller's clock. Medians over the pairs, and the median of the per-pair ratios.
+Writes ``benchmarks/results/end_to_end.{md,png}``.
 """
 
 from __future__ import annotations
@@ -121,6 +123,26 @@ def detect_worker(who: str, directory: Path) -> None:
                       "read": read, "images": len(images)}))
 
 
+def startup(runs: int = 10) -> str:
+    """``cellcal --version`` and ``--help`` (and the bare interpreter), ``runs`` times each,
+    interleaved: best and median wall and CPU time, as a table."""
+    argvs = {"cellcal --version": [CELLCAL, "--version"], "cellcal --help": [CELLCAL, "--help"],
+             "python -c pass": [sys.executable, "-c", "pass"]}
+    times: dict[str, list[tuple[float, float]]] = {name: [] for name in argvs}
+    for _ in range(runs):
+        for name, argv in argvs.items():
+            cpu, wall, _ = timed(argv)
+            times[name].append((cpu, wall))
+    lines = [f"load average at start: {load()}; {runs} runs each, interleaved", "",
+             "| command | best wall s | median wall s | best CPU s | median CPU s |",
+             "|---|---|---|---|---|"]
+    for name, t in times.items():
+        cpu, wall = np.array(t).T
+        lines.append(f"| `{name}` | **{wall.min():.3f}** | {np.median(wall):.3f} | "
+                     f"{cpu.min():.3f} | {np.median(cpu):.3f} |")
+    return "\n".join([*lines, "", f"load average at end: {load()}"])
+
+
 def summary(r: dict[str, np.ndarray]) -> dict[str, float]:
     """Medians of each side and of the per-pair ratios A / B."""
     return {"a_cpu": float(np.median(r["a_cpu"])), "b_cpu": float(np.median(r["b_cpu"])),
@@ -140,10 +162,18 @@ def main() -> None:
     ap.add_argument("--pairs", type=int, default=7)
     ap.add_argument("--large", type=int, default=200,
                     help="stations of one more cellcal calibrate run, timed alone (0: none)")
+    ap.add_argument("--startup", action="store_true",
+                    help="only cellcal --version and --help, 10 runs each (startup.md)")
     ap.add_argument("--detect-worker", nargs=2, metavar=("WHO", "DIR"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.detect_worker:
         detect_worker(args.detect_worker[0], Path(args.detect_worker[1]))
+        return
+    if args.startup:
+        text = startup()
+        print(text)
+        OUT.mkdir(exist_ok=True)
+        (OUT / "startup.md").write_text(text + "\n")
         return
     n_pairs = 3 if args.quick else args.pairs
     lines = [f"load average at start: {load()} (1, 5, 15 min); {os.cpu_count()} cores", ""]
