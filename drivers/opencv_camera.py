@@ -241,7 +241,6 @@ class OpenCVCamera(CameraSession):
         deadline = time.monotonic() + timeout
         no_frame = (f"{self.url} delivered no frame within {timeout:g} s: is the camera still "
                     "connected and streaming?")
-        self._draining.clear()
         try:
             frame = self._call(lambda: self._read(deadline, no_frame), timeout, no_frame)
         except CameraTimeoutError as err:
@@ -317,6 +316,7 @@ class OpenCVCamera(CameraSession):
         worker = self._worker
         if worker is None:
             self._check_open()
+        self._draining.clear()  # a stream's drain gives the thread back after its next frame
         try:
             return worker.submit(fn).result(timeout=max(timeout, 0.0))
         except FutureTimeout:

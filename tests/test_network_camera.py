@@ -66,6 +66,10 @@ def test_mjpeg_stream_grab_loss_and_reconnect(mjpeg: MJPEGCamera) -> None:
     assert cam.freshness is not None and cam.freshness.startswith("stream:")
     with pytest.raises(CameraError, match="exposure in the camera's own settings"):
         cam.configure(exposure=0.01)
+    # between grabs the capture thread drains the stream; a call on it gets the thread back
+    with pytest.raises(CameraError) as unsupported:
+        cam.configure(resolution=(2 * W, 2 * H))
+    assert unsupported.value.code == "camera_unsupported"
 
     mjpeg.stop()  # the camera goes away: frames still buffered may come first
     with pytest.raises(CameraError, match="was disconnected") as err:
