@@ -6,13 +6,17 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from calib.boards import Checkerboard, detect_checkerboard
 from calib.boards.checkerboard import grid_mismatch
+from calib.geometry import pose_error
+from calib.pipeline import StationInputs
 from mocks.scene import default_scene
 from tests.support.service import external_run, finished, poses, post, robot_pose, wait_run
-from tests.support.stations import BOARD, rendered_stations
+from tests.support.stations import BOARD, SIZE, SQUARE, calibrate_set, rendered_stations
 
 SCENE_BOARD = tuple(default_scene().target.inner_corners)
 WRONG = {"type": "checkerboard", "inner_corners": [SCENE_BOARD[0] + 1, SCENE_BOARD[1] + 1],
@@ -28,6 +32,25 @@ def test_the_configured_board_either_way_round_is_no_mismatch() -> None:
     assert grid_mismatch(image, (rows, cols)) is None
     assert grid_mismatch(image, (cols + 2, rows)) == (
         f"found an {cols}x{rows} grid of inner corners, you configured {cols + 2}x{rows}")
+
+
+def test_swapped_counts_are_the_same_board_and_the_same_calibration() -> None:
+    """Why ``[8, 11]`` for an 11x8 board is accepted: a checkerboard turned 90° shows the
+    other count first, so no image tells a swap from a turned board (the mock shows its own
+    correctly configured board 8 across at its first station). The swap only turns the board
+    frame: the intrinsics and the hand-eye come out the same."""
+    cols, rows = BOARD
+    images, tcp_poses = rendered_stations(8)
+    results = []
+    for pattern in ((cols, rows), (rows, cols)):
+        found = [detect_checkerboard(image, pattern) for image in images]
+        assert all(d is not None for d in found)
+        results.append(calibrate_set(StationInputs(found, tcp_poses, image_size=SIZE),
+                                     Checkerboard(pattern, SQUARE)))
+    configured, swapped = results
+    rot, trans = pose_error(configured.hand_eye, swapped.hand_eye)
+    assert rot < 1e-5 and trans < 1e-6, (rot, trans)
+    np.testing.assert_allclose(configured.K, swapped.K, rtol=1e-6)
 
 
 @pytest.mark.timeout(60)

@@ -49,8 +49,11 @@ Client = Callable[..., TestClient]
 
 
 @pytest.fixture(scope="module")
-def calibrated(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str, str]:
-    """(data dir, run id, calibration id) of a planned 8-station run, calibrated."""
+def calibrated(tmp_path_factory: pytest.TempPathFactory,
+               module_database: str | None) -> tuple[Path, str, str]:
+    """(data dir, run id, calibration id) of a planned 8-station run, calibrated, in the
+    module's database (asked for here, so each database gets its own: a module fixture that
+    did not ask was made once, on SQLite, and the PostgreSQL variants found no calibration)."""
     data = tmp_path_factory.mktemp("validations")
     with TestClient(create_app(settings(data))) as c:
         c.headers.update(AUTH)
