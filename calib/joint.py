@@ -495,7 +495,6 @@ def _apply(R: np.ndarray, t: np.ndarray, v: np.ndarray, inverse: bool) -> np.nda
 
 
 def _rows_times(G: np.ndarray, M: np.ndarray) -> np.ndarray:
-    """Stacked ``G @ M``, shapes (m, 2, 3), (3, 3) or (m, 3, 3) -> (m, 2, 3): one (2m, 3)
-    product for a shared M, a batched one per row pair otherwise (both several times faster
-    than ``einsum`` here)."""
+    """Stacked ``G @ M``, (m, 2, 3) by (3, 3) or (m, 3, 3) -> (m, 2, 3): one (2m, 3) product
+    for a shared M, else one per row pair (both several times faster than ``einsum`` here)."""
     return (G.reshape(-1, 3) @ M).reshape(G.shape) if M.ndim == 2 else G @ M
