@@ -207,6 +207,18 @@ def in_a_lock(service: Service, kind: str, job_id: str, lock_s: float,
     return body
 
 
+def twice(service: Service, kind: str, start: str, lock_s: float) -> tuple[Job, dict[str, Any]]:
+    """Start a ``kind`` job by ``POST start`` twice: followed without a lock, then in one
+    (``in_a_lock``, with the first as its reference); the first job and the locked one's body."""
+    def started() -> str:
+        r = service.api.call("POST", start, json={})
+        check(r.status_code == 202, f"{kind} started ({r.status_code})")
+        return str(r.json()["id"])
+
+    reference = unlocked(service, kind, started())
+    return reference, in_a_lock(service, kind, started(), lock_s, reference)
+
+
 def same_solution(a: dict[str, Any], b: dict[str, Any]) -> bool:
     """Two calibration results agree on the camera, hand-eye and target pose (1e-9)."""
     def numbers(doc: dict[str, Any]) -> np.ndarray:
@@ -234,30 +246,14 @@ def main(argv: list[str] | None = None) -> int:
                 check(run["state"] == "done", f"run {run_id}: {run['stations_captured']} "
                                               "stations captured without a lock")
                 cell = Service(api, service.url, data / "cellcal.db")
-                jobs = {}
-                for attempt in ("unlocked", "locked"):
-                    r = api.call("POST", f"/runs/{run_id}/calibrations")
-                    check(r.status_code == 202, f"calibration started ({r.status_code})")
-                    cal_id = r.json()["id"]
-                    jobs[attempt] = (
-                        unlocked(cell, "calibration", cal_id)
-                        if attempt == "unlocked" else
-                        in_a_lock(cell, "calibration", cal_id, args.lock_s, jobs["unlocked"]))
-                reference = api.call("GET", f"/calibrations/{jobs['unlocked'].id}").json()
-                check(same_solution(jobs["locked"]["result"], reference["result"]),
+                free, locked = twice(cell, "calibration", f"/runs/{run_id}/calibrations",
+                                     args.lock_s)
+                reference = api.call("GET", f"/calibrations/{free.id}").json()
+                check(same_solution(locked["result"], reference["result"]),
                       "the locked calibration's result is the unlocked one's (nothing lost)")
-                cal_id = jobs["locked"]["id"]
-                checks = {}
-                for attempt in ("unlocked", "locked"):
-                    r = api.call("POST", f"/calibrations/{cal_id}/checks", json={})
-                    check(r.status_code == 202, f"re-check started ({r.status_code})")
-                    val_id = r.json()["id"]
-                    checks[attempt] = (
-                        unlocked(cell, "validation", val_id)
-                        if attempt == "unlocked" else
-                        in_a_lock(cell, "validation", val_id, args.lock_s, checks["unlocked"]))
-                check(checks["locked"]["result"]["kind"] == "check",
-                      "the locked re-check's report is stored")
+                _, locked = twice(cell, "validation", f"/calibrations/{locked['id']}/checks",
+                                  args.lock_s)
+                check(locked["result"]["kind"] == "check", "the locked re-check's report is stored")
                 r = api.call("POST", "/runs", json={"stations": 3})
                 check(r.status_code == 201, f"a new run starts afterwards ({r.status_code})")
                 check(all(s < 500 for s in api.statuses),
