@@ -74,7 +74,7 @@ def test_cellcal_calibrate_on_an_exported_run_gives_the_service_result(
     page = client.get(f"/calibrations/{cal['id']}/report").text
     stations = load_station_set(station_dir)
     local = station_set_identity(station_dir, stations,
-                                 station_images(station_dir, stations))["input_sha256"]
+                                 station_images(station_dir, stations)).input_sha256
     assert re.findall(r"\b[0-9a-f]{64}\b", page) == [local]
 
 

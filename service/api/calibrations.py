@@ -18,6 +18,7 @@ from service.api.routing import OneThreadRoute
 from service.api.streams import LastEventId, event_stream, stream_doc
 from service.errors import ConflictError, UnprocessableError
 from service.exports import ExportNames, export
+from service.results.identity import ReportIdentity
 from service.schemas import CalibrationCreate, CalibrationPublic, Created, ExportQuery
 from service.stationsets.format import captured_set_sha256
 from service.store import queries
@@ -100,12 +101,12 @@ def calibration_report(cal_id: str, session: SessionDep, settings: SettingsDep,
         run = queries.get_run(session, run_id=cal.run_id)
         captured = captured_station_set(session, run_id=cal.run_id)
         robot = RobotIdentity(**run.robot_identity or {})
-        identity = {"cell": run.cell, "robot": run.robot, "camera": settings.camera,
-                    "robot_model": robot.model, "robot_serial": robot.serial,
-                    "controller_version": robot.controller_version,
-                    "board": json.dumps(run.target, sort_keys=True),
-                    "stations": f"{len(rows)} of run {run.id}",
-                    "input_sha256": captured_set_sha256(captured, source=settings.data_dir)}
+        identity = ReportIdentity(
+            cell=run.cell, robot=run.robot, camera=settings.camera, robot_model=robot.model,
+            robot_serial=robot.serial, controller_version=robot.controller_version,
+            board=json.dumps(run.target, sort_keys=True),
+            stations=f"{len(rows)} of run {run.id}",
+            input_sha256=captured_set_sha256(captured, source=settings.data_dir))
         page = calibrations.reports.page(cal_id, cal.result, images, identity)
     except ValueError as exc:  # a stored result edited by hand
         raise UnprocessableError(str(exc), code="invalid_result") from None

@@ -17,6 +17,8 @@ import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from service.results.identity import ReportIdentity
+
 if TYPE_CHECKING:
     from service.stationsets.format import StationSet
 
@@ -78,7 +80,7 @@ def station_images(directory: Path, stations: StationSet) -> dict[str, Path]:
 
 
 def station_set_identity(directory: Path, stations: StationSet,
-                         images: dict[str, Path]) -> dict[str, str]:
+                         images: dict[str, Path]) -> ReportIdentity:
     """The board, the station count and the input checksum of the station set in
     ``directory`` (see :func:`station_set_sha256`), whose ``images`` are in the order
     stations.json names them."""
@@ -88,9 +90,9 @@ def station_set_identity(directory: Path, stations: StationSet,
     index = directory / "stations.json"
     board = None if stations.target is None else TargetAdapter.dump_python(stations.target,
                                                                            mode="json")
-    return {"board": json.dumps(board, sort_keys=True),
-            "stations": f"{len(stations.stations)} in {directory.resolve()}",
-            "input_sha256": station_set_sha256(index.read_bytes(), images.values())}
+    return ReportIdentity(board=json.dumps(board, sort_keys=True),
+                          stations=f"{len(stations.stations)} in {directory.resolve()}",
+                          input_sha256=station_set_sha256(index.read_bytes(), images.values()))
 
 
 def chromium() -> str | None:

@@ -21,7 +21,7 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
-from calib import MIN_IMAGES, SolverOptions, Stations, calibrate
+from calib import MIN_IMAGES, Result, SolverOptions, Stations, calibrate
 from service.errors import ConflictError, QueueFullError, UnprocessableError
 from service.events import EventBus
 from service.jobs.outcomes import Outcomes
@@ -119,20 +119,20 @@ class Calibrations:
                 self._pool = None
         self.reports.shutdown()
 
-    def _submit(self, job: SolveJob) -> cf.Future[dict[str, Any]]:
+    def _submit(self, job: SolveJob) -> cf.Future[Result]:
         with self._pool_lock:
             if self._pool is None:
                 self._pool = WorkerPool(self.settings.calibration_workers,
                                              self._progress)
             return self._pool.submit(solve_calibration, job)
 
-    def _done(self, cal_id: str, future: cf.Future[dict[str, Any]]) -> None:
+    def _done(self, cal_id: str, future: cf.Future[Result]) -> None:
         """The outcome of a solve: its result, or why it failed (stored by ``_settle``)."""
         self._release()
         values: dict[str, Any]
         solved = True  # the worker ran the solve to its end and sent its last message
         try:
-            values = {"state": "done", "result": future.result()}
+            values = {"state": "done", "result": future.result().document()}
         except ValueError as exc:
             values = {"state": "failed", "error": str(exc)}
         except cf.CancelledError:
@@ -157,16 +157,16 @@ class Calibrations:
         except Exception:  # a future's callback must not die silently: the job would hang
             log.exception("calibration %s: storing its outcome", cal_id)
 
-    def _progress(self, message: tuple[str, dict[str, Any] | None]) -> None:
-        """A worker's message ``(calibration id, progress event)``, or ``(id, None)`` after
-        the solve's last one: events are published until the outcome is stored."""
-        cal_id, event = message
-        if event is None:
+    def _progress(self, message: SolveProgress) -> None:
+        """A worker's progress message, or its last (``message.last``): events are published
+        until the outcome is stored."""
+        cal_id = message.cal_id
+        if message.last:
             self._settle(cal_id, progress_ended=True)
             return
         with self._events_lock:
             if cal_id in self._ending:
-                self.events.publish(Topic("calibration", cal_id), event)
+                self.events.publish(Topic("calibration", cal_id), message.event())
 
     def _settle(self, cal_id: str, *, outcome: dict[str, Any] | None = None,
                 progress_ended: bool = False) -> None:
@@ -198,24 +198,45 @@ class SolveJob:
     options: SolverOptions
 
 
-def solve_calibration(job: SolveJob) -> dict[str, Any]:
-    """Worker-process entry: a solve's job -> the result JSON document.
+def solve_calibration(job: SolveJob) -> Result:
+    """Worker-process entry: a solve's job -> its typed result (the service stores its
+    document).
 
     Top level (picklable) and self-contained: it imports the document writer in the worker.
     """
     from service.results.document import result_of
 
-    progress = SolveProgress(job.cal_id, len(job.stations.stations))
+    progress = ProgressSender(job.cal_id, len(job.stations.stations))
     try:
         result = calibrate(job.stations, job.options, progress=progress.detecting,
                            on_stage=progress.stage)
-        return result_of(result, command=f"POST /runs/{job.run_id}/calibrations").document()
+        return result_of(result, command=f"POST /runs/{job.run_id}/calibrations")
     finally:
         progress.end()
 
 
+@dataclass(frozen=True)
 class SolveProgress:
-    """In a worker: a solve's ``progress`` events, sent to the service process
+    """One progress message of a solve as its worker sends it (pickled): a stage begins, or
+    the board detection reaches station ``step`` of ``of``; ``last``: the solve sends no
+    more (no event)."""
+
+    cal_id: str
+    stage: str = ""
+    message: str = ""
+    step: int | None = None
+    of: int | None = None
+    last: bool = False
+
+    def event(self) -> dict[str, Any]:
+        """The ``progress`` event of the calibration's stream."""
+        count = {} if self.step is None else {"step": self.step, "of": self.of}
+        return {"type": "progress", "calibration_id": self.cal_id, "stage": self.stage,
+                **count, "message": self.message}
+
+
+class ProgressSender:
+    """In a worker: a solve's progress messages, sent to the service process
     (``service.jobs.workers.report_progress``)."""
 
     def __init__(self, cal_id: str, n_stations: int) -> None:
@@ -227,20 +248,18 @@ class SolveProgress:
         detection reaches each."""
         n = self.n_stations
         for k, item in enumerate(observations, 1):
-            self._send("detecting", f"detecting the board: station {k} of {n}", step=k, of=n)
+            report_progress(SolveProgress(self.cal_id, "detecting",
+                                          f"detecting the board: station {k} of {n}",
+                                          step=k, of=n))
             yield item
 
     def end(self) -> None:
         """The solve's last message: no progress event follows."""
-        report_progress((self.cal_id, None))
+        report_progress(SolveProgress(self.cal_id, last=True))
 
     def stage(self, name: str) -> None:
         """A stage of ``calib.calibrate`` begins."""
-        self._send(name, name)
-
-    def _send(self, stage: str, message: str, **count: int) -> None:
-        report_progress((self.cal_id, {"type": "progress", "calibration_id": self.cal_id,
-                                       "stage": stage, **count, "message": message}))
+        report_progress(SolveProgress(self.cal_id, name, name))
 
 
 @dataclass

@@ -33,6 +33,7 @@ from calib import (
     parse_result,
     ur_pose_from_matrix,
 )
+from service.results.identity import ReportIdentity
 from service.results.plots import Plot, cv_by_station, report_plots
 from service.results.thumbnails import thumbnails_section
 
@@ -83,7 +84,7 @@ figure.thumb.outlier figcaption { color: #b3261e; font-weight: 700; }
 
 def render_report(result: Result | Mapping[str, Any],
                   images: Mapping[str, str | Path] | None = None,
-                  identity: Mapping[str, Any] | None = None) -> str:
+                  identity: ReportIdentity | None = None) -> str:
     """The HTML report of a result (or its JSON document, validated first), as one
     self-contained string; ValueError (one line) for a document that is not a valid
     ``cellcal/result@1``.
@@ -103,7 +104,7 @@ def render_report(result: Result | Mapping[str, Any],
         _station_table(result),
         thumbnails_section(result, images or {}, outlier_ids(result)),
         _provenance(result),
-        _identity(result, identity or {}),
+        _identity(result, identity or ReportIdentity()),
         _sign_off(),
     ]
     title = html.escape(f"cellcal calibration report — {result.setup}")
@@ -398,7 +399,7 @@ def _sign_off() -> str:
             "</table></div>")
 
 
-#: The cell and the inputs a signed report names: key of ``identity`` and its label.
+#: The cell and the inputs a signed report names: field of ``ReportIdentity`` and its label.
 IDENTITY_FIELDS = (("cell", "cell"), ("robot", "robot"), ("robot_model", "robot model"),
                    ("robot_serial", "robot serial"),
                    ("controller_version", "controller version"), ("camera", "camera"),
@@ -406,12 +407,12 @@ IDENTITY_FIELDS = (("cell", "cell"), ("robot", "robot"), ("robot_model", "robot 
                    ("input_sha256", "input checksum (SHA-256 of the station set)"))
 
 
-def _identity(result: Result, identity: Mapping[str, Any]) -> str:
+def _identity(result: Result, identity: ReportIdentity) -> str:
     """What was calibrated with what: each field, or "not known" where the source does not
     say (a robot driver that reports no serial, a result file without its station set)."""
     version = result.software.version if result.software else None
     rows = [("cellcal version", version or "not known"),
-            *((label, identity.get(key) or "not known") for key, label in IDENTITY_FIELDS)]
+            *((label, getattr(identity, key) or "not known") for key, label in IDENTITY_FIELDS)]
     body = "".join(f"<tr><td>{_esc(label)}</td><td class=\"code\">{_esc(value)}</td></tr>"
                    for label, value in rows)
     return f"<h2>Cell and inputs</h2><table class=\"kv\">{body}</table>"

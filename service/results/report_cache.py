@@ -19,22 +19,33 @@ import logging
 import os
 import threading
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from calib import Result, parse_result
 from service.jobs.workers import WorkerPool
+from service.results.identity import ReportIdentity
 from service.settings import Settings
 
 log = logging.getLogger("cellcal.service")
 
 
-def render(result: Mapping[str, Any], images: Mapping[str, str] | None = None,
-           identity: Mapping[str, str] | None = None) -> str:
-    """Worker entry: the report of ``result`` (``service.results.report.render_report``),
-    with the thumbnails of ``images`` (station id -> image file)."""
+@dataclass(frozen=True)
+class ReportJob:
+    """One report as the worker process receives it (pickled): the finished calibration's
+    result, its stations' images (station id -> image file) and its identity."""
+
+    result: Result
+    images: dict[str, str] = field(default_factory=dict)
+    identity: ReportIdentity = field(default_factory=ReportIdentity)
+
+
+def render(job: ReportJob) -> str:
+    """Worker entry: the report of a job (``service.results.report.render_report``)."""
     from service.results.report import render_report  # matplotlib: only in the worker
 
-    return render_report(result, images, identity)
+    return render_report(job.result, job.images, job.identity)
 
 
 class Reports:
@@ -48,10 +59,10 @@ class Reports:
 
     def page(self, cal_id: str, result: Mapping[str, Any],
              images: Mapping[str, str] | None = None,
-             identity: Mapping[str, str] | None = None) -> Path | str:
-        """The report of the finished calibration ``cal_id`` (its ``result`` and its stations'
-        ``images``): the cached file, or the HTML just rendered. ValueError for a result that
-        is not valid."""
+             identity: ReportIdentity | None = None) -> Path | str:
+        """The report of the finished calibration ``cal_id`` (its stored ``result`` document
+        and its stations' ``images``): the cached file, or the HTML just rendered. ValueError
+        (one line) for a result that is not a valid ``cellcal/result@1`` document."""
         path = self.cached(cal_id)
         if path.is_file():
             return path
@@ -61,8 +72,9 @@ class Reports:
                 if self._pool is None:
                     # lowest priority: capture's threads get the cores first
                     self._pool = WorkerPool(1, lambda message: None, nice=19)
-                future = self._pool.submit(render, dict(result), dict(images or {}),
-                                           dict(identity or {}))
+                job = ReportJob(parse_result(result), dict(images or {}),
+                                identity or ReportIdentity())
+                future = self._pool.submit(render, job)
                 self._rendering[cal_id] = future
                 future.add_done_callback(lambda f: self._keep(cal_id, f))
         return future.result()
