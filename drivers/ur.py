@@ -12,11 +12,14 @@ it answers fast enough for the ~40 request/reply round trips the constructors ma
 ``connect_timeout``. After a successful probe the constructors return in well under a second;
 the one slow path left is a control program that never starts, which ur-rtde itself gives up on
 after about 5 s.
+
+The interfaces live in a child process (``drivers.ur_rtde_process``): ur-rtde can crash with
+SIGSEGV after a short network drop, and that must end a connection, not the service. A crash of
+the child is reported like any lost connection, naming the signal.
 """
 
 from __future__ import annotations
 
-import contextlib
 import socket
 import struct
 import threading
@@ -26,8 +29,6 @@ from typing import Any
 from urllib.parse import urlsplit
 
 import numpy as np
-import rtde_control
-import rtde_receive
 
 from calib import check_joint_positions, check_ur_pose
 from drivers.base import RobotIdentity, RobotSession, RobotStatus
@@ -38,9 +39,15 @@ from drivers.errors import (
     RobotError,
 )
 from drivers.ur_dashboard import dashboard_exchange, parse_identity
+from drivers.ur_rtde_process import RtdeClientGoneError, RtdeProcess
 
 RTDE_PORT = 30004
 SCRIPT_PORT = 30003
+
+#: Longest wait for the control program's start inside the RTDEControlInterface constructor, s.
+PROGRAM_START_S = 6.0
+#: Bound of one status call into the ur-rtde process (a stuck process is killed), seconds.
+READ_TIMEOUT_S = 10.0
 
 #: Request/reply round trips the two ur-rtde constructors make (RTDE recipes + dashboard).
 CONSTRUCTOR_ROUND_TRIPS = 40
@@ -102,8 +109,9 @@ class URRobot(RobotSession):
         self.settle_speed = settle_speed
         self.settle_dwell = settle_dwell
         self.motion_timeout = motion_timeout
-        self._control = None  # rtde_control.RTDEControlInterface
-        self._receive = None  # rtde_receive.RTDEReceiveInterface
+        self._process: RtdeProcess | None = None  # holds the two ur-rtde interfaces
+        self._control: _Interface | None = None  # rtde_control.RTDEControlInterface
+        self._receive: _Interface | None = None  # rtde_receive.RTDEReceiveInterface
         self._lock = threading.RLock()  # one command at a time: ur-rtde is not thread-safe
         self._moving = False
         self._stop_requested = False
@@ -132,21 +140,27 @@ class URRobot(RobotSession):
         with self._lock:
             self.close()
             self._probe()
+            self._process = process = RtdeProcess()
+            ctor_timeout = self.connect_timeout + PROGRAM_START_S
             try:
-                self._receive = rtde_receive.RTDEReceiveInterface(self.host)
-                self._control = rtde_control.RTDEControlInterface(self.host)
+                self._receive = _Interface(process, "receive", READ_TIMEOUT_S)
+                self._receive.call("__init__", self.host, timeout=ctor_timeout)
+                self._control = _Interface(process, "control", None)
+                self._control.call("__init__", self.host, timeout=ctor_timeout)
             except RuntimeError as err:
-                self.close()
+                self._process = self._control = self._receive = None
+                process.kill()
                 raise self._connect_error(err) from err
             self._wait_program_running()
 
     def close(self) -> None:
         """Disconnect both interfaces. Safe to call twice and after a lost connection."""
         with self._lock:
-            # Dropping the last reference runs the ur-rtde destructors, which disconnect
-            # (about 0.5 s each); an explicit disconnect() first would only double that.
+            process, self._process = self._process, None
             self._control = self._receive = None
             self._lost = False
+            if process is not None:
+                process.close()  # the ur-rtde destructors disconnect (about 0.5 s each)
 
     def _probe(self) -> None:
         """Check reachability and responsiveness with real timeouts; raise RobotConnectionError."""
@@ -172,7 +186,12 @@ class URRobot(RobotSession):
                 _rtde_request(s, b"O", struct.pack(">d", 125.0) + b"timestamp")
                 _rtde_request(s, b"S")
                 _rtde_receive(s, b"U")  # the first streamed data package
-            dashboard_exchange(self.host, [], remaining())  # its banner
+            (running,) = dashboard_exchange(self.host, ["running"], remaining())
+            if running.lower().endswith("true"):
+                # ur-rtde would stop a running program before its own upload anyway; a control
+                # script whose client died mid-move never takes that request (it waits for
+                # the dead client's handshake), so the dashboard stops it first.
+                dashboard_exchange(self.host, ["stop"], remaining())
             socket.create_connection((self.host, SCRIPT_PORT), remaining()).close()
         except TimeoutError:
             raise RobotConnectionError(
@@ -234,19 +253,29 @@ class URRobot(RobotSession):
 
     # ---- state ------------------------------------------------------------------------------
 
-    def _interfaces(self) -> tuple[object, object]:
+    def _interfaces(self) -> tuple[_Interface, _Interface]:
         """(control, receive) if both are connected, else RobotConnectionError."""
         control, receive = self._control, self._receive
-        if self._lost or (control is not None and receive is not None
-                          and not self._link_alive(control, receive)):
-            raise RobotConnectionError(
-                f"Lost the connection to the robot controller at {self.host}. Check the network "
-                "cable and that the controller is on, then reconnect.")
-        if control is None or receive is None:
-            raise RobotConnectionError(
+        if (self._lost or control is None or receive is None
+                or not self._link_alive(control, receive)):
+            raise self._link_error()
+        return control, receive
+
+    def _link_error(self) -> RobotConnectionError:
+        """Why the interfaces cannot be used: never connected (or closed), or lost."""
+        if self._process is None and not self._lost:
+            return RobotConnectionError(
                 f"Not connected to the robot at {self.host}. Connect first.",
                 code="robot_not_connected")
-        return control, receive
+        return self._lost_connection()
+
+    def _lost_connection(self, during: str = "", then: str = "") -> RobotConnectionError:
+        """The error for a lost connection, which is given up here: its ur-rtde process is
+        killed (left alone, its interfaces would reconnect by themselves beside the next)."""
+        crash = self._abandon()
+        return RobotConnectionError(
+            f"Lost the connection to the robot controller at {self.host}{during}{crash}. Check "
+            f"the network cable and that the controller is on, then reconnect{then}.")
 
     @staticmethod
     def _link_alive(control: object, receive: object) -> bool:
@@ -255,12 +284,26 @@ class URRobot(RobotSession):
         except RuntimeError:
             return False
 
+    def _receive_values(self, *getters: str) -> list[Any] | None:
+        """Readings of the receive interface with the link check (both interfaces connected)
+        in one call into the ur-rtde process; None if not connected. ur-rtde's RuntimeError
+        (or RtdeClientGoneError) is raised as it is."""
+        process = self._process
+        if process is None or self._lost:
+            return None
+        calls = [("receive", "isConnected", ()), ("control", "isConnected", ()),
+                 *(("receive", getter, ()) for getter in getters)]
+        receive_up, control_up, *values = process.call_all(calls, timeout=READ_TIMEOUT_S)
+        return values if receive_up and control_up else None
+
     def _read(self, getter: str) -> object:
-        _, receive = self._interfaces()
         try:
-            return getattr(receive, getter)()
+            values = self._receive_values(getter)
         except RuntimeError as err:
             raise self._runtime_error(err) from err
+        if values is None:
+            raise self._link_error()
+        return values[0]
 
     def tcp_pose(self) -> np.ndarray:
         """Actual TCP pose, shape (6,), T_base_tcp as a UR pose vector."""
@@ -288,18 +331,19 @@ class URRobot(RobotSession):
     def status(self) -> RobotStatus:
         """Current controller state; ``connected=False`` rather than an error when offline."""
         try:
-            _, receive = self._interfaces()
-            safety = int(receive.getSafetyStatusBits())
-            robot_status = int(receive.getRobotStatus())
-            mode = _ROBOT_MODES.get(int(receive.getRobotMode()), "unknown")
-        except (RobotConnectionError, RuntimeError):
+            values = self._receive_values("getSafetyStatusBits", "getRobotStatus",
+                                          "getRobotMode")
+        except RuntimeError:
+            values = None
+        if values is None:
             return RobotStatus(connected=False)
+        safety, robot_status, mode = (int(v) for v in values)
         return RobotStatus(
             connected=True,
             program_running=bool(robot_status & _STATUS_PROGRAM_RUNNING),
             protective_stop=bool(safety & _SAFETY_PROTECTIVE_STOP),
             emergency_stop=bool(safety & _SAFETY_EMERGENCY_STOPS),
-            mode=mode)
+            mode=_ROBOT_MODES.get(mode, "unknown"))
 
     def _raise_if_stopped(self) -> None:
         """ProtectiveStopError / EmergencyStopError if the robot is safety-stopped."""
@@ -370,11 +414,8 @@ class URRobot(RobotSession):
             except RuntimeError:
                 alive = False
             if not alive:
-                self._abandon()
-                raise RobotConnectionError(
-                    f"Lost the connection to the robot controller at {self.host} during a "
-                    "move. Check the network cable and that the controller is on, then "
-                    "reconnect; the robot may have stopped anywhere along the path.")
+                raise self._lost_connection(
+                    " during a move", "; the robot may have stopped anywhere along the path")
             if time.monotonic() > deadline:
                 self._abandon()
                 raise RobotError(
@@ -384,17 +425,21 @@ class URRobot(RobotSession):
             raise self._runtime_error(outcome["error"])
         return bool(outcome.get("value"))
 
-    def _abandon(self) -> None:
-        """Forget a broken connection whose control call is stuck in a worker thread.
+    def _abandon(self) -> str:
+        """Forget a broken connection whose control call may be stuck in a worker thread.
 
-        The stuck call keeps its interface alive until it returns; calling into it from here
-        could block on its internal locks, so only the receive side is disconnected.
+        The ur-rtde process is killed (its interfaces would otherwise reconnect by themselves
+        beside the next connection); the stuck call then ends with RtdeClientGoneError. Returns
+        ``" (the ur-rtde client crashed: SIGSEGV)"`` if the process had died by itself, else "".
         """
-        receive, self._receive, self._control = self._receive, None, None
+        process, self._process = self._process, None
+        self._receive = self._control = None
         self._lost = True
-        if receive is not None:
-            with contextlib.suppress(RuntimeError):
-                receive.disconnect()
+        if process is None:
+            return ""
+        crash = process.crash()
+        process.kill()
+        return f" (the ur-rtde client crashed: {crash})" if crash else ""
 
     def _ensure_program(self, control: object) -> None:
         """Restart the control program if it stopped (e.g. after an unlocked protective stop)."""
@@ -421,9 +466,7 @@ class URRobot(RobotSession):
         while True:
             st = self.status()
             if not st.connected:
-                return RobotConnectionError(
-                    f"Lost the connection to the robot controller at {self.host} during a move. "
-                    "Check the network cable and that the controller is on, then reconnect.")
+                return self._lost_connection(" during a move")
             if st.emergency_stop:
                 return EmergencyStopError(_EMERGENCY_STOP_MSG)
             if st.protective_stop:
@@ -445,10 +488,9 @@ class URRobot(RobotSession):
         """Any other ur-rtde RuntimeError: a connection problem if the link is gone."""
         text = str(err).lower()
         lost = ("connect", "refused", "timed out", "broken pipe", "eof", "reset by peer")
-        if any(w in text for w in lost) or not self.status().connected:
-            return RobotConnectionError(
-                f"Lost the connection to the robot controller at {self.host}. Check the network "
-                "cable and that the controller is on, then reconnect.")
+        if (isinstance(err, RtdeClientGoneError) or any(w in text for w in lost)
+                or not self.status().connected):
+            return self._lost_connection()
         return RobotError(f"The robot controller reported an error: {err}.")
 
     def wait_settled(self, *, timeout: float = 5.0) -> None:
@@ -486,3 +528,21 @@ class URRobot(RobotSession):
         with self._lock:
             control, _ = self._interfaces()
             self._guarded(control.stopL, 2.0, timeout=self.connect_timeout)
+
+
+class _Interface:
+    """One ur-rtde interface in the driver's RtdeProcess: ``iface.getActualQ()`` runs there.
+
+    ``timeout`` bounds each call (seconds; None for the control interface, whose moves block
+    and are watched by ``URRobot._guarded`` instead).
+    """
+
+    def __init__(self, process: RtdeProcess, name: str, timeout: float | None) -> None:
+        self._process, self._name, self._timeout = process, name, timeout
+
+    def call(self, method: str, *args: object, timeout: float | None = None) -> Any:
+        return self._process.call(self._name, method, *args,
+                                  timeout=self._timeout if timeout is None else timeout)
+
+    def __getattr__(self, method: str) -> Callable[..., Any]:
+        return lambda *args: self.call(method, *args)
