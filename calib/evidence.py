@@ -29,7 +29,7 @@ from calib.joint import CellParameters, JointResult
 from calib.jointfit import JointData, JointModel
 from calib.quality import QualityInputs, assess, irreconcilable
 from calib.refine import RefineOptions, scale_translations
-from calib.result import Quality
+from calib.result import QualityBlock
 from calib.selection import ModelCandidate, Modes, Selection, select_joint_model
 from calib.uncertainty import UncertaintyEstimate, honest
 
@@ -44,7 +44,7 @@ class Trust:
     cross_validation: CrossValidation | None
     model_selection: Selection | None
     uncertainty: UncertaintyEstimate | None
-    quality: Quality
+    quality: QualityBlock
 
 
 @dataclass(frozen=True)

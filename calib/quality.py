@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calib.crossval import CrossValidation
-from calib.result import Finding, Quality
+from calib.result import Finding, QualityBlock
 
 #: κ must differ from 1 by more than this (and 3σ) for ``board_scale``.
 BOARD_SCALE_MIN = 0.002
@@ -72,14 +72,14 @@ class QualityInputs:
     robot_map: np.ndarray | None = None
 
 
-def assess(ev: QualityInputs) -> Quality:
+def assess(ev: QualityInputs) -> QualityBlock:
     """All checks on ``ev``; a mismatch makes the others moot, so it is reported alone."""
     mismatch = _setup_mismatch(ev)
     if mismatch is not None:
-        return Quality.of([mismatch])
+        return QualityBlock.of([mismatch])
     checks = (_board_scale, _robot_translation_map, _few_stations, _weak_rotation,
               _poor_coverage, _outliers, _high_prediction_error)
-    return Quality.of([f for check in checks if (f := check(ev)) is not None])
+    return QualityBlock.of([f for check in checks if (f := check(ev)) is not None])
 
 
 def _finding(code: str, severity: str, message: str, figures: dict[str, Any]) -> Finding:

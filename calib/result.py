@@ -1,5 +1,5 @@
 """The calibration result ``cellcal/result@1`` as pydantic models, one type per block: the
-quality checks (``calib.quality``) make its ``Finding`` and ``Quality``, the service's
+quality checks (``calib.quality``) make its ``Finding`` and ``QualityBlock``, the service's
 document builder (``service.results.document``) the whole ``Result``, which the service stores
 as JSON and answers at ``GET /calibrations/{id}`` (so the OpenAPI document shows every field),
 and the report, plots, exports and validations read as typed attributes.
@@ -236,14 +236,14 @@ class Finding(_Block):
         return dict(self.model_extra or {})
 
 
-class Quality(_Block):
+class QualityBlock(_Block):
     """The verdict and the findings it rests on."""
 
     verdict: Verdict
     findings: list[Finding] = Field(default_factory=list)
 
     @classmethod
-    def of(cls, findings: list[Finding]) -> Quality:
+    def of(cls, findings: list[Finding]) -> QualityBlock:
         """The quality of ``findings``: the verdict is the worst severity among them."""
         worst = max((SEVERITIES.index(f.severity) for f in findings), default=0)
         verdict: Verdict = ("pass", "warn", "fail")[worst]
@@ -285,7 +285,7 @@ class Result(_Block):
     options: dict[str, Any] | None = Field(None, description="the solver options used")
     cross_validation: CrossValidationBlock | None = None
     model_selection: ModelSelection | None = None
-    quality: Quality | None = None
+    quality: QualityBlock | None = None
     software: Software | None = None
     created: str | None = Field(None, description="ISO 8601 time, UTC")
 

@@ -142,12 +142,12 @@ def test_demo_runs(capsys):
 
 
 def test_verdict_line_gives_the_honest_figure_and_names_dropped_stations():
-    from calib import CrossValidationBlock, Quality
+    from calib import CrossValidationBlock, QualityBlock
     from service.cli.calibrate import verdict_line
     stations = [{"id": f"{k:02d}"} for k in range(5)]
     cv = {"kind": "k-fold", "folds": 5, "rms_px": 2.07, "rms_mm": 1.1, "kept_rms_px": 0.48,
           "dropped": ["01", "03"], "stations": stations}
-    quality = Quality(verdict="warn")
+    quality = QualityBlock(verdict="warn")
     assert verdict_line(quality, CrossValidationBlock.model_validate(cv)) == (
         "cellcal: verdict warn: cross-validated error 2.07 px (1.10 mm at the board), k-fold "
         "over 5 stations; 0.48 px over the 3 kept stations, dropped as outliers: 01, 03")

@@ -59,6 +59,26 @@ def test_each_operation_declares_the_statuses_it_can_answer(doc: dict[str, Any])
         assert ("413" in statuses) == ("requestBody" in op), (method, path)
 
 
+#: The document's component names. A client generated from the document names its types by
+#: them, so renaming one breaks the client's code: change this list only on purpose (and say so
+#: in docs/architecture.md, "The OpenAPI document").
+COMPONENTS = [
+    "ActivationPublic", "ActiveCalibration", "BoardScale",
+    "Body_post_station_runs__run_id__stations_post", "CalibrationCreate", "CalibrationOptions",
+    "CalibrationPage", "CalibrationPublic", "CalibrationSummary", "CameraInfo", "CameraModel",
+    "Candidate", "CharucoTarget", "CheckCreate", "CheckerboardTarget", "ColdStartPublic",
+    "Created", "CrossValidationBlock", "DetectionPublic", "DevicesPublic", "ErrorBody",
+    "ErrorInfo", "ErrorItem", "Finding", "Health", "HeldOutStation", "ModelSelection",
+    "Motions", "QualityBlock", "Rejected", "Result", "RobotInfo", "RunCreate", "RunPublic",
+    "SigmaPoint", "Software", "StationError", "StationFit", "StationPublic", "StopRule",
+    "Transform", "Uncertainty", "ValidationCreate", "ValidationPublic",
+]
+
+
+def test_component_names_stay(doc: dict[str, Any]) -> None:
+    assert sorted(doc["components"]["schemas"]) == COMPONENTS
+
+
 def test_starts_declare_the_idempotency_key(doc: dict[str, Any]) -> None:
     """The header the idempotency middleware reads is in the document, on exactly the four
     operations that start work, with the 400 a malformed key gets."""

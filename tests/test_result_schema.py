@@ -81,4 +81,4 @@ def test_openapi_documents_the_result(tmp_path: Path) -> None:
                                        "target_pose"}
     camera = schemas["CameraModel"]["properties"]
     assert camera["K"]["minItems"] == camera["K"]["maxItems"] == 3
-    assert schemas["Quality"]["properties"]["verdict"]["enum"] == ["pass", "warn", "fail"]
+    assert schemas["QualityBlock"]["properties"]["verdict"]["enum"] == ["pass", "warn", "fail"]

@@ -31,7 +31,7 @@ from calib import (
     ChecksConfiguration,
     CrossValidationBlock,
     Detection,
-    Quality,
+    QualityBlock,
     SolverOptions,
     Station,
     Stations,
@@ -114,10 +114,10 @@ def check_out_path(out: str) -> None:
         raise ValueError(f"--out {out}: the directory {directory} is not writable")
 
 
-def verdict_line(quality: Quality | None, cv: CrossValidationBlock | None) -> str:
+def verdict_line(quality: QualityBlock | None, cv: CrossValidationBlock | None) -> str:
     """One line for people: the verdict (pass when there is none), the cross-validated error
     and the findings' codes."""
-    quality = quality or Quality(verdict="pass")
+    quality = quality or QualityBlock(verdict="pass")
     if cv is None:
         figure = "no cross-validation (no robot poses)"
     elif cv.rms_px is not None:

@@ -31,7 +31,7 @@ from calib import (
     ModelSelection,
     Motions,
     PoseOnlyResult,
-    Quality,
+    QualityBlock,
     Rejected,
     Result,
     Selection,
@@ -170,7 +170,7 @@ def _evidence(trust: Trust | None) -> dict[str, Any]:
             else _cross_validation(trust.cross_validation),
             "model_selection": None if trust.model_selection is None
             else _selection(trust.model_selection),
-            "quality": Quality.model_validate(_plain(trust.quality.model_dump()))}
+            "quality": QualityBlock.model_validate(_plain(trust.quality.model_dump()))}
 
 
 def _uncertainty_extras(trust: Trust | None) -> dict[str, Any]:

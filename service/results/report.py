@@ -26,7 +26,7 @@ from calib import (
     OUTLIER_FACTOR,
     CrossValidationBlock,
     ModelSelection,
-    Quality,
+    QualityBlock,
     Result,
     StationFit,
     Transform,
@@ -153,7 +153,7 @@ def _header(result: Result) -> str:
             f"<p class=\"sub\">{' · '.join(facts)}</p>")
 
 
-def _verdict(quality: Quality | None, cv: CrossValidationBlock | None) -> str:
+def _verdict(quality: QualityBlock | None, cv: CrossValidationBlock | None) -> str:
     if quality is None:
         return ("<div class=\"verdict\" style=\"border-color:#888\"><span class=\"word\">"
                 "no verdict</span><p class=\"finding\">This result carries no quality "
