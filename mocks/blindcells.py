@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from calib import Pinhole, board_points, invert, look_at_view, make_transform, perturb
@@ -125,6 +126,52 @@ def random_blind_scene(seed: int, setup: str) -> MockScene:
         noise=Noise(robot_rot_deg=0.01, robot_trans_mm=0.05, image_noise=1.5, blur_px=0.6),
         seed=seed, kinematics=kinematics, start_tcp_pose=_ur_pose(P0), blind=True,
         workspace=WorkspaceBox(lo=tuple(p0 - BOX_HALF_M), hi=tuple(p0 + BOX_HALF_M)))
+
+
+#: Poses drawn in the box to find the hand-eye the readings see, and the metres one radian of
+#: rotation error counts as there (the size of the box).
+_READINGS_POSES, _READINGS_LEVER_M = 30, 0.5
+
+
+def readings_hand_eye(scene: MockScene) -> np.ndarray:
+    """The hand-eye (4, 4) as the arm's own readings see it over the safety box: the truth the
+    best possible calibration can reach, which the benchmark measures errors against too.
+
+    The true flange ``F`` of a reading ``P`` is ``P`` moved by the kinematic error of its
+    configuration. Its part that is the same at every pose of the box, ``F ≈ A P B`` (A on
+    the base side, B on the tool side), changes no image that the readings do not explain
+    just as well with ``B X`` (eye-in-hand) or ``inv(A) X`` (eye-to-hand) in place of the
+    hand-eye X: no calibration from the readings can tell them apart, and every use of the
+    calibration through the readings wants the latter. A and B are fitted by least squares
+    to random poses in the box (tool turned up to 30 degrees from the start).
+    """
+    X = scene.hand_eye_matrix
+    if scene.kinematics is None or scene.workspace is None:
+        return X.copy()
+    rng = np.random.default_rng([scene.seed, 29])
+    lo, hi, P0 = np.array(scene.workspace.lo), np.array(scene.workspace.hi), scene.start_pose()
+    readings, flanges = [], []
+    while len(readings) < _READINGS_POSES:
+        P = make_transform(P0[:3, :3] @ Rotation.from_rotvec(
+            rng.normal(size=3) * np.deg2rad(30.0) / np.sqrt(3)).as_matrix(), rng.uniform(lo, hi))
+        try:
+            flanges.append(true_tcp_pose(scene, P))
+        except ValueError:
+            continue
+        readings.append(P)
+    P, F_inv = np.stack(readings), invert(np.stack(flanges))
+
+    def transform(v: np.ndarray) -> np.ndarray:
+        return make_transform(Rotation.from_rotvec(v[:3]).as_matrix(), v[3:])
+
+    def residuals(v: np.ndarray) -> np.ndarray:
+        E = F_inv @ transform(v[:6]) @ P @ transform(v[6:])
+        return np.column_stack([_READINGS_LEVER_M * Rotation.from_matrix(
+            E[:, :3, :3]).as_rotvec(), E[:, :3, 3]]).ravel()
+
+    v = least_squares(residuals, np.zeros(12)).x
+    A, B = transform(v[:6]), transform(v[6:])
+    return B @ X if scene.setup == "eye_in_hand" else invert(A) @ X
 
 
 def _ur_pose(T: np.ndarray) -> list[float]:

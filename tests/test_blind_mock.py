@@ -10,7 +10,7 @@ from calib import board_from_target, make_transform, matrix_from_ur_pose, ur_pos
 from drivers import registry
 from drivers.base import GroundTruthSource
 from drivers.errors import ProtectiveStopError
-from mocks.blindcells import BOX_HALF_M, CornerCell, random_blind_scene
+from mocks.blindcells import BOX_HALF_M, CornerCell, random_blind_scene, readings_hand_eye
 from mocks.camera import MockCamera
 from mocks.devices import BlindMockRobot, MockRobot
 from mocks.scene import default_scene
@@ -103,3 +103,14 @@ def test_corner_cell_counts_refusals_and_reports_lost_boards():
     with pytest.raises(ValueError, match="safety box"):
         cell.shoot(far)
     assert cell.refused == 1
+
+
+@pytest.mark.slow  # 30 poses of numerical inverse kinematics, about 1.5 s
+def test_readings_hand_eye_is_what_the_readings_see():
+    """Eye-to-hand cell 1: the arm's kinematic error that is the same over the box (mostly a
+    base-side turn) moves the camera the readings see by about 1 mm from the physical one;
+    an arm without kinematic errors sees the physical camera."""
+    scene = random_blind_scene(1, "eye_to_hand")
+    X, X_r = scene.hand_eye_matrix, readings_hand_eye(scene)
+    assert 0.3e-3 < np.linalg.norm(X_r[:3, 3] - X[:3, 3]) < 3e-3
+    assert np.array_equal(readings_hand_eye(scene.model_copy(update={"kinematics": None})), X)
