@@ -85,13 +85,27 @@ def module_database(request: pytest.FixtureRequest) -> Iterator[str | None]:
 
 
 @pytest.hookimpl(tryfirst=True)
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """PostgreSQL variants not marked ``pg_fast`` join the slow suite."""
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """PostgreSQL variants not marked ``pg_fast`` join the slow suite; no test's timeout is
+    below the suite's (``timeout`` in pyproject.toml)."""
+    floor = float(config.getini("timeout") or 0)
     for item in items:
         params = getattr(getattr(item, "callspec", None), "params", {})
         on_postgres = "postgresql" in (params.get("database"), params.get("module_database"))
         if on_postgres and item.get_closest_marker("pg_fast") is None:
             item.add_marker(pytest.mark.slow)
+        _timeout_at_least(item, floor)
+
+
+def _timeout_at_least(item: pytest.Item, floor: float) -> None:
+    """Raise a ``timeout`` marker below ``floor`` to it. A test's timeout only catches a hang
+    (the tests wait for conditions, never for time), yet the 10-40 s ones failed tests that
+    were merely slow: under four CPU burners, or other sessions' load (~25 on two cores), a
+    test runs 5-10x slower than alone. A hang still fails, after ``floor`` s."""
+    marker = item.get_closest_marker("timeout")
+    if floor and marker is not None and marker.args and float(marker.args[0]) < floor:
+        item.add_marker(pytest.mark.timeout(floor, *marker.args[1:], **marker.kwargs),
+                        append=False)
 
 
 @pytest.fixture
