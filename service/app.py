@@ -43,6 +43,7 @@ from service.errors import (
     AuthError,
     ConflictError,
     NotFoundError,
+    NotReadyError,
     QueueFullError,
     ServiceError,
     UnprocessableError,
@@ -68,6 +69,7 @@ ERROR_STATUS: dict[type[Exception], int] = {
     WorkspaceError: 422,
     DeviceError: 503,
     StorageError: 503,
+    NotReadyError: 503,
     ServiceError: 400,
 }
 _HTTP_CODES = {404: "not_found", 405: "method_not_allowed"}
@@ -135,9 +137,13 @@ def _error(status: int, detail: str, code: str, **extra: Any) -> JSONResponse:
 
 
 def error_response(exc: Exception) -> JSONResponse:
-    """The JSON error response of a domain error (``ERROR_STATUS``)."""
+    """The JSON error response of a domain error (``ERROR_STATUS``); ``Retry-After`` for
+    work still in progress."""
     status = next(ERROR_STATUS[c] for c in type(exc).__mro__ if c in ERROR_STATUS)
-    return _error(status, str(exc), getattr(exc, "code", "error"))
+    response = _error(status, str(exc), getattr(exc, "code", "error"))
+    if isinstance(exc, NotReadyError):
+        response.headers["Retry-After"] = str(exc.retry_after_s)
+    return response
 
 
 async def _domain_error(request: Request, exc: Exception) -> JSONResponse:

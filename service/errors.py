@@ -33,3 +33,12 @@ class AuthError(ServiceError, code="unauthorized"):
 
 class QueueFullError(ServiceError, code="queue_full"):
     """Too much work is already waiting; retry later (429)."""
+
+
+class NotReadyError(ServiceError, code="not_ready"):
+    """The answer is still being worked on (a report rendering): 503 with ``Retry-After``
+    (``retry_after_s``), so a client asks again instead of holding a request open."""
+
+    def __init__(self, message: str, *, retry_after_s: int, code: str | None = None) -> None:
+        super().__init__(message, code=code)
+        self.retry_after_s = retry_after_s

@@ -105,6 +105,9 @@ class Settings(BaseSettings):
     min_free_mb: Annotated[int, Field(ge=0)] = Field(
         64, description="free space the data directory's disk must keep: below it, runs fail "
                         "with disk_full, new runs are refused 503 and /health is degraded")
+    report_wait_s: Annotated[float, Field(gt=0.0, le=600.0)] = Field(
+        20.0, description="a report request waits this long for its page to be rendered, "
+                          "then is answered 503 report_rendering with Retry-After")
     settle_timeout_s: Annotated[float, Field(gt=0.0)] = 5.0
     grab_timeout_s: Annotated[float, Field(gt=0.0)] = 2.0
     move_speed: Annotated[float, Field(gt=0.0, le=1.0)] = 0.25

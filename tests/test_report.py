@@ -7,8 +7,9 @@ import base64
 import hashlib
 import json
 import re
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from html.parser import HTMLParser
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -20,7 +21,7 @@ from service.cli import report as report_cli
 from service.cli.main import main
 from service.results.report import render_report, report_plots
 from tests.support.helpers import wait_for
-from tests.support.service import finished, start_run, wait_run
+from tests.support.service import finished, get_report, start_run, wait_run
 
 #: Plots a hand-eye result from images always has (``model-selection`` needs the block).
 IMAGE_PLOTS = ("station-errors", "residuals", "coverage", "uncertainty")
@@ -238,7 +239,7 @@ def test_intrinsics_only_and_pose_only_results_have_reports(ur_result, tmp_path)
 
 
 @pytest.mark.timeout(300)
-def test_rest_report_of_a_capture_run(client) -> None:
+def test_rest_report_of_a_capture_run(client, monkeypatch) -> None:
     run_id = start_run(client, 8)
     wait_run(client, run_id, finished)
     cal_id = client.post(f"/runs/{run_id}/calibrations", json={}).json()["id"]
@@ -246,7 +247,7 @@ def test_rest_report_of_a_capture_run(client) -> None:
         c if (c := client.get(f"/calibrations/{cal_id}").json())["state"] != "running"
         else None), timeout=240)
     assert cal["state"] == "done", cal["error"]
-    r = client.get(f"/calibrations/{cal_id}/report")
+    r = get_report(client, cal_id)
     assert r.status_code == 200
     assert r.headers["content-type"].startswith("text/html")
     page = assert_self_contained(r.text)
@@ -274,7 +275,24 @@ def test_rest_report_of_a_capture_run(client) -> None:
     assert all(p.status_code == 200 and "(cached)" in p.text for p in pages)
     cached.unlink()
     with ThreadPoolExecutor(8) as pool:
-        pages = list(pool.map(lambda _: client.get(f"/calibrations/{cal_id}/report"), range(8)))
+        pages = list(pool.map(lambda _: get_report(client, cal_id), range(8)))
     assert {p.text for p in pages} == {r.text}
     wait_for("the page to be kept again", cached.is_file)
     assert cached.read_text() == r.text
+    # a rendering that does not end within report_wait_s: each request is answered 503 with
+    # Retry-After at once (it never hangs), and the page is served once the rendering ends
+    cached.unlink()
+    rendering: Future[str] = Future()
+    monkeypatch.setattr(reports, "wait_s", 0.05)
+    monkeypatch.setattr(reports, "_pool", SimpleNamespace(submit=lambda *args: rendering,
+                                                          shutdown=lambda: None))
+    with ThreadPoolExecutor(4) as pool:
+        waiting = list(pool.map(lambda _: client.get(f"/calibrations/{cal_id}/report"),
+                                range(4)))
+    for w in waiting:
+        assert w.status_code == 503 and w.headers["Retry-After"] == "5", w.text
+        assert w.json()["code"] == "report_rendering" and cal_id in w.json()["detail"]
+    assert not cached.exists()
+    rendering.set_result("<p>rendered late</p>")
+    wait_for("the late page to be kept", cached.is_file)
+    assert client.get(f"/calibrations/{cal_id}/report").text == "<p>rendered late</p>"

@@ -22,6 +22,7 @@ from tests.support.service import (
     assert_same_calibration,
     finished,
     gated_opener,
+    get_report,
     service,
     start_run,
     wait_calibration,
@@ -71,7 +72,7 @@ def test_cellcal_calibrate_on_an_exported_run_gives_the_service_result(
     assert cli["quality"]["verdict"] == served["quality"]["verdict"]
 
     # The service's report and `cellcal report --stations` on the download name the same input.
-    page = client.get(f"/calibrations/{cal['id']}/report").text
+    page = get_report(client, cal["id"]).text
     stations = load_station_set(station_dir)
     local = station_set_identity(station_dir, stations,
                                  station_images(station_dir, stations)).input_sha256

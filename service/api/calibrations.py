@@ -85,7 +85,11 @@ def export_calibration(cal_id: str, session: SessionDep,
 @router.get("/calibrations/{cal_id}/report", response_class=HTMLResponse, responses={
     200: {"content": {"text/html": {}},
           "description": "one self-contained HTML page (plots embedded, no external links)"},
-    409: {"description": "the calibration is running or failed"}})
+    409: {"description": "the calibration is running or failed"},
+    503: {"description": "the page is still being rendered (`report_rendering`): ask again "
+                         "after `Retry-After` seconds",
+          "headers": {"Retry-After": {"description": "seconds to wait",
+                                      "schema": {"type": "integer"}}}}})
 def calibration_report(cal_id: str, session: SessionDep, settings: SettingsDep,
                        calibrations: CalibrationsDep) -> Response:
     """The report a person reads, prints and files: verdict, findings, plots, stations.

@@ -4,12 +4,17 @@ process, and kept.
 Rendering a 500-station report takes seconds of matplotlib. Done in the request threads, 8
 requests at once took 105 s each, slowed capture from 2.27 to 0.59 stations/s and left the
 service 380 MB larger (issue 22). A finished calibration's result never changes, so its page
-is rendered once: in a worker process of its own at the lowest priority (nice 19, so capture's
-threads get the cores first; ``service.workers.WorkerPool``), never on the event loop or
-beside capture's threads; requests that arrive meanwhile wait for the same
-rendering; the page is kept in ``<data_dir>/reports/<id>.html`` and served from there. A cache
-file that cannot be written (a read-only or full data directory) only costs a new rendering
-next time.
+is rendered once: in a worker process of its own at a lower priority (nice 10, so capture's
+threads get most of the cores; ``service.jobs.workers.WorkerPool``), never on the event loop or
+beside capture's threads; requests that arrive meanwhile wait for the same rendering, each for
+at most ``report_wait_s``: then it is answered 503 ``report_rendering`` with ``Retry-After``
+while the rendering goes on (on a busy host a request must not hang without bound). The page
+is kept in ``<data_dir>/reports/<id>.html`` and served from there. A cache file that cannot be
+written (a read-only or full data directory) only costs a new rendering next time.
+
+Nice 19 starved the worker: with four CPU-bound processes at nice 0 on two cores it got ~1 %
+of a core, and an 8-station report took minutes. At nice 10 it gets a tenth of a nice-0
+process's share, which still leaves capture its speed (``tools/report-load``).
 """
 
 from __future__ import annotations
@@ -24,11 +29,17 @@ from pathlib import Path
 from typing import Any
 
 from calib import Result, parse_result
+from service.errors import NotReadyError
 from service.jobs.workers import WorkerPool
 from service.results.identity import ReportIdentity
 from service.settings import Settings
 
 log = logging.getLogger("cellcal.service")
+
+#: Scheduling priority of the rendering worker (0 = the service's, 19 = the lowest).
+REPORT_NICE = 10
+#: What a request that waited ``report_wait_s`` in vain is told to wait before asking again, s.
+RETRY_AFTER_S = 5
 
 
 @dataclass(frozen=True)
@@ -53,6 +64,7 @@ class Reports:
 
     def __init__(self, settings: Settings) -> None:
         self.dir = Path(settings.data_dir) / "reports"
+        self.wait_s = settings.report_wait_s
         self._pool: WorkerPool | None = None
         self._lock = threading.Lock()
         self._rendering: dict[str, cf.Future[str]] = {}
@@ -62,7 +74,9 @@ class Reports:
              identity: ReportIdentity | None = None) -> Path | str:
         """The report of the finished calibration ``cal_id`` (its stored ``result`` document
         and its stations' ``images``): the cached file, or the HTML just rendered. ValueError
-        (one line) for a result that is not a valid ``cellcal/result@1`` document."""
+        (one line) for a result that is not a valid ``cellcal/result@1`` document;
+        NotReadyError if the rendering takes longer than ``report_wait_s`` (it goes on, and a
+        later request gets the page)."""
         path = self.cached(cal_id)
         if path.is_file():
             return path
@@ -70,14 +84,20 @@ class Reports:
             future = self._rendering.get(cal_id)
             if future is None:
                 if self._pool is None:
-                    # lowest priority: capture's threads get the cores first
-                    self._pool = WorkerPool(1, lambda message: None, nice=19)
+                    # a lower priority: capture's threads get the cores first
+                    self._pool = WorkerPool(1, lambda message: None, nice=REPORT_NICE)
                 job = ReportJob(parse_result(result), dict(images or {}),
                                 identity or ReportIdentity())
                 future = self._pool.submit(render, job)
                 self._rendering[cal_id] = future
                 future.add_done_callback(lambda f: self._keep(cal_id, f))
-        return future.result()
+        try:
+            return future.result(timeout=self.wait_s)
+        except cf.TimeoutError:
+            raise NotReadyError(
+                f"The report of calibration {cal_id} is still being rendered; retry in "
+                f"{RETRY_AFTER_S} s.", code="report_rendering",
+                retry_after_s=RETRY_AFTER_S) from None
 
     def cached(self, cal_id: str) -> Path:
         return self.dir / f"{cal_id}.html"

@@ -161,6 +161,18 @@ def wait_calibration(client: TestClient, cal_id: str, timeout: float = 120.0) ->
     return cal
 
 
+def get_report(client: TestClient, cal_id: str, timeout: float = 240.0) -> Any:
+    """``GET /calibrations/{id}/report`` as a client should ask: a 503 ``report_rendering``
+    (the page still being rendered) is asked again after its ``Retry-After``; ``timeout``
+    only catches a rendering that never ends."""
+    deadline = time.monotonic() + timeout
+    while (r := client.get(f"/calibrations/{cal_id}/report")).status_code == 503 \
+            and r.json()["code"] == "report_rendering":
+        assert time.monotonic() < deadline, f"the report is still being rendered: {r.text}"
+        time.sleep(int(r.headers["Retry-After"]))
+    return r
+
+
 def assert_same_calibration(a: dict[str, Any], b: dict[str, Any], atol: float = 1e-9) -> None:
     """Two result documents agree on the camera, κ, ν, the hand-eye and the target pose."""
     for key in ("K", "dist"):

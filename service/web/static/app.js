@@ -16,11 +16,13 @@ async function api(method, path, body, headers = {}) {
     options.body = JSON.stringify(body);
   }
   const response = await fetch(path, options);
-  if (!response.ok) {
-    const error = await response.json().catch(() => ({ detail: response.statusText }));
-    throw new Error(`${response.status}: ${error.detail}`);
-  }
+  if (!response.ok) throw await failure(response);
   return response;
+}
+
+async function failure(response) {
+  const error = await response.json().catch(() => ({ detail: response.statusText }));
+  return new Error(`${response.status}: ${error.detail}`);
 }
 
 const json = async (method, path, body, headers) =>
@@ -374,13 +376,31 @@ function openReport(calId) {
   const tab = window.open("", "_blank");
   run(async () => {
     try {
-      const html = await (await api("GET", `/calibrations/${calId}/report`)).text();
+      const html = await (await reportPage(calId)).text();
       tab.location = URL.createObjectURL(new Blob([html], { type: "text/html" }));
     } catch (error) {
       tab.close();
       throw error;
     }
   });
+}
+
+// A report still being rendered is answered 503 report_rendering: ask again after its
+// Retry-After, as long as the service says it is rendering.
+async function reportPage(calId) {
+  const path = `/calibrations/${calId}/report`;
+  for (;;) {
+    const response = await fetch(path, { headers: { Authorization: `Bearer ${key}` } });
+    const error = response.status === 503
+      ? await response.clone().json().catch(() => null) : null;
+    if (error?.code !== "report_rendering") {
+      if (!response.ok) throw await failure(response);
+      return response;
+    }
+    setStatus(`report of ${short(calId)} being rendered…`);
+    const seconds = Number(response.headers.get("Retry-After")) || 5;
+    await new Promise((resolve) => setTimeout(resolve, 1000 * seconds));
+  }
 }
 
 async function download(calId, format) {
