@@ -135,7 +135,8 @@ def check_transforms(T: np.ndarray, name: str, *, max_translation: float = MAX_T
         raise ValueError(
             f"{name}[{i}] rotation is not orthonormal with det +1 "
             f"(|R^T R - I| = {ortho[i]:.2e}, det = {det[i]:.6f})")
-    return _check_translation_units(T, name, max_translation)
+    _check_translation_units(T[:, :3, 3], name, max_translation)
+    return T
 
 
 def check_ur_poses(poses: np.ndarray, name: str, *,
@@ -145,6 +146,13 @@ def check_ur_poses(poses: np.ndarray, name: str, *,
     Refuses NaN/inf, a rotation vector longer than π (+ a rounding margin, i.e. degrees)
     and translations beyond ``max_translation`` metres (millimetres), naming the index.
     """
+    return matrix_from_ur_pose(check_ur_vectors(poses, name, max_translation=max_translation))
+
+
+def check_ur_vectors(poses: np.ndarray, name: str, *,
+                     max_translation: float = MAX_TRANSLATION_M) -> np.ndarray:
+    """``check_ur_poses`` without making the transforms: the vectors (N, 6) as floats (a
+    station file of 20,000 poses is checked in milliseconds instead of seconds)."""
     poses = np.asarray(poses, dtype=float)
     if poses.ndim == 1:
         poses = poses[None]
@@ -159,16 +167,22 @@ def check_ur_poses(poses: np.ndarray, name: str, *,
         raise ValueError(
             f"{name}[{i}] rotation vector has norm {angle[i]:.3g}, more than π rad: "
             "rotations must be rotation vectors in radians (were degrees given?)")
-    return _check_translation_units(matrix_from_ur_pose(poses), name, max_translation)
+    _check_translation_units(poses[:, :3], name, max_translation)
+    return poses
 
 
 def check_ur_pose(pose: np.ndarray, name: str) -> np.ndarray:
     """Validate one UR pose vector, shape (6,); return it as a 4x4 transform."""
+    return matrix_from_ur_pose(check_ur_vector(pose, name))
+
+
+def check_ur_vector(pose: np.ndarray, name: str) -> np.ndarray:
+    """``check_ur_pose`` without making the transform: the vector (6,) as floats."""
     pose = np.asarray(pose, dtype=float)
     if pose.shape != (6,):
         raise ValueError(f"{name}: expected [x, y, z, rx, ry, rz], got shape {pose.shape}")
     try:
-        return check_ur_poses(pose, name)[0]
+        return check_ur_vectors(pose, name)[0]
     except ValueError as exc:  # one pose: name it without the stack index
         raise ValueError(str(exc).replace(f"{name}[0]", name, 1)) from None
 
@@ -183,11 +197,11 @@ def check_joint_positions(q: np.ndarray, name: str = "q") -> np.ndarray:
     return angles
 
 
-def _check_translation_units(T: np.ndarray, name: str, max_translation: float) -> np.ndarray:
-    dist = np.linalg.norm(T[:, :3, 3], axis=1)
+def _check_translation_units(t: np.ndarray, name: str, max_translation: float) -> None:
+    """Translations ``t`` (N, 3) within ``max_translation`` metres, or ValueError."""
+    dist = np.linalg.norm(t, axis=1)
     if (dist > max_translation).any():
         i = int(np.argmax(dist))
         raise ValueError(
             f"{name}[{i}] translation is {dist[i]:.1f} m, more than {max_translation:g} m: "
             "poses must be in metres (were millimetres given?)")
-    return T

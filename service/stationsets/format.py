@@ -30,7 +30,7 @@ from pydantic import (
     model_validator,
 )
 
-from calib import FiniteFloat, Station, Stations, Target, TargetAdapter, check_ur_pose
+from calib import FiniteFloat, Station, Stations, Target, TargetAdapter, check_ur_vector
 from drivers.config_files import describe_validation_error
 
 STATIONS_FILE = "stations.json"
@@ -64,7 +64,7 @@ class StationEntry(BaseModel):
                         info: ValidationInfo) -> list[float] | None:
         """Metres and radians, checked when the file is read (before any image is)."""
         if pose is not None:
-            check_ur_pose(pose, str(info.field_name))
+            check_ur_vector(pose, str(info.field_name))
         return pose
 
     @model_validator(mode="after")
