@@ -9,13 +9,23 @@ stored event (with that event's id); a returning one the stored events after its
 ``Last-Event-ID``. Live events follow, skipping any the listener already has, so a reconnect
 loses and repeats nothing. Every stream ends with its final ``state``, or with a ``shutdown``
 event (no id) when the service stops first.
+
+Publishing never waits for the database: an event joins an in-memory queue, in order, and one
+writer thread stores each (retried for as long as the database does not answer) and then hands
+it to the listeners. A 40 s lock as a calibration ended made each progress event wait SQLite's
+30 s busy timeout inside the job, and then dropped it (issue 22); now the job goes on and the
+events follow, all of them and in order, once the lock is gone.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
+import math
 import threading
+import time
+from collections import deque
 from collections.abc import Iterator
 from typing import Any
 
@@ -23,9 +33,11 @@ from sqlalchemy.orm import Session
 
 from service.serving.logs import log_state_event
 from service.store import queries, writes
-from service.store.db import Database
+from service.store.db import Database, DatabaseUnavailableError, retry_transient
 from service.store.event_relay import EventRelay, announce
 from service.store.records import FINAL_JOB_STATES, FINAL_RUN_STATES, Topic
+
+log = logging.getLogger("cellcal.service")
 
 
 class EventBus:
@@ -43,11 +55,26 @@ class EventBus:
             self._relay = EventRelay(db.engine, instance_id, self._deliver_stored)
             self._relay.start()
         self._closed = False
+        self._queue: deque[tuple[Topic, dict[str, Any]]] = deque()  # to store, in order
+        self._queued = threading.Condition()
+        self._writing = threading.Lock()  # one writer at a time: the ids follow the queue
+        self._stopping = threading.Event()  # close(): the writer ends with an empty queue
+        self._giving_up = threading.Event()  # close() waits no longer for the database
+        self._writer_done = False  # the writer thread has ended: publish() stores itself
+        self._writer = threading.Thread(target=self._write, name="event-writer", daemon=True)
+        self._writer.start()
 
-    def close(self) -> None:
-        """End every stream, open or opened later, with the ``shutdown`` event (after the
-        events already queued), and stop relaying other services' events: the service is
-        stopping."""
+    def close(self, flush_s: float = 5.0) -> None:
+        """Store the queued events (for at most ``flush_s`` seconds if the database does not
+        answer), then end every stream, open or opened later, with the ``shutdown`` event,
+        and stop relaying other services' events: the service is stopping."""
+        with self._queued:
+            self._stopping.set()
+            self._queued.notify_all()
+        if not self.flush(flush_s):
+            self._giving_up.set()
+        self._writer.join(5.0)
+        self._giving_up.set()  # an event published from now on is tried once
         if self._relay is not None:
             self._relay.close()
         with self._lock:
@@ -75,15 +102,85 @@ class EventBus:
                     del self._listeners[topic]
 
     def publish(self, topic: Topic, event: dict[str, Any]) -> None:
-        """Store the event (its ``id`` is the row's) and hand it to the topic's listeners. One
-        publish at a time, so every listener receives the events in id order."""
-        with self._lock:
+        """Queue the event: the writer thread stores it (its ``id`` is the row's) and then
+        hands it to the topic's listeners. Returns at once, whatever the database does (once
+        the bus is closed, the event is stored here)."""
+        with self._queued:
+            self._queue.append((topic, event))
+            self._queued.notify_all()
+            if not self._writer_done:
+                return
+        self._write_queued()
+
+    def flush(self, timeout: float) -> bool:
+        """Wait until every event published so far is stored; False if ``timeout`` s passed
+        first."""
+        deadline = time.monotonic() + timeout
+        with self._queued:
+            while self._queue:
+                left = deadline - time.monotonic()
+                if left <= 0.0:
+                    return False
+                self._queued.wait(left)
+        return True
+
+    def _write(self) -> None:
+        """The writer thread, until the bus is closed and its queue is empty."""
+        while True:
+            with self._queued:
+                while not self._queue and not self._stopping.is_set():
+                    self._queued.wait()
+                if not self._queue:
+                    self._writer_done = True
+                    return
+            self._write_queued()
+
+    def _write_queued(self) -> None:
+        """Store the queued events one by one, in order, each retried while the database does
+        not answer, and hand each to the listeners once stored."""
+        with self._writing:
+            while True:
+                with self._queued:
+                    if not self._queue:
+                        return
+                    topic, event = self._queue[0]
+                try:
+                    self._store_and_send(topic, event)
+                except DatabaseUnavailableError as exc:  # close() gave up waiting
+                    with self._queued:
+                        lost = len(self._queue)
+                        self._queue.clear()
+                        self._queued.notify_all()
+                    log.error("%d event(s) not stored as the service stops: %s", lost, exc)
+                    return
+                except Exception:  # a fault of this event, not of the database: others go on
+                    log.exception("%s %s: the %s event cannot be stored", topic.kind,
+                                  topic.id, event["type"])
+                with self._queued:
+                    self._queue.popleft()
+                    self._queued.notify_all()
+
+    def _store_and_send(self, topic: Topic, event: dict[str, Any]) -> None:
+        """Store one event (retried for as long as the database does not answer, until close()
+        gives up), then hand it to the topic's listeners."""
+        def store() -> int:
             with self.db.session() as s:
-                event = {**event, "id": writes.add_event(s, topic=topic, event=event)}
-                announce(s, topic=topic, event_id=event["id"], instance_id=self.instance_id)
-            self._fan_out(topic, event)
-        if event["type"] == "state":
-            log_state_event(topic.kind, topic.id, event)
+                event_id = writes.add_event(s, topic=topic, event=event)
+                announce(s, topic=topic, event_id=event_id, instance_id=self.instance_id)
+                return event_id
+
+        stored = {**event, "id": retry_transient(
+            store, budget_s=math.inf, stopping=self._giving_up,
+            what=f"storing a {event['type']} event of {topic.kind} {topic.id}")}
+        with self._lock:
+            self._fan_out(topic, stored)
+        if stored["type"] == "state":
+            log_state_event(topic.kind, topic.id, stored)
+
+    def _queued_for(self, topic: Topic) -> bool:
+        """True if an event of ``topic`` waits to be stored."""
+        with self._queued:
+            return any(queued == topic for queued, _ in self._queue)
 
     def _fan_out(self, topic: Topic, event: dict[str, Any]) -> None:
         for loop, queue in self._listeners.get(topic, ()):
@@ -124,7 +221,8 @@ class EventBus:
             if after is None or after > state["id"]:
                 return [state]
             events = queries.events_after(s, topic=topic, after=after)
-        if ends_stream(state) and not any(ends_stream(e) for e in events):
+        if (ends_stream(state) and not any(ends_stream(e) for e in events)
+                and not self._queued_for(topic)):  # else its final state event is on its way
             events.append(state)
         return events
 

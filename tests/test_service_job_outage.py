@@ -7,8 +7,10 @@ outcome has gone to the spool (``service.jobs.outcomes``), so the ends of both j
 database that does not answer for longer than the service retries (``database_retry_s``,
 shortened by configuration, as in ``test_service_database_outage``). Meanwhile the job shows
 its outcome and holds no robot; once the lock is gone the outcome is stored, the listener gets
-the final state, and nothing is lost. ``tools/database_lock.py`` holds the real 40 s lock
-against ``cellcal serve`` with the default settings (its docstring has the result).
+every progress event, in order, then the final state, and nothing is lost (progress events
+used to wait the busy timeout inside the job and be dropped). ``tools/database_lock.py`` holds
+the real 40 s lock against ``cellcal serve`` with the default settings (its docstring has the
+result).
 """
 
 from __future__ import annotations
@@ -76,6 +78,18 @@ def listening(client: TestClient, path: str) -> Iterator[list[Event]]:
     assert not failed, failed
 
 
+def steps(events: list[Event], stage: str) -> int:
+    """How many steps the stream's ``stage`` progress events count, after checking that the
+    ids rise and that every step from 1 to that count came, once each and in order."""
+    ids = [event_id for event_id, _, _ in events]
+    assert ids == sorted(set(ids)), ids
+    seen = [(data["step"], data["of"]) for _, kind, data in events
+            if kind == "progress" and data["stage"] == stage]
+    n = seen[0][1] if seen else 0
+    assert seen == [(k, n) for k in range(1, n + 1)], seen
+    return n
+
+
 def row_state(db: sqlite3.Connection | Path, table: str, job_id: str) -> tuple[Any, ...]:
     conn = db if isinstance(db, sqlite3.Connection) else sqlite3.connect(db)
     return conn.execute(f"SELECT state, result, error FROM {table} WHERE id = ?",
@@ -119,6 +133,7 @@ def test_jobs_ending_in_a_database_lock_end_done(tmp_path: Path) -> None:
         assert cal["state"] == "done" and cal["result"]["format"] == "cellcal/result@1"
         assert events[-1][1:] == ("state", {"type": "state", "calibration_id": cal_id,
                                             "state": "done", "error": None})
+        assert steps(events, "detecting") == 12  # each station's, in order
 
         r = client.post(f"/calibrations/{cal_id}/checks", json={})
         assert r.status_code == 202, r.text
@@ -127,5 +142,6 @@ def test_jobs_ending_in_a_database_lock_end_done(tmp_path: Path) -> None:
             val = end_in_a_lock(client, tmp_path, "validation", val_id)
         assert val["state"] == "done" and val["result"]["kind"] == "check"
         assert events[-1][2]["state"] == "done"
+        assert steps(events, "station") > 0
         # the robot is free: a new run starts
         assert client.post("/runs", json={"poses": poses(3)}).status_code == 201

@@ -23,6 +23,9 @@ Checked, exit status 1 at the first that fails:
 * the locked job's stream ends with the ``done`` state; the database stores it ``done`` with
   the result the service answers; the locked calibration's solution is the unlocked one's
   (camera, hand-eye, target pose within 1e-9): nothing lost;
+* the locked job's stream has every progress event the unlocked one's has from its trigger
+  on (stage and step; at least one after the trigger), in the same order, with rising ids:
+  none dropped while the database did not answer;
 * no answer was a 5xx.
 
     .venv/bin/python tools/database_lock.py                # 40 s, 12 stations
@@ -34,9 +37,15 @@ its end came 8.8 s after its solve began; locked, the lock was held 40.3 s from 
 row said ``running`` throughout, and the stream ended ``done`` 0.1 s after the lock, with the
 unlocked solution. Re-check: its end 2.8 s after its first event unlocked; locked 40.2 s, then
 ``done`` 1.0 s after the lock. A new run started (201); 182 answers, no 5xx. What the lock did
-cost: 6 of the locked calibration's progress events were dropped (its stream had 13 events,
-the unlocked one's 19; each waited SQLite's 30 s busy timeout, then was logged and dropped); its
-result and final state were not.
+cost then: the locked calibration's progress events that met the lock each waited SQLite's
+30 s busy timeout inside the job, and were logged and dropped.
+
+Since the event bus queues events and stores them from a writer thread (``service.events``),
+2026-11-26 04:05-04:10 UTC, load average ~20, ``--lock-s 40``: exit status 0, every check ok;
+the locked calibration's stream had the unlocked one's last 4 progress events (hand-eye, model
+selection, validation, cross-validation) in order, then ``done`` 0.1 s after the lock; the
+locked re-check's had stations 1-5, then ``done`` 0.3 s after the lock; 175 answers, no 5xx.
+The same script against the code before (commit fd44b09) fails that check for the calibration.
 """
 
 from __future__ import annotations
@@ -117,6 +126,7 @@ class Job:
                                                       job_id)
         self.lock_s = lock_s
         self.events: list[dict[str, Any]] = []
+        self.ids: list[int] = []
         self.triggered_at: float | None = None
         self.ended_at: float | None = None
         self.lock: sqlite3.Connection | None = None
@@ -135,6 +145,8 @@ class Job:
                           timeout=httpx.Timeout(30, read=None)) as http, \
                 http.stream("GET", f"/{self.kind}s/{self.id}/events") as r:
             for line in r.iter_lines():
+                if line.startswith("id:"):
+                    self.ids.append(int(line[3:]))
                 if not line.startswith("data:"):
                     continue
                 event = json.loads(line[5:])
@@ -148,6 +160,12 @@ class Job:
                         self.lock.execute("BEGIN EXCLUSIVE")
                         self.locked.set()
         self.ended_at = time.time()
+
+    @property
+    def progress(self) -> list[tuple[Any, Any]]:
+        """(stage, step) of each progress event, in the stream's order."""
+        return [(e.get("stage"), e.get("step")) for e in self.events
+                if e.get("type") == "progress"]
 
     @property
     def tail_s(self) -> float:
@@ -195,8 +213,14 @@ def in_a_lock(service: Service, kind: str, job_id: str, lock_s: float,
     last = job.events[-1] if job.events else {}
     check(last.get("type") == "state" and last.get("state") == "done",
           f"its last event is the done state, {job.ended_at - released_at:.1f} s after the "
-          f"lock ended ({len(job.events)} events, {len(reference.events)} unlocked: progress "
-          "events that waited out the busy timeout are dropped)")
+          "lock ended")
+    # A new listener gets the state, then what comes after it: the locked job's progress is
+    # the unlocked one's from the event it was first sent, the trigger, on.
+    since = reference.progress[len(reference.progress) - len(job.progress):]
+    check(len(job.progress) >= 2 and job.progress == since and job.ids == sorted(set(job.ids)),
+          f"every progress event from the trigger on, in order: {len(job.progress)} "
+          f"locked, the unlocked job's last {len(since)} {since}; ids rise"
+          + ("" if job.progress == since else f"; locked: {job.progress}"))
     body = api.call("GET", path).json()
     conn = sqlite3.connect(database)
     state, result = conn.execute(f"SELECT state, result FROM {table} WHERE id = ?",

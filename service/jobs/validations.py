@@ -43,7 +43,6 @@ from service.jobs.validation_run import (
 from service.results.document import stored_cell
 from service.schemas import CheckCreate, ValidationCreate
 from service.store import queries, writes
-from service.store.db import TRANSIENT_ERRORS
 from service.store.records import Topic, ValidationRecord, new_id
 from service.store.stations import run_target
 
@@ -114,11 +113,8 @@ class Validations(MotionJobs):
         validation's stream), store the report, publish the final state."""
         topic = Topic("validation", val_id)
 
-        def report(event: dict[str, Any]) -> None:
-            try:
-                self.events.publish(topic, {**event, "validation_id": val_id})
-            except TRANSIENT_ERRORS as exc:  # a progress event is not worth the validation
-                log.warning("validation %s: progress event lost (%s)", val_id, exc)
+        def report(event: dict[str, Any]) -> None:  # queued: the database is not waited for
+            self.events.publish(topic, {**event, "validation_id": val_id})
 
         values: dict[str, Any] = {"state": "failed"}
         try:

@@ -183,11 +183,8 @@ class Capture:
             log.error("run %s: %s", self.run_id, exc)
 
     def _publish(self, event: dict[str, Any]) -> None:
-        """Store and send a run event (a database write), retried like the capture's own."""
-        retry_transient(lambda: self.events.publish(Topic("run", self.run_id), event),
-                        budget_s=self.settings.database_retry_s,
-                        what=f"storing a {event['type']} event of run {self.run_id}",
-                        stopping=self.motion.stopping)
+        """Send a run event (the bus stores it, retried, without holding the capture)."""
+        self.events.publish(Topic("run", self.run_id), event)
 
     def _in_session(self, work: Callable[[Session], T], what: str, *,
                     budget_s: float | None = None) -> T:

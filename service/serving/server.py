@@ -32,6 +32,8 @@ log = logging.getLogger("uvicorn.error")
 GRACEFUL_TIMEOUT_S = 10.0
 #: Connections still open this long before the grace period ends are dropped, seconds.
 _DROP_MARGIN_S = 1.0
+#: Longest wait for queued events to be stored before the streams end, seconds.
+_FLUSH_S = 5.0
 
 
 class CellServer(uvicorn.Server):
@@ -72,7 +74,7 @@ class CellServer(uvicorn.Server):
         runtime = self._runtime()
         if runtime is not None:
             await asyncio.to_thread(runtime.stop_jobs, self._left())
-            runtime.events.close()
+            await asyncio.to_thread(runtime.events.close, min(_FLUSH_S, self._left()))
         margin = min(_DROP_MARGIN_S, self.graceful_timeout / 4)
         dropper = asyncio.get_running_loop().call_later(max(self._left() - margin, 0.0),
                                                         self._drop_connections)
