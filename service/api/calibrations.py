@@ -19,6 +19,7 @@ from service.api.streams import LastEventId, event_stream, stream_doc
 from service.errors import ConflictError, UnprocessableError
 from service.exports import ExportNames, export
 from service.results.identity import ReportIdentity
+from service.results.report_cache import ReportJob
 from service.schemas import CalibrationCreate, CalibrationPublic, Created, ExportQuery
 from service.stationsets.format import captured_set_sha256
 from service.store import queries
@@ -98,7 +99,8 @@ def calibration_report(cal_id: str, session: SessionDep, settings: SettingsDep,
     if cal.state != "done" or cal.result is None:
         raise ConflictError(f"Calibration {cal_id} is {cal.state}; only a finished calibration "
                             "has a report.", code="invalid_state")
-    try:
+
+    def job() -> ReportJob:  # only when the page must be rendered
         rows = queries.list_stations(session, run_id=cal.run_id)
         images = {f"{row.index:03d}": str(Path(settings.data_dir) / row.image_path)
                   for row in rows if row.image_path}
@@ -111,7 +113,10 @@ def calibration_report(cal_id: str, session: SessionDep, settings: SettingsDep,
             board=json.dumps(run.target, sort_keys=True),
             stations=f"{len(rows)} of run {run.id}",
             input_sha256=captured_set_sha256(captured, source=settings.data_dir))
-        page = calibrations.reports.page(cal_id, cal.result, images, identity)
+        return ReportJob(parse_result(cal.result), images, identity)
+
+    try:
+        page = calibrations.reports.page(cal_id, job)
     except ValueError as exc:  # a stored result edited by hand
         raise UnprocessableError(str(exc), code="invalid_result") from None
     if isinstance(page, Path):

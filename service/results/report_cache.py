@@ -23,12 +23,11 @@ import concurrent.futures as cf
 import logging
 import os
 import threading
-from collections.abc import Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
-from calib import Result, parse_result
+from calib import Result
 from service.errors import NotReadyError
 from service.jobs.workers import WorkerPool
 from service.results.identity import ReportIdentity
@@ -69,14 +68,14 @@ class Reports:
         self._lock = threading.Lock()
         self._rendering: dict[str, cf.Future[str]] = {}
 
-    def page(self, cal_id: str, result: Mapping[str, Any],
-             images: Mapping[str, str] | None = None,
-             identity: ReportIdentity | None = None) -> Path | str:
-        """The report of the finished calibration ``cal_id`` (its stored ``result`` document
-        and its stations' ``images``): the cached file, or the HTML just rendered. ValueError
-        (one line) for a result that is not a valid ``cellcal/result@1`` document;
-        NotReadyError if the rendering takes longer than ``report_wait_s`` (it goes on, and a
-        later request gets the page)."""
+    def page(self, cal_id: str, job: Callable[[], ReportJob]) -> Path | str:
+        """The report of the finished calibration ``cal_id``: the cached file, or the HTML
+        just rendered from ``job()``, which is called only when no page is kept and none is
+        being rendered (it reads the stations and hashes their images: 8 requests at once
+        for a 500-station calibration did that 8 times beside capture). ValueError (one
+        line) from ``job`` for a result that is not a valid ``cellcal/result@1`` document;
+        NotReadyError if the rendering takes longer than ``report_wait_s`` (it goes on, and
+        a later request gets the page)."""
         path = self.cached(cal_id)
         if path.is_file():
             return path
@@ -86,9 +85,7 @@ class Reports:
                 if self._pool is None:
                     # a lower priority: capture's threads get the cores first
                     self._pool = WorkerPool(1, lambda message: None, nice=REPORT_NICE)
-                job = ReportJob(parse_result(result), dict(images or {}),
-                                identity or ReportIdentity())
-                future = self._pool.submit(render, job)
+                future = self._pool.submit(render, job())
                 self._rendering[cal_id] = future
                 future.add_done_callback(lambda f: self._keep(cal_id, f))
         try:
