@@ -34,7 +34,8 @@ pytestmark = pytest.mark.usefixtures("database")
 
 
 
-@pytest.mark.timeout(300)
+# only a hang guard: under four CPU burners the nice-10 report rendering gets a few % of a core
+@pytest.mark.timeout(600)
 def test_cellcal_calibrate_on_an_exported_run_gives_the_service_result(
         client: TestClient, tmp_path: Path) -> None:
     run_id = start_run(client, 10)
