@@ -86,6 +86,7 @@ class _Shot:
     joints: list[float] | None = None
     late: int = 0  # grabs that timed out before this one (they use up no attempt)
     final: bool = False
+    seen: str | None = None  # what a posted image's worker saw instead of the board
 
     @property
     def tries(self) -> int:
@@ -103,6 +104,21 @@ def _stops_run(exc: DeviceError) -> bool:
         return True
     return (isinstance(exc, CameraError) and not isinstance(exc, CameraTimeoutError)
             and exc.code in _CAMERA_GONE)
+
+
+@dataclass(frozen=True)
+class PostedOutcome:
+    """What the image worker said of a posted image besides its station: why there is no
+    image (``problem``: detail, code), or what it shows instead of the board (``seen``)."""
+
+    problem: tuple[str, str] | None = None
+    seen: str | None = None
+
+
+def _wrong_board(seen: str | None) -> str | None:
+    """A station's reason for what an image shows instead of the run's board, or None."""
+    return None if seen is None else (f"Wrong board configuration: {seen}; correct the run's "
+                                      "target.")
 
 
 def write_png(path: Path, image: np.ndarray) -> None:
@@ -332,17 +348,17 @@ class Capture:
 
     def develop_posted(self, index: int, pose: list[float], taken: Station | None, *,
                        joints: list[float] | None = None,
-                       problem: tuple[str, str] | None = None) -> bool:
+                       outcome: PostedOutcome = PostedOutcome()) -> bool:
         """Detect and store a posted station as station ``index`` exactly as the worker does
         a captured one (``_develop``), without the retry: the controller took the image.
         ``taken`` holds the image (and the board found in it already, by
-        ``service.jobs.image_worker``); ``problem`` (detail, code) says why there is none. True if
+        ``service.jobs.image_worker``); ``outcome`` what the image worker said besides. True if
         stored."""
         with self.db.session() as s:
             self.board = board_from_target(run_target(queries.get_run(s, run_id=self.run_id)))
-        detail, code = problem or (None, None)
+        detail, code = outcome.problem or (None, None)
         return self._develop(_Shot(index, pose, 1, taken, detail, code, joints,
-                                   final=True)) == STORED
+                                   final=True, seen=outcome.seen)) == STORED
 
     # ---- the worker's part -----------------------------------------------------------------
 
@@ -365,7 +381,8 @@ class Capture:
             if not det.ok and shot.attempt < ATTEMPTS and not shot.final:
                 return _RETRY
             if not det.ok and shot.final:  # a posted image: the better reason, if any
-                mismatch = self._mismatch(taken.image)
+                mismatch = (self._mismatch(taken.image) if taken.detection is None
+                            else _wrong_board(shot.seen))  # searched in a worker, bounded
             station = replace(taken, detection=det, rejected=None if det.ok else mismatch or
                               f"{self.board.kind.capitalize()} not found: {det.reason}.")
             code = None if det.ok else "board_mismatch" if mismatch else "not_detected"
@@ -387,10 +404,8 @@ class Capture:
     def _mismatch(self, image: np.ndarray) -> str | None:
         """What ``image`` shows instead of the run's board, as a station's reason, or None
         (``calib.ChecksConfiguration``)."""
-        seen = (self.board.mismatch(image) if isinstance(self.board, ChecksConfiguration)
-                else None)
-        return None if seen is None else (f"Wrong board configuration: {seen}; correct the "
-                                          "run's target.")
+        return _wrong_board(self.board.mismatch(image)
+                            if isinstance(self.board, ChecksConfiguration) else None)
 
     def _too_many_pixels(self, taken: Station) -> str | None:
         """Why a camera frame is too large to search, or None: a camera set to a larger

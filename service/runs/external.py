@@ -35,7 +35,7 @@ from service.cell.motion import Motion
 from service.errors import ConflictError, UnprocessableError
 from service.events import EventBus
 from service.jobs.image_worker import ImageWorkers, check_pixels
-from service.runs.capture import Capture
+from service.runs.capture import Capture, PostedOutcome
 from service.store import queries
 from service.store.records import RunRecord, StationRecord
 from service.store.stations import run_target
@@ -92,10 +92,10 @@ class ExternalStations:
         """Develop and store one station of ``run_id`` (``posted``: pose and joints checked;
         the caller holds the run's lock)."""
         pose, joints = posted.pose, posted.joints
-        image, detection, problem, freshness = None, None, None, None
+        image, detection, problem, freshness, seen = None, None, None, None, None
         if posted.image is not None:
             developed = self.images.develop(posted.image, target)
-            image, detection = developed.image, developed.detection
+            image, detection, seen = developed.image, developed.detection, developed.seen
             if developed.problem is not None:
                 problem = (developed.problem, "image_unreadable")
         elif pose is not None:
@@ -119,7 +119,8 @@ class ExternalStations:
             f"{index:03d}", T_base_tcp=np.asarray(pose, dtype=float), image=image,
             image_size=(image.shape[1], image.shape[0]), detection=detection,
             freshness=freshness)
-        stored = capture.develop_posted(index, pose, taken, joints=joints, problem=problem)
+        stored = capture.develop_posted(index, pose, taken, joints=joints,
+                                        outcome=PostedOutcome(problem, seen))
         if not stored:
             raise ConflictError(f"Run {run_id} stopped accepting stations meanwhile; the "
                                 "station was not stored.", code="invalid_state")
