@@ -14,242 +14,87 @@ Modules inside ``calib`` import each other directly; the layout is in ``docs/arc
 * ``validation``, ``planning`` — trust metrics, station planning;
 * ``options``, ``calibration``, ``pipeline`` — how to calibrate, the one entry, the image flow.
 * ``result`` — the result ``cellcal/result@1`` as pydantic models (``Result`` and its blocks).
+
+The names below are loaded on first use (PEP 562): ``import calib.boards`` loads the boards
+and OpenCV without scipy or the solvers, so ``cellcal calibrate`` reads and detects its images
+while those load (``service.cli.calibrate``).
 """
 
-from calib.boards import (
-    MIN_CONTRAST,
-    Board,
-    BoardTarget,
-    Charuco,
-    CharucoTarget,
-    Checkerboard,
-    CheckerboardTarget,
-    ChecksConfiguration,
-    Detection,
-    Target,
-    TargetAdapter,
-    board_from_target,
-    board_points,
-    detect_checkerboard,
-    target_from_board,
-)
-from calib.bounds import cramer_rao_bound
-from calib.calibration import Calibration, PoseOnlyResult, calibrate
-from calib.camera import Pinhole, image_corner_error, solve_pnp
-from calib.chain import (
-    SETUPS,
-    MotionPairs,
-    RobotNoise,
-    camera_from_robot,
-    check_setup,
-    hand_eye_from_station,
-    robot_chain,
-    robot_from_camera,
-    station_motions,
-    target_from_station,
-)
-from calib.coldstart import Bootstrap, Guess, View, bootstrap, camera_position
-from calib.crossval import CrossValidation, PoseStations
-from calib.evidence import Trust
-from calib.explorer import ColdStart, Proposal
-from calib.geometry import (
-    PoseError,
-    check_joint_positions,
-    check_transforms,
-    check_ur_pose,
-    check_ur_poses,
-    check_ur_vector,
-    invert,
-    make_transform,
-    matrix_from_ur_pose,
-    perturb,
-    pose_error,
-    rotation_angle,
-    ur_pose_from_matrix,
-)
-from calib.handeye import POSE_METHODS, HandEyeResult, calibrate_hand_eye
-from calib.intrinsics import (
-    MIN_IMAGES,
-    IntrinsicsOptions,
-    IntrinsicsResult,
-    calibrate_intrinsics,
-)
-from calib.joint import (
-    CAMERA_PARAMS,
-    CellParameters,
-    CornerStations,
-    JointOptions,
-    JointResult,
-    solve_joint,
-)
-from calib.nu import NuSearch, nu_from_extrinsics
-from calib.options import METHODS, SolverOptions
-from calib.peers import OPENCV_HAND_EYE_METHODS, OPENCV_ROBOT_WORLD_METHODS
-from calib.pipeline import CalibrationResult
-from calib.planning import (
-    CellGuess,
-    Plan,
-    PlanOptions,
-    cuts_board_at_corner,
-    look_at_view,
-    plan_stations,
-    rough_target_from_image,
-)
-from calib.quality import COVERAGE_GRID, OUTLIER_FACTOR, image_coverage
-from calib.recheck import CheckVerdict, Expected, StationCheck, StoredCell, check_verdict
-from calib.refine import RefineOptions
-from calib.result import (
-    RESULT_FORMAT,
-    BoardScale,
-    CameraModel,
-    Candidate,
-    CrossValidationBlock,
-    Finding,
-    FiniteFloat,
-    HeldOutStation,
-    ModelSelection,
-    Motions,
-    QualityBlock,
-    Rejected,
-    Result,
-    Software,
-    StationFit,
-    Transform,
-    Uncertainty,
-    parse_result,
-)
-from calib.screw import solve_sm
-from calib.selection import KAPPA_MODES, ModelCandidate, Selection
-from calib.selection import RULE as SELECTION_RULE
-from calib.stations import Station, StationInputs, Stations
-from calib.uncertainty import COVERAGE_90
-from calib.validation import dot_hit, leave_one_out, motion_residuals, reprojection_rms
-from calib.viewselect import Scene as ColdStartScene
-from calib.viewselect import hand_eye_sigma
+from __future__ import annotations
 
-__all__ = [
-    "CAMERA_PARAMS",
-    "COVERAGE_90",
-    "COVERAGE_GRID",
-    "KAPPA_MODES",
-    "METHODS",
-    "MIN_CONTRAST",
-    "MIN_IMAGES",
-    "OPENCV_HAND_EYE_METHODS",
-    "OPENCV_ROBOT_WORLD_METHODS",
-    "OUTLIER_FACTOR",
-    "POSE_METHODS",
-    "RESULT_FORMAT",
-    "SELECTION_RULE",
-    "SETUPS",
-    "Board",
-    "BoardScale",
-    "BoardTarget",
-    "Bootstrap",
-    "Calibration",
-    "CalibrationResult",
-    "CameraModel",
-    "Candidate",
-    "CellGuess",
-    "CellParameters",
-    "Charuco",
-    "CharucoTarget",
-    "CheckVerdict",
-    "Checkerboard",
-    "CheckerboardTarget",
-    "ChecksConfiguration",
-    "ColdStart",
-    "ColdStartScene",
-    "CornerStations",
-    "CrossValidation",
-    "CrossValidationBlock",
-    "Detection",
-    "Expected",
-    "Finding",
-    "FiniteFloat",
-    "Guess",
-    "HandEyeResult",
-    "HeldOutStation",
-    "IntrinsicsOptions",
-    "IntrinsicsResult",
-    "JointOptions",
-    "JointResult",
-    "ModelCandidate",
-    "ModelSelection",
-    "MotionPairs",
-    "Motions",
-    "NuSearch",
-    "Pinhole",
-    "Plan",
-    "PlanOptions",
-    "PoseError",
-    "PoseOnlyResult",
-    "PoseStations",
-    "Proposal",
-    "QualityBlock",
-    "RefineOptions",
-    "Rejected",
-    "Result",
-    "RobotNoise",
-    "Selection",
-    "Software",
-    "SolverOptions",
-    "Station",
-    "StationCheck",
-    "StationFit",
-    "StationInputs",
-    "Stations",
-    "StoredCell",
-    "Target",
-    "TargetAdapter",
-    "Transform",
-    "Trust",
-    "Uncertainty",
-    "View",
-    "board_from_target",
-    "board_points",
-    "bootstrap",
-    "calibrate",
-    "calibrate_hand_eye",
-    "calibrate_intrinsics",
-    "camera_from_robot",
-    "camera_position",
-    "check_joint_positions",
-    "check_setup",
-    "check_transforms",
-    "check_ur_pose",
-    "check_ur_poses",
-    "check_ur_vector",
-    "check_verdict",
-    "cramer_rao_bound",
-    "cuts_board_at_corner",
-    "detect_checkerboard",
-    "dot_hit",
-    "hand_eye_from_station",
-    "hand_eye_sigma",
-    "image_corner_error",
-    "image_coverage",
-    "invert",
-    "leave_one_out",
-    "look_at_view",
-    "make_transform",
-    "matrix_from_ur_pose",
-    "motion_residuals",
-    "nu_from_extrinsics",
-    "parse_result",
-    "perturb",
-    "plan_stations",
-    "pose_error",
-    "reprojection_rms",
-    "robot_chain",
-    "robot_from_camera",
-    "rotation_angle",
-    "rough_target_from_image",
-    "solve_joint",
-    "solve_pnp",
-    "solve_sm",
-    "station_motions",
-    "target_from_board",
-    "target_from_station",
-    "ur_pose_from_matrix",
-]
+import importlib
+from typing import Any
+
+#: The public names by the submodule that defines them; ``"ALIAS:NAME"`` exports ``NAME``
+#: under another name.
+_EXPORTS: dict[str, tuple[str, ...]] = {
+    "boards": (
+        "MIN_CONTRAST", "Board", "BoardTarget", "Charuco", "CharucoTarget", "Checkerboard",
+        "CheckerboardTarget", "ChecksConfiguration", "Detection", "Target", "TargetAdapter",
+        "board_from_target", "board_points", "detect_checkerboard", "target_from_board",
+    ),
+    "bounds": ("cramer_rao_bound",),
+    "calibration": ("Calibration", "PoseOnlyResult", "calibrate"),
+    "camera": ("Pinhole", "image_corner_error", "solve_pnp"),
+    "chain": (
+        "SETUPS", "MotionPairs", "RobotNoise", "camera_from_robot", "check_setup",
+        "hand_eye_from_station", "robot_chain", "robot_from_camera", "station_motions",
+        "target_from_station",
+    ),
+    "coldstart": ("Bootstrap", "Guess", "View", "bootstrap", "camera_position"),
+    "crossval": ("CrossValidation", "PoseStations"),
+    "evidence": ("Trust",),
+    "explorer": ("ColdStart", "Proposal"),
+    "geometry": (
+        "PoseError", "check_joint_positions", "check_transforms", "check_ur_pose",
+        "check_ur_poses", "check_ur_vector", "invert", "make_transform", "matrix_from_ur_pose",
+        "perturb", "pose_error", "rotation_angle", "ur_pose_from_matrix",
+    ),
+    "handeye": ("HandEyeResult", "calibrate_hand_eye"),
+    "intrinsics": ("IntrinsicsOptions", "IntrinsicsResult", "calibrate_intrinsics"),
+    "joint": (
+        "CAMERA_PARAMS", "CellParameters", "CornerStations", "JointOptions", "JointResult",
+        "solve_joint",
+    ),
+    "nu": ("NuSearch", "nu_from_extrinsics"),
+    "options": ("KAPPA_MODES", "METHODS", "POSE_METHODS", "SolverOptions"),
+    "peers": ("OPENCV_HAND_EYE_METHODS", "OPENCV_ROBOT_WORLD_METHODS"),
+    "pipeline": ("CalibrationResult",),
+    "planning": (
+        "CellGuess", "Plan", "PlanOptions", "cuts_board_at_corner", "look_at_view",
+        "plan_stations", "rough_target_from_image",
+    ),
+    "quality": ("COVERAGE_GRID", "OUTLIER_FACTOR", "image_coverage"),
+    "recheck": ("CheckVerdict", "Expected", "StationCheck", "StoredCell", "check_verdict"),
+    "refine": ("RefineOptions",),
+    "result": (
+        "RESULT_FORMAT", "BoardScale", "CameraModel", "Candidate", "CrossValidationBlock",
+        "Finding", "FiniteFloat", "HeldOutStation", "ModelSelection", "Motions", "QualityBlock",
+        "Rejected", "Result", "Software", "StationFit", "Transform", "Uncertainty", "parse_result",
+    ),
+    "screw": ("solve_sm",),
+    "selection": ("ModelCandidate", "Selection", "SELECTION_RULE:RULE"),
+    "stations": ("MIN_IMAGES", "Station", "StationInputs", "Stations"),
+    "uncertainty": ("COVERAGE_90",),
+    "validation": ("dot_hit", "leave_one_out", "motion_residuals", "reprojection_rms"),
+    "viewselect": ("ColdStartScene:Scene", "hand_eye_sigma"),
+}
+#: Public name -> (module, name there).
+_WHERE = {alias: (f"calib.{module}", name or alias)
+          for module, names in _EXPORTS.items()
+          for alias, _, name in (entry.partition(":") for entry in names)}
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str) -> Any:
+    """A public name, imported from its submodule on first use and kept."""
+    if name not in _WHERE:
+        raise AttributeError(f"module 'calib' has no attribute {name!r}")
+    module, attr = _WHERE[name]
+    value = getattr(importlib.import_module(module), attr)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})

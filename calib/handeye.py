@@ -32,12 +32,11 @@ from calib.chain import (
     tool_side_motions,
 )
 from calib.geometry import check_transforms, make_transform
+from calib.options import POSE_METHODS
 from calib.peers import OPENCV_HAND_EYE_METHODS, OPENCV_ROBOT_WORLD_METHODS, solve_opencv
 from calib.refine import RefineOptions, pose_residuals, refine
 from calib.screw import solve_sm
 
-#: Solvers of pose-only hand-eye: screw motions, OpenCV's, and SM with the refinement.
-POSE_METHODS = ("sm", *OPENCV_HAND_EYE_METHODS, *OPENCV_ROBOT_WORLD_METHODS, "refine")
 MIN_STATIONS = 3
 
 

@@ -29,13 +29,13 @@ from calib.boards import Board
 from calib.camera import Pinhole
 from calib.geometry import make_transform
 from calib.lsq import CachedProblem
+from calib.stations import MIN_IMAGES
 
 #: Order of the camera parameters in :attr:`IntrinsicsResult.covariance`.
 PARAM_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "nu")
 #: Parameters that ``fix=`` may hold: the principal point at the image centre, distortion at 0.
 FIXABLE = ("cx", "cy", "k1", "k2", "p1", "p2", "k3")
-#: Fewest images and fewest corners per image the calibration accepts.
-MIN_IMAGES = 3
+#: Fewest corners per image the calibration accepts (fewest images: ``MIN_IMAGES``).
 MIN_POINTS = 4
 #: Largest square size we accept as metres; anything beyond is almost surely millimetres.
 MAX_SQUARE_M = 1.0

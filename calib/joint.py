@@ -52,6 +52,7 @@ from calib.chain import RobotNoise, check_setup, robot_chain
 from calib.geometry import check_transforms, invert
 from calib.handeye import MIN_STATIONS
 from calib.lsq import CachedProblem
+from calib.options import OUTLIER_SIGMA
 from calib.schur import BlockSolution, solve_blocks
 
 #: Camera and board parameters, in the order of :attr:`JointResult.covariance`.
@@ -69,8 +70,6 @@ GLOBAL_PARAMS = (*CAMERA_PARAMS,
                  *MAP_PARAMS)
 #: Parameters that ``fix=`` may hold at their start values (known intrinsics: the first nine).
 FIXABLE = (*CAMERA_PARAMS,)
-#: Default outlier limit: Mahalanobis distance of a station's robot-pose correction.
-OUTLIER_SIGMA = 5.0
 
 _N_CAM = len(CAMERA_PARAMS)
 _N_POSE = 12

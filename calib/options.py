@@ -12,15 +12,20 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from calib.chain import RobotNoise
-from calib.handeye import POSE_METHODS
-from calib.joint import OUTLIER_SIGMA
-from calib.selection import KAPPA_MODES
+from calib.peers import OPENCV_HAND_EYE_METHODS, OPENCV_ROBOT_WORLD_METHODS
 
+#: Solvers of pose-only hand-eye: screw motions, OpenCV's, and SM with the refinement.
+POSE_METHODS = ("sm", *OPENCV_HAND_EYE_METHODS, *OPENCV_ROBOT_WORLD_METHODS, "refine")
 #: Calibration methods: the pose-level hand-eye solvers, and ``joint`` (the default with
 #: images), the maximum likelihood over all corners and robot poses started from ``refine``.
 METHODS = (*POSE_METHODS, "joint")
 #: Ways to estimate ν: ``images`` (Method #1, eq. 5) or ``extrinsics`` (Method #2).
 NU_METHODS = ("images", "extrinsics")
+#: Board scale κ: ``auto`` (chosen by prediction, ``calib.selection``), ``estimate``, ``fixed``.
+KAPPA_MODES = ("auto", "estimate", "fixed")
+#: Joint stage: stations whose robot correction lies beyond this many σ (Mahalanobis) are
+#: dropped as outliers.
+OUTLIER_SIGMA = 5.0
 #: The method when none is named: the joint estimate with images, the refinement without.
 DEFAULT_METHOD = {"images": "joint", "poses": "refine"}
 

@@ -23,11 +23,11 @@ import numpy as np
 from calib.crossval import CrossValidation, FoldEstimate, JointFolds, submit_joint_folds
 from calib.joint import CellParameters, JointResult
 from calib.jointfit import JointData, JointFit, JointModel, fit_joint, held_at_one
+from calib.options import KAPPA_MODES
 from calib.parallel import fit_pool
 from calib.quality import BOARD_SCALE_MIN
 from calib.uncertainty import jackknife_sigmas
 
-KAPPA_MODES = ("auto", "estimate", "fixed")
 #: A richer model must lower the cross-validated RMS by at least this fraction ...
 MIN_IMPROVEMENT = 0.05
 #: ... and the mean paired per-station improvement must exceed this many standard errors

@@ -1,7 +1,9 @@
 """SO(3): cross-product matrices, exp/log and the left Jacobian, vectorised over stacks.
 
 The one place for rotation-vector algebra. Exp and log go through
-``scipy.spatial.transform.Rotation``; the left Jacobian (not in scipy) is the closed form
+``scipy.spatial.transform.Rotation``, imported on first use (scipy.spatial takes a fifth of a
+second to load, which the geometry and station-set checks do not need); the left Jacobian
+(not in scipy) is the closed form
 
     J_l(φ) = I + (1 - cos θ)/θ² [φ]x + (θ - sin θ)/θ³ [φ]x²,   θ = |φ|
 
@@ -11,8 +13,12 @@ with Taylor series near θ = 0. It is the derivative of a left perturbation:
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation
 
 # Below this rotation angle (rad) the left Jacobian uses its Taylor series.
 _SMALL_ANGLE = 1e-4
@@ -31,15 +37,21 @@ def skew(v: np.ndarray) -> np.ndarray:
 def exp(rvec: np.ndarray) -> np.ndarray:
     """Rotation matrices of rotation vectors (rad), shape (..., 3) -> (..., 3, 3)."""
     rvec = np.asarray(rvec, dtype=float)
-    R = Rotation.from_rotvec(rvec.reshape(-1, 3)).as_matrix()
+    R = _rotation().from_rotvec(rvec.reshape(-1, 3)).as_matrix()
     return R.reshape(*rvec.shape[:-1], 3, 3)
 
 
 def log(R: np.ndarray) -> np.ndarray:
     """Rotation vectors (rad, angle in [0, π]) of rotation matrices, (..., 3, 3) -> (..., 3)."""
     R = np.asarray(R, dtype=float)
-    rvec = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec()
+    rvec = _rotation().from_matrix(R.reshape(-1, 3, 3)).as_rotvec()
     return rvec.reshape(*R.shape[:-2], 3)
+
+
+def _rotation() -> type[Rotation]:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation
 
 
 def left_jacobian(rvec: np.ndarray) -> np.ndarray:

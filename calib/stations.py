@@ -20,9 +20,10 @@ from calib.boards import Board, BoardTarget, Detection, TargetAdapter
 from calib.camera import solve_pnp
 from calib.chain import check_setup
 from calib.geometry import check_ur_poses, invert, make_transform, rotation_angle
-from calib.intrinsics import MIN_IMAGES
 
 Observation = np.ndarray | Detection
+#: Fewest usable images (stations) a calibration accepts.
+MIN_IMAGES = 3
 #: Fewest board points a station must show, not all on one line (a homography needs four in
 #: general position; two spare against a bad corner).
 MIN_STATION_POINTS = 6
@@ -114,13 +115,19 @@ class Stations:
                 check_ur_poses([s.T_cam_target for s in self.stations], "target_pose"))
 
     def inputs(self, images: Callable[[Station], Observation] | None = None) -> StationInputs:
-        """The solver's input: each station's stored detection, or ``images(station)`` (read
-        one at a time as the solver consumes them) when given."""
-        sizes = [s.image_size for s in self.stations if s.image_size is not None]
-        observations = (s.detection if images is None else images(s) for s in self.stations)
+        """The solver's input: each station's stored detection (a rejection when its image
+        size differs from the first's), or ``images(station)`` (read one at a time as the
+        solver consumes them) when given."""
+        sizes = [tuple(s.image_size) for s in self.stations if s.image_size is not None]
+        size = sizes[0] if sizes else None
+
+        def stored(station: Station) -> Observation | None:
+            seen = None if station.image_size is None else tuple(station.image_size)
+            return station.detection if seen in (None, size) else other_size(seen, size)
+
+        observations = (stored(s) if images is None else images(s) for s in self.stations)
         return StationInputs(observations, [s.T_base_tcp for s in self.stations],
-                             ids=[s.id for s in self.stations],
-                             image_size=sizes[0] if sizes else None,
+                             ids=[s.id for s in self.stations], image_size=size,
                              intrinsics=self.intrinsics, setup=self.setup)
 
 
@@ -144,8 +151,7 @@ def usable_stations(detections: list[tuple[Detection, tuple[int, int] | None]],
         if shape is not None:
             size = size or shape
             if shape != size:
-                det = Detection(ok=False, reason=(
-                    f"image is {shape[0]}x{shape[1]}, the others {size[0]}x{size[1]}"))
+                det = other_size(shape, size)
         if det.ok:
             det = _enough_points(det, board)
         if det.ok:
@@ -164,6 +170,12 @@ def usable_stations(detections: list[tuple[Detection, tuple[int, int] | None]],
     if size is None:
         raise ValueError("image_size is required when no observation is an image")
     return ids, usable, rejected, size
+
+
+def other_size(shape: Sequence[int], size: Sequence[int]) -> Detection:
+    """The rejection of an image of ``shape`` (width, height) in a set of ``size`` images."""
+    return Detection(ok=False, reason=(
+        f"image is {shape[0]}x{shape[1]}, the others {size[0]}x{size[1]}"))
 
 
 def _enough_points(det: Detection, board: Board) -> Detection:

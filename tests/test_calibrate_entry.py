@@ -67,6 +67,14 @@ def test_image_stations_take_the_image_path_with_joint_by_default():
     assert result.hand_eye is not None and len(result.stations) + len(result.rejected) == 8
 
 
+def test_a_stored_detection_from_an_image_of_another_size_is_rejected():
+    stations = image_set()
+    odd = replace(stations.stations[3], image_size=(640, 480))
+    stations = replace(stations, stations=(*stations.stations[:3], odd, *stations.stations[4:]))
+    result = calibrate(stations, SolverOptions(method="sm"))
+    assert dict(result.rejected) == {odd.id: f"image is 640x480, the others {SIZE[0]}x{SIZE[1]}"}
+
+
 def test_a_set_mixing_pose_only_and_image_stations_is_refused():
     stations = image_set()
     mixed = replace(stations, stations=(replace(stations.stations[0], T_cam_target=np.array(

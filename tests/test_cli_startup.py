@@ -43,7 +43,8 @@ def test_version_and_help_read_no_package_metadata(argv):
 def test_a_command_loads_what_it_needs():
     loaded = _modules_after(["calibrate", "--help"])
     assert {"calib", "numpy", "cv2"} <= loaded
-    assert "fastapi" not in loaded
+    # the solver's imports (scipy) wait until the images are being read and detected
+    assert not {"fastapi", "scipy"} & loaded
 
 
 def test_the_installed_package_has_the_version_the_command_says():

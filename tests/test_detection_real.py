@@ -16,10 +16,11 @@ import cv2
 import numpy as np
 import pytest
 
-from calib.boards import detect_checkerboard
+from calib.boards import checkerboard, detect_checkerboard
 from tests.support.helpers import OPENCV_LEFT, SHARED
 
 UR_SETS = [SHARED / "data" / s for s in ("ur-kinect-highR_highT", "ur-kinect-lowR_highT")]
+KUKA = SHARED / "data" / "rwhe-kuka_1"
 OPENCV_FLAGS = {
     "normalize": cv2.CALIB_CB_NORMALIZE_IMAGE,
     "none": 0,
@@ -122,3 +123,23 @@ def test_low_contrast_board_is_read_and_a_flat_image_is_blank() -> None:
     flat = _noisy(np.full((720, 1280), 110, np.uint8), 3.0)
     det = detect_checkerboard(flat, board)
     assert not det.ok and det.reason.startswith("image is blank")
+
+
+@pytest.mark.parametrize("station", [0, 17])
+def test_a_quarter_size_find_gives_the_corners_of_the_half_size_search(monkeypatch, station):
+    """Large images are searched at quarter size first (``calib.boards.checkerboard``); a
+    board found there ends at the corners the half-size search gives (1928x1208 KUKA)."""
+    doc = json.loads((KUKA / "stations.json").read_text())
+    board = tuple(doc["target"]["inner_corners"])
+    grey = cv2.imread(str(KUKA / doc["stations"][station]["image"]), cv2.IMREAD_GRAYSCALE)
+    refined_at_half = []
+    sub_pixel = checkerboard.sub_pixel
+    monkeypatch.setattr(checkerboard, "sub_pixel",
+                        lambda *a: refined_at_half.append(1) or sub_pixel(*a))
+    quick = detect_checkerboard(grey, board)
+    assert refined_at_half  # the quarter-size search found it
+    monkeypatch.setattr(checkerboard, "_QUARTER_MIN_SIZE", 10**6)
+    half = detect_checkerboard(grey, board)
+    assert quick.ok and half.ok
+    assert np.abs(quick.corners - half.corners).max() < 1e-3
+

@@ -42,6 +42,7 @@ from calib.boards.detection import (
     refine_corners,
     region_sharpness,
     sharpness,
+    sub_pixel,
 )
 from calib.boards.markers import markers_seen_reason
 
@@ -49,6 +50,10 @@ from calib.boards.markers import markers_seen_reason
 #: grows with the pixel count, and a board that fills a 1280x720 or larger image has squares
 #: wide enough at half size (all of ``rwhe-kuka_1``'s 28x17 boards at 1928x1208 are read there).
 _COARSE_MIN_SIZE = 720
+#: ... and at quarter size first from this size on (quarter-size squares of the 1280x1024
+#: renders and of ``rwhe-kuka_1`` are read there; of the 1280x720 UR Kinect images some are
+#: not). A quarter-size find is kept only when every corner refines on the half-size image.
+_QUARTER_MIN_SIZE = 960
 #: SB detector flags tried, in order, only when the default call (flags 0, what an OpenCV user
 #: writes) fails: with normalisation (low contrast), the exhaustive search with and without it,
 #: and last with ``CALIB_CB_ACCURACY``, whose up-sampled search reads some boards the others
@@ -188,10 +193,7 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
         return Detection(ok=False, reason=reason, sharpness=sharp)
 
     corners, ambiguous, contrast = order_corners(grey, raw.reshape(-1, 2), (cols, rows))
-    grid = corners.reshape(rows, cols, 2)
-    spacing = min(np.linalg.norm(np.diff(grid, axis=0), axis=-1).min(),
-                  np.linalg.norm(np.diff(grid, axis=1), axis=-1).min())
-    corners = refine_corners(grey, corners, spacing)
+    corners = refine_corners(grey, corners, _spacing(corners, (cols, rows)))
     sharp = region_sharpness(grey, corners)
     metrics = {"sharpness": sharp, "coverage": hull_coverage(corners, grey.shape),
                "mean_contrast": contrast, "ambiguous": ambiguous}
@@ -203,20 +205,30 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
 def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], survey: _GridSurvey, *,
                quick: bool = False) -> tuple[bool, np.ndarray | None]:
     """OpenCV's SB detector with its default flags, on a half-size copy of a large image first
-    (about 4x faster), then on the full image: the common case costs one call.
+    (about 4x faster; a quarter-size copy before it, 4x faster again, from
+    ``_QUARTER_MIN_SIZE`` on), then on the full image: the common case costs one call.
 
-    Half-size corners are scaled back (a half-size pixel centre x sits at 2x + 0.5) and are
-    only a start for :func:`refine_corners` at full resolution. Only when the default call
-    fails is the full image searched with each of ``_FALLBACK_FLAGS`` in turn, and last the
-    exhaustive search on a locally equalised copy (CLAHE) for boards in shadow or glare;
-    except when ``survey`` sees a board larger than ``inner_corners``: SB reads a board of
-    exactly the size asked for, so the searches could not succeed (a wrong ``inner_corners``
-    is then told in a fraction of a second instead of several). ``quick`` (faint images,
-    usually blank frames) tries the normalised searches alone.
+    Coarse corners are scaled back (a half-size pixel centre x sits at 2x + 0.5) and are
+    only a start for :func:`refine_corners` at full resolution; quarter-size ones are first
+    refined on the half-size copy, and the find is dropped unless all of them converge there
+    (a quarter-size start is up to 2 px off, beyond the full-size window). Only when the
+    default call fails is the full image searched with each of ``_FALLBACK_FLAGS`` in turn,
+    and last the exhaustive search on a locally equalised copy (CLAHE) for boards in shadow or
+    glare; except when ``survey`` sees a board larger than ``inner_corners``: SB reads a
+    board of exactly the size asked for, so the searches could not succeed (a wrong
+    ``inner_corners`` is then told in a fraction of a second instead of several). ``quick``
+    (faint images, usually blank frames) tries the normalised searches alone.
     """
     in_view = survey
     if min(grey.shape) >= _COARSE_MIN_SIZE:
         half = cv2.pyrDown(grey)
+        if min(grey.shape) >= _QUARTER_MIN_SIZE:
+            found, raw = cv2.findChessboardCornersSB(cv2.pyrDown(half), inner_corners)
+            if found:
+                start = raw.reshape(-1, 2) * 2.0 + 0.5  # half-size pixels
+                corners, converged = sub_pixel(half, start, _spacing(start, inner_corners))
+                if converged.all():
+                    return True, corners * 2.0 + 0.5
         found, raw = cv2.findChessboardCornersSB(half, inner_corners)
         if found:
             return True, raw * 2.0 + 0.5
@@ -235,6 +247,15 @@ def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], survey: _GridSu
     found, raw = cv2.findChessboardCornersSB(_CLAHE.apply(grey), inner_corners,
                                              flags=_FALLBACK_FLAGS[1])
     return (True, raw) if found else (False, None)
+
+
+def _spacing(corners: np.ndarray, inner_corners: tuple[int, int]) -> float:
+    """The smallest distance (px) between neighbouring corners of a grid (cols * rows, 2) in
+    row-major order."""
+    cols, rows = inner_corners
+    grid = corners.reshape(rows, cols, 2)
+    return float(min(np.linalg.norm(np.diff(grid, axis=0), axis=-1).min(),
+                     np.linalg.norm(np.diff(grid, axis=1), axis=-1).min()))
 
 
 def order_corners(grey: np.ndarray, corners: np.ndarray,

@@ -158,8 +158,17 @@ def refine_corners(grey: np.ndarray, corners: np.ndarray, spacing: float) -> np.
     values as smoothing the whole image wherever a window inside the image looks, at a third
     of the cost for a board filling a 1920x1200 image.
     """
+    refined, converged = sub_pixel(grey, corners, spacing)
+    refined[~converged] = corners[~converged]
+    return refined
+
+
+def sub_pixel(grey: np.ndarray, corners: np.ndarray, spacing: float
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`refine_corners`'s search: the refined corners (N, 2) and which of them stayed
+    within their window (N,) bool; the others are where the search wandered off to."""
     if len(corners) == 0:
-        return np.zeros((0, 2))
+        return np.zeros((0, 2)), np.zeros(0, dtype=bool)
     half = int(np.clip(0.3 * spacing, 2, _REFINE_HALF_WINDOW))
     # cornerSubPix keeps a result within one window of its start and reads the window plus
     # one pixel around it; the Gaussian reaches round(8 sigma + 1) // 2 pixels.
@@ -170,9 +179,7 @@ def refine_corners(grey: np.ndarray, corners: np.ndarray, spacing: float) -> np.
     start = (corners + shift).astype(np.float32).reshape(-1, 1, 2)
     refined = cv2.cornerSubPix(smooth, start, (half, half), (-1, -1), criteria)
     refined = refined.reshape(-1, 2).astype(float) - shift
-    moved = np.linalg.norm(refined - corners, axis=1) > 0.6 * half
-    refined[moved] = corners[moved]
-    return refined
+    return refined, np.linalg.norm(refined - corners, axis=1) <= 0.6 * half
 
 
 def _corner_mosaic(grey: np.ndarray, corners: np.ndarray, radius: int

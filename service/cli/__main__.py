@@ -1,7 +1,5 @@
 """``python -m service.cli``: the ``cellcal`` command."""
 
-import sys
+from service.cli.main import entry
 
-from service.cli.main import main
-
-sys.exit(main())
+entry()

@@ -19,11 +19,9 @@ import argparse
 import json
 import os
 import sys
-from collections.abc import Callable, Iterable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
-
-import numpy as np
 
 from calib import (
     KAPPA_MODES,
@@ -36,11 +34,10 @@ from calib import (
     Station,
     Stations,
     board_from_target,
-    calibrate,
 )
 from service.cli.exit_codes import EXIT_VERDICT_FAIL
 from service.stationsets.format import DEFAULT_MAX_STATIONS, load_station_set
-from service.stationsets.images import DEFAULT_MAX_PIXELS, read_station_image
+from service.stationsets.images import DEFAULT_MAX_PIXELS, STDERR_LOCK, read_station_image
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -81,8 +78,14 @@ def run(args: argparse.Namespace) -> int:
     stations = load_station_set(args.station_dir, max_stations=args.max_stations).model()
     options = SolverOptions(method=args.method, nu_method=args.nu_method,
                             kappa="estimate" if args.estimate_kappa else args.kappa)
-    result = calibrate(stations, options, images=_image_reader(args, stations),
-                       progress=_progress_bar(len(stations.stations)))
+    pool = ThreadPoolExecutor(min(4, os.cpu_count() or 1))
+    try:
+        ahead = _detect_ahead(pool, args, stations)
+        from calib import calibrate  # the solver's imports (scipy, ~0.5 s) while images are read
+
+        result = calibrate(_detected(args, stations, ahead), options)
+    finally:
+        pool.shutdown(cancel_futures=True)
     from service.results.document import result_of  # the writer's imports: after the solve
 
     written = result_of(result, command=" ".join(["cellcal", *sys.argv[1:]]))
@@ -131,32 +134,64 @@ def verdict_line(quality: QualityBlock | None, cv: CrossValidationBlock | None) 
             + (f"; findings: {', '.join(codes)}" if codes else ""))
 
 
-def _image_reader(args: argparse.Namespace, stations: Stations
-                  ) -> Callable[[Station], np.ndarray | Detection]:
-    """Reads a station's image file (refused beyond ``--max-image-pixels``). A checkerboard of
-    another size than the configured one is told from the first image, before the solve."""
+#: What reading and detecting one station's image gives: its detection, the image size
+#: (width, height; None when it could not be read) and, for the first image, the grid it shows
+#: instead of the configured board (``ChecksConfiguration.mismatch``) or None.
+Seen = tuple[Detection, tuple[int, int] | None, str | None]
+
+
+def _detect_ahead(pool: ThreadPoolExecutor, args: argparse.Namespace, stations: Stations
+                  ) -> list[Future[Seen] | None]:
+    """Start reading and detecting every image station on ``pool``'s threads (OpenCV releases
+    the GIL), the first image first; None for stations without an image file."""
+    if stations.target is None:  # refused by the solver
+        return [None] * len(stations.stations)
+    board = board_from_target(stations.target)
     directory = Path(args.station_dir)
 
-    def image(station: Station) -> np.ndarray | Detection:
-        assert isinstance(station.image, str)  # calib.calibrate reads image stations only
-        return read_station_image(directory, station.image, max_pixels=args.max_image_pixels)
+    def seen(name: str, first: bool) -> Seen:
+        image = read_station_image(directory, name, max_pixels=args.max_image_pixels)
+        if isinstance(image, Detection):
+            return image, None, None
+        mismatch = (board.mismatch(image) if first and isinstance(board, ChecksConfiguration)
+                    else None)
+        return board.detect(image), (image.shape[1], image.shape[0]), mismatch
 
-    first = stations.stations[0] if stations.stations else None
-    if first is not None and isinstance(first.image, str) and stations.target is not None:
-        board = board_from_target(stations.target)
-        seen = image(first)
-        if (isinstance(board, ChecksConfiguration) and isinstance(seen, np.ndarray)
-                and (mismatch := board.mismatch(seen)) is not None):
-            raise ValueError(f"{directory}: station {first.id}: {mismatch}: correct the "
-                             "target in stations.json")
-    return image
+    return [pool.submit(seen, s.image, k == 0) if isinstance(s.image, str) else None
+            for k, s in enumerate(stations.stations)]
 
 
-def _progress_bar(n: int) -> Callable[[Iterable[Any]], Iterable[Any]]:
-    """A progress bar on stderr over the board detection, from ``PROGRESS_MIN_IMAGES`` on."""
-    def progress(items: Iterable[Any]) -> Iterable[Any]:
-        from tqdm import tqdm
+class _BarStream:
+    """stderr for the progress bar, written only while no image decoder captures it
+    (``STDERR_LOCK``)."""
 
-        return tqdm(items, total=n, desc="detecting corners", unit="image", file=sys.stderr,
-                    disable=n < PROGRESS_MIN_IMAGES, leave=False)
-    return progress
+    def write(self, text: str) -> int:
+        with STDERR_LOCK:
+            sys.stderr.write(text)
+            sys.stderr.flush()
+        return len(text)
+
+    def flush(self) -> None:
+        """Every write is flushed already."""
+
+
+def _detected(args: argparse.Namespace, stations: Stations,
+              ahead: list[Future[Seen] | None]) -> Stations:
+    """``stations`` with the detections and image sizes of ``ahead``, waited for in order
+    behind a progress bar (from ``PROGRESS_MIN_IMAGES`` images on). A checkerboard of
+    another size than the configured one is told from the first image, before the solve."""
+    from tqdm import tqdm
+
+    done: list[Station] = []
+    with tqdm(total=len(ahead), desc="detecting corners", unit="image", file=_BarStream(),
+              disable=len(ahead) < PROGRESS_MIN_IMAGES, leave=False) as bar:
+        for station, task in zip(stations.stations, ahead, strict=True):
+            if task is not None:
+                detection, size, mismatch = task.result()
+                if mismatch is not None:
+                    raise ValueError(f"{args.station_dir}: station {station.id}: {mismatch}: "
+                                     "correct the target in stations.json")
+                station = replace(station, detection=detection, image_size=size)
+            done.append(station)
+            bar.update()
+    return replace(stations, stations=tuple(done))

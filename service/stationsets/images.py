@@ -20,6 +20,7 @@ import stat
 import struct
 import sys
 import tempfile
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -41,6 +42,11 @@ _JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
 #: JPEG markers without a length field: TEM and RST0-7 (SOI and EOI end the walk anyway).
 _JPEG_STANDALONE = frozenset({0x01, *range(0xD0, 0xD8)})
 _JPEG_SOS = 0xDA
+#: Held while file descriptor 2 is captured (``_native_stderr``): the capture is the whole
+#: process's, so decoders on several threads take turns, and whoever else writes to stderr
+#: meanwhile (``cellcal calibrate``'s progress bar) holds it too, or its text would be read
+#: as the decoder's warning.
+STDERR_LOCK = threading.Lock()
 
 
 class ImageFileError(Exception):
@@ -211,19 +217,21 @@ def _truncated(data: bytes) -> bool:
 def _native_stderr() -> Iterator[io.StringIO]:
     """Capture what native code (libpng, libjpeg) writes to file descriptor 2 meanwhile.
 
-    A temporary file, not a pipe: a long message cannot block the writer.
+    A temporary file, not a pipe: a long message cannot block the writer. One capture at a
+    time (``STDERR_LOCK``).
     """
-    sys.stderr.flush()
-    captured = io.StringIO()
-    saved = os.dup(2)
-    try:
-        with tempfile.TemporaryFile() as tmp:
-            os.dup2(tmp.fileno(), 2)
-            try:
-                yield captured
-            finally:
-                os.dup2(saved, 2)
-            tmp.seek(0)
-            captured.write(tmp.read(4096).decode(errors="replace"))
-    finally:
-        os.close(saved)
+    with STDERR_LOCK:
+        sys.stderr.flush()
+        captured = io.StringIO()
+        saved = os.dup(2)
+        try:
+            with tempfile.TemporaryFile() as tmp:
+                os.dup2(tmp.fileno(), 2)
+                try:
+                    yield captured
+                finally:
+                    os.dup2(saved, 2)
+                tmp.seek(0)
+                captured.write(tmp.read(4096).decode(errors="replace"))
+        finally:
+            os.close(saved)
