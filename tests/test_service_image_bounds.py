@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -127,11 +127,10 @@ def test_a_search_beyond_its_cpu_budget_is_refused(tmp_path: Path) -> None:
 
 
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize("image", [
-    checker_png(6000, 4000),
-    pytest.param(striped_png(6000, 4000), marks=pytest.mark.slow)], ids=["checker", "stripes"])
-def test_large_textures_under_the_pixel_cap_cost_a_bounded_search(tmp_path: Path,
-                                                                  image: bytes) -> None:
+@pytest.mark.parametrize("make_png", [
+    checker_png, pytest.param(striped_png, marks=pytest.mark.slow)], ids=["checker", "stripes"])
+def test_large_textures_under_the_pixel_cap_cost_a_bounded_search(
+        tmp_path: Path, make_png: Callable[[int, int], bytes]) -> None:
     """24 MP of checkers or stripes, 30-40 kB on the wire and under the 25 MP cap: searched at
     full size, every fallback search ran, 44 CPU-s and 4.8 GB (``tools/image-attack``), and the
     default budget refused it (422 image_too_complex) after 20 CPU-s. Searched on a reduced copy
@@ -141,7 +140,7 @@ def test_large_textures_under_the_pixel_cap_cost_a_bounded_search(tmp_path: Path
     12.5 at 1 MP), and is left to the budget."""
     with limited(tmp_path, image_cpu_s=6.0) as client:
         run_id, pose = external_run(client), robot_pose(client)
-        r = post(client, run_id, pose=pose, image=image)
+        r = post(client, run_id, pose=pose, image=make_png(6000, 4000))
         assert r.status_code == 201, r.text
         assert r.json()["state"] == "skipped" and r.json()["error"]["code"] == "not_detected"
         assert r.json()["image_size"] == [6000, 4000]
