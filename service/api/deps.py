@@ -33,8 +33,9 @@ async def get_settings(request: Request) -> Settings:
 async def get_session(request: Request) -> AsyncIterator[Session]:
     """A session for the request, made on the event loop (it connects on first use). The
     route closes it in its worker thread (``service.api.routing.OneThreadRoute``); one still
-    holding a connection here is closed in a worker thread, never on the loop."""
-    session = request.app.state.db.new_session()
+    holding a connection here is closed in a worker thread, never on the loop. A ``GET`` only
+    reads: its session runs no transaction (``Database.new_session(read_only=True)``)."""
+    session = request.app.state.db.new_session(read_only=request.method in ("GET", "HEAD"))
     try:
         yield session
     finally:

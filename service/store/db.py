@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -10,7 +11,7 @@ from contextlib import contextmanager
 from typing import Any, TypeVar
 
 from sqlalchemy import URL, Engine, create_engine, event, make_url
-from sqlalchemy.exc import InterfaceError, OperationalError
+from sqlalchemy.exc import DisconnectionError, InterfaceError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
 from service import migrations
@@ -28,6 +29,12 @@ _MAX_DELAY_S = 2.0
 #: With SQLAlchemy's 5, 20 clients made PostgreSQL connections open and close 3-5 times a
 #: second, and a GET that opened one took 3-4x as long (issue 21, benchmarks/README.md).
 POOL_SIZE = 20
+#: A pooled PostgreSQL connection unused for longer than this (s) is pinged before it is handed
+#: out, and replaced if the server dropped it (a restart, an idle timeout). A connection used
+#: more recently is not: under load each would otherwise cost every request one more round
+#: trip (issue 21). One that died within this time fails its statement once; SQLAlchemy then
+#: replaces every pooled connection older than the failure.
+IDLE_PING_S = 5.0
 
 
 class DatabaseUnavailableError(Exception):
@@ -82,14 +89,19 @@ class Database:
         is_sqlite = url.startswith("sqlite")
         connect_args: dict[str, Any] = (
             {"check_same_thread": False, "timeout": busy_timeout_s} if is_sqlite else {})
-        # pre-ping: a connection dropped by a restarted server is replaced, not handed out (a
-        # SQLite file has no server; its ping would only cost every request a statement)
         self.engine: Engine = create_engine(with_driver(url), connect_args=connect_args,
-                                            pool_pre_ping=not is_sqlite, pool_size=POOL_SIZE,
-                                            max_overflow=POOL_SIZE)
+                                            pool_size=POOL_SIZE, max_overflow=POOL_SIZE)
+        self._sessions = sessionmaker(self.engine, expire_on_commit=False)
         if is_sqlite:
             event.listen(self.engine, "connect", _sqlite_pragmas)
-        self._sessions = sessionmaker(self.engine, expire_on_commit=False)
+            # pysqlite begins no transaction for a SELECT: reads already cost no BEGIN
+            self._reads = self._sessions
+        else:  # a SQLite file has no server that could drop a connection
+            _ping_when_idle(self.engine)
+            # no BEGIN before and no ROLLBACK after a request's reads: two round trips of a
+            # GET's 3-4. Under READ COMMITTED each statement sees its own snapshot anyway.
+            self._reads = sessionmaker(self.engine.execution_options(
+                isolation_level="AUTOCOMMIT"), expire_on_commit=False)
         try:
             migrations.prepare(self.engine)
         except BaseException:
@@ -102,12 +114,32 @@ class Database:
         with self._sessions() as session:
             yield session
 
-    def new_session(self) -> Session:
-        """A session the caller closes (no I/O until it is first used)."""
-        return self._sessions()
+    def new_session(self, *, read_only: bool = False) -> Session:
+        """A session the caller closes (no I/O until it is first used); ``read_only``: one for
+        reads only, whose statements run outside a transaction (each commits at once)."""
+        return self._reads() if read_only else self._sessions()
 
     def close(self) -> None:
         self.engine.dispose()
+
+
+def _ping_when_idle(engine: Engine) -> None:
+    """Ping a pooled connection on checkout only if it sat unused for ``IDLE_PING_S``
+    (SQLAlchemy's ``pool_pre_ping`` pings on every checkout). A dead one is replaced: raising
+    ``DisconnectionError`` in ``checkout`` makes the pool discard it and connect again."""
+
+    @event.listens_for(engine, "checkin")
+    def returned(_dbapi_connection: Any, record: Any) -> None:
+        record.info["returned_at"] = time.monotonic()
+
+    @event.listens_for(engine, "checkout")
+    def ping_if_idle(dbapi_connection: Any, record: Any, _proxy: Any) -> None:
+        if time.monotonic() - record.info.get("returned_at", math.inf) <= IDLE_PING_S:
+            return
+        try:
+            engine.dialect.do_ping(dbapi_connection)
+        except engine.dialect.loaded_dbapi.Error as exc:
+            raise DisconnectionError(f"a pooled connection was dropped: {exc}") from exc
 
 
 def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
