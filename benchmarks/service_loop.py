@@ -109,7 +109,7 @@ def time_get_run(jobs: Any, run_id: str, reps: int = TIME_GET_REPS) -> HandlerTi
 
     def handler() -> None:
         with jobs.db.session() as s:
-            run_public(s, s.get(RunRecord, run_id)).model_dump_json()
+            run_public(s, run_id).model_dump_json()
 
     def counted() -> None:
         with jobs.db.session() as s:

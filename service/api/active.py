@@ -32,16 +32,12 @@ def list_calibrations(session: SessionDep,
                                                setup=query.setup),
         limit=query.limit, offset=query.offset,
         cursor=None if query.cursor is None else Cursor.decode(query.cursor))
-    items = [CalibrationSummary(
-        id=cal.id, run_id=cal.run_id, cell=cal.cell, setup=setup, robot=robot, state=cal.state,
-        method=cal.options.get("method"), rms_px=rms, verdict=verdict, active=current,
-        error=cal.error, created_at=cal.created_at, finished_at=cal.finished_at)
-        for cal, setup, robot, rms, verdict, current in rows]
+    items = [CalibrationSummary.model_validate(row._mapping) for row in rows]
     end = query.offset + len(items)
     more = len(items) == query.limit
     return CalibrationPage(items=items, total=total, limit=query.limit, offset=query.offset,
                            next_offset=end if end < total and query.cursor is None else None,
-                           next_cursor=Cursor.of(rows[-1][0]).encode() if more else None)
+                           next_cursor=Cursor.of(rows[-1]).encode() if more else None)
 
 
 @router.get("/active", responses={404: {"description": "no calibration was activated"}})

@@ -5,10 +5,11 @@ from __future__ import annotations
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Query, Request, Response, status
 from fastapi.responses import FileResponse, StreamingResponse
+from sqlalchemy import Row
 from starlette.background import BackgroundTask
 
 from service.api.deps import EventsDep, RunsDep, SessionDep, SettingsDep
@@ -26,25 +27,26 @@ from service.schemas import (
 from service.stationsets.format import zip_station_set
 from service.store import queries
 from service.store.pages import Cursor
-from service.store.records import RunRecord, Topic
+from service.store.records import Topic
 from service.store.stations import captured_station_set, run_target
 
 router = APIRouter(prefix="/runs", tags=["runs"], route_class=OneThreadRoute)
 
-def run_public(session: SessionDep, run: RunRecord) -> RunPublic:
-    """The public view of a run; station counts and errors come from small SQL queries, never
-    from loading every station (with its corners), so polling stays fast on long runs."""
-    return runs_public(session, [run])[0]
+def run_public(session: SessionDep, run_id: str) -> RunPublic:
+    """The public view of a run (404 for an unknown id): two small statements, never loading
+    its stations (with their corners), so polling stays fast on long runs."""
+    return runs_public(session, [queries.get_run_view(session, run_id=run_id)])[0]
 
 
-def runs_public(session: SessionDep, runs: list[RunRecord]) -> list[RunPublic]:
-    """``run_public`` of many runs with two queries in all, whatever their number."""
-    counts = queries.runs_counts(session, runs=runs)
+def runs_public(session: SessionDep, runs: list[Row[Any]]) -> list[RunPublic]:
+    """The public views of runs read as ``queries.RUN_VIEW_COLUMNS`` rows, with one more
+    statement for their stations' errors, whatever their number."""
     errors = queries.runs_station_errors(session, run_ids=[run.id for run in runs])
     return [RunPublic(
         id=run.id, state=run.state, mode=run.mode, cell=run.cell, robot=run.robot,
-        setup=run.setup,
-        target=run_target(run), **counts[run.id],
+        setup=run.setup, target=run_target(run),
+        stations_planned=queries.planned_stations(run.poses, run.cold_start),
+        stations_captured=run.captured, stations_skipped=run.stored - run.captured,
         error=None if run.error is None else ErrorInfo(code=run.error_code or "error",
                                                        detail=run.error),
         station_errors=[StationError(index=i, code=code, detail=detail)
@@ -71,8 +73,8 @@ def list_runs(session: SessionDep, request: Request, response: Response,
                                               "rel=\"next\"` header of the page before")] = None
               ) -> list[RunPublic]:
     """Runs, newest first; a full page's ``Link`` header names the next page (keyset)."""
-    runs = queries.list_runs(session, limit=limit,
-                           cursor=None if cursor is None else Cursor.decode(cursor))
+    runs = queries.list_run_views(session, limit=limit,
+                                  cursor=None if cursor is None else Cursor.decode(cursor))
     if len(runs) == limit:
         after = request.url.include_query_params(cursor=Cursor.of(runs[-1]).encode())
         response.headers["Link"] = f'<{after.path}?{after.query}>; rel="next"'
@@ -82,28 +84,28 @@ def list_runs(session: SessionDep, request: Request, response: Response,
 @router.get("/{run_id}")
 def get_run(run_id: str, session: SessionDep) -> RunPublic:
     """State, stations captured / skipped / planned, and errors."""
-    return run_public(session, queries.get_run(session, run_id=run_id))
+    return run_public(session, run_id)
 
 
 @router.post("/{run_id}/pause")
 def pause_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
     """Stop after the station in progress (idempotent)."""
     runs.pause(run_id)
-    return run_public(session, queries.get_run(session, run_id=run_id))
+    return run_public(session, run_id)
 
 
 @router.post("/{run_id}/resume")
 def resume_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
     """Continue a paused, interrupted or failed run at its next missing station."""
     runs.resume(run_id)
-    return run_public(session, queries.get_run(session, run_id=run_id))
+    return run_public(session, run_id)
 
 
 @router.post("/{run_id}/cancel")
 def cancel_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
     """Stop for good (idempotent); stored stations stay available."""
     runs.cancel(run_id)
-    return run_public(session, queries.get_run(session, run_id=run_id))
+    return run_public(session, run_id)
 
 
 @router.post("/{run_id}/finish", responses={
@@ -111,7 +113,7 @@ def cancel_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
 def finish_run(run_id: str, runs: RunsDep, session: SessionDep) -> RunPublic:
     """End an external run (idempotent): no more stations; calibrate it next."""
     runs.finish(run_id)
-    return run_public(session, queries.get_run(session, run_id=run_id))
+    return run_public(session, run_id)
 
 
 @router.get("/{run_id}/events", response_class=StreamingResponse, responses=stream_doc(

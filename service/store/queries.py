@@ -12,8 +12,8 @@ import datetime as dt
 from dataclasses import dataclass
 from typing import Any
 
-from sqlalchemy import func, select
-from sqlalchemy.orm import Session, defer
+from sqlalchemy import Row, func, select
+from sqlalchemy.orm import Session
 
 from service.errors import NotFoundError
 from service.store.pages import Cursor, newest_first
@@ -67,9 +67,37 @@ def get_station(s: Session, *, run_id: str, index: int) -> StationRecord:
 # ---- listings ------------------------------------------------------------------------------
 
 
-def list_runs(s: Session, *, limit: int, cursor: Cursor | None = None) -> list[RunRecord]:
-    """Runs, newest first, after ``cursor`` (the previous page's last)."""
-    return list(s.scalars(newest_first(select(RunRecord), RunRecord, cursor=cursor, limit=limit)))
+def _stations_counted(*where: Any) -> Any:
+    """The number of the listed run's stations matching ``where`` (from the stations'
+    ``(run_id, state)`` index), as a column of a run listing."""
+    return select(func.count()).where(StationRecord.run_id == RunRecord.id, *where) \
+        .correlate(RunRecord).scalar_subquery()
+
+
+#: The columns of a run's public view, by name: the row without its owner, identity and poses
+#: (only how many there are) and its stations counted in the same statement, so a page of 50
+#: runs is one statement of plain rows, no ORM objects and no stations loaded.
+RUN_VIEW_COLUMNS = (RunRecord.id, RunRecord.state, RunRecord.mode, RunRecord.cell,
+                    RunRecord.robot, RunRecord.setup, RunRecord.target, RunRecord.cold_start,
+                    RunRecord.error, RunRecord.error_code, RunRecord.created_at,
+                    RunRecord.updated_at, func.json_array_length(RunRecord.poses).label("poses"),
+                    _stations_counted(StationRecord.state == "captured").label("captured"),
+                    _stations_counted().label("stored"))
+
+
+def list_run_views(s: Session, *, limit: int, cursor: Cursor | None = None) -> list[Row[Any]]:
+    """Runs as rows of ``RUN_VIEW_COLUMNS``, newest first, after ``cursor`` (the previous
+    page's last)."""
+    return list(s.execute(newest_first(select(*RUN_VIEW_COLUMNS), RunRecord, cursor=cursor,
+                                       limit=limit)))
+
+
+def get_run_view(s: Session, *, run_id: str) -> Row[Any]:
+    """One run as a row of ``RUN_VIEW_COLUMNS`` (404 for an unknown id)."""
+    row = s.execute(select(*RUN_VIEW_COLUMNS).where(RunRecord.id == run_id)).first()
+    if row is None:
+        raise NotFoundError(f"No run {run_id}.")
+    return row
 
 
 def list_stations(s: Session, *, run_id: str) -> list[StationRecord]:
@@ -119,39 +147,46 @@ class CalibrationFilter:
     setup: str | None = None
 
 
-#: A listed calibration: the row without its result document, its run's setup and robot, the
-#: calibration's RMS reprojection error (px; None for pose-only results), its verdict and
-#: whether it is some cell's current calibration.
-CalibrationRow = tuple[CalibrationRecord, str, str, float | None, str | None, bool]
+#: The columns of a listed calibration (``CalibrationSummary``'s fields): the row's own
+#: without its options and result documents, the solver asked for, its run's setup and robot,
+#: the RMS reprojection error (px; None for pose-only results) and verdict read from the result
+#: in SQL, and whether it is some cell's current calibration.
+SUMMARY_COLUMNS = (CalibrationRecord.id, CalibrationRecord.run_id, CalibrationRecord.cell,
+                   RunRecord.setup, RunRecord.robot, CalibrationRecord.state,
+                   CalibrationRecord.options["method"].as_string().label("method"),
+                   CalibrationRecord.result[("camera", "rms_px")].as_float().label("rms_px"),
+                   CalibrationRecord.result[("quality", "verdict")].as_string().label("verdict"),
+                   CalibrationRecord.id.in_(select(ActiveCalibrationRecord.calibration_id))
+                   .label("active"),
+                   CalibrationRecord.error, CalibrationRecord.created_at,
+                   CalibrationRecord.finished_at)
 
 
 def page_calibrations(s: Session, *, where: CalibrationFilter, limit: int, offset: int,
-                      cursor: Cursor | None = None) -> tuple[list[CalibrationRow], int]:
+                      cursor: Cursor | None = None) -> tuple[list[Row[Any]], int]:
     """One page of calibrations, newest first (after ``cursor``, the previous page's last,
-    or skipping ``offset``), and how many match in all. The result documents stay in the
-    database (only their RMS error and verdict are read), so pages stay small."""
-    query = select(CalibrationRecord, RunRecord.setup, RunRecord.robot,
-                   CalibrationRecord.result[("camera", "rms_px")].as_float(),
-                   CalibrationRecord.result[("quality", "verdict")].as_string()) \
-        .join(RunRecord, RunRecord.id == CalibrationRecord.run_id) \
-        .options(defer(CalibrationRecord.result))
-    for column, value in ((CalibrationRecord.run_id, where.run_id),
-                          (CalibrationRecord.cell, where.cell),
-                          (CalibrationRecord.state, where.state),
-                          (RunRecord.setup, where.setup)):
-        if value is not None:
-            query = query.where(column == value)
+    or skipping ``offset``), as rows of ``SUMMARY_COLUMNS`` (by name), and how many match in
+    all. Plain rows, no ORM objects, and no documents: the options and results stay in the
+    database (only the method, RMS error and verdict are read), so pages stay small and
+    cheap."""
+    filters = [column == value for column, value in ((CalibrationRecord.run_id, where.run_id),
+                                                     (CalibrationRecord.cell, where.cell),
+                                                     (CalibrationRecord.state, where.state),
+                                                     (RunRecord.setup, where.setup))
+               if value is not None]
     if where.active is not None:
         current = select(ActiveCalibrationRecord.calibration_id)
-        query = query.where(CalibrationRecord.id.in_(current) if where.active
-                            else CalibrationRecord.id.not_in(current))
-    total = s.scalar(select(func.count()).select_from(query.subquery())) or 0
-    # "active" in the same statement: no second query naming the page's 50 ids
-    is_current = CalibrationRecord.id.in_(select(ActiveCalibrationRecord.calibration_id))
-    rows = s.execute(newest_first(query.add_columns(is_current), CalibrationRecord,
-                                  cursor=cursor, limit=limit).offset(offset)).all()
-    return [(cal, setup, robot, rms, verdict, bool(current))
-            for cal, setup, robot, rms, verdict, current in rows], total
+        filters.append(CalibrationRecord.id.in_(current) if where.active
+                       else CalibrationRecord.id.not_in(current))
+    # counted from the calibrations alone unless the setup filter needs their runs
+    counted = select(func.count()).select_from(CalibrationRecord)
+    if where.setup is not None:
+        counted = counted.join(RunRecord, RunRecord.id == CalibrationRecord.run_id)
+    total = s.scalar(counted.where(*filters)) or 0
+    page = select(*SUMMARY_COLUMNS).join(RunRecord, RunRecord.id == CalibrationRecord.run_id)
+    rows = s.execute(newest_first(page.where(*filters), CalibrationRecord, cursor=cursor,
+                                  limit=limit).offset(offset)).all()
+    return list(rows), total
 
 
 # ---- which calibration is active -----------------------------------------------------------
@@ -177,12 +212,12 @@ def run_counts(s: Session, *, run: RunRecord) -> dict[str, int]:
     return runs_counts(s, runs=[run])[run.id]
 
 
-def planned_stations(run: RunRecord) -> int:
-    """The stations a run plans: its poses, or a cold-start run's count or station limit."""
-    plan = run.cold_start
-    if plan is None:
-        return len(run.poses)
-    return int(plan["stations"] or plan["stop_rule"]["max_stations"])
+def planned_stations(poses: int, cold_start: dict[str, Any] | None) -> int:
+    """The stations a run plans: its ``poses`` count, or a cold-start run's count or station
+    limit."""
+    if cold_start is None:
+        return poses
+    return int(cold_start["stations"] or cold_start["stop_rule"]["max_stations"])
 
 
 def runs_counts(s: Session, *, runs: list[RunRecord]) -> dict[str, dict[str, int]]:
@@ -193,7 +228,7 @@ def runs_counts(s: Session, *, runs: list[RunRecord]) -> dict[str, dict[str, int
             .where(StationRecord.run_id.in_(list(by_state)))
             .group_by(StationRecord.run_id, StationRecord.state)):
         by_state[run_id][state] = n
-    return {run.id: {"stations_planned": planned_stations(run),
+    return {run.id: {"stations_planned": planned_stations(len(run.poses), run.cold_start),
                      "stations_captured": by_state[run.id].get("captured", 0),
                      "stations_skipped": sum(by_state[run.id].values())
                      - by_state[run.id].get("captured", 0)} for run in runs}

@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+from sqlalchemy import Row
 from sqlalchemy.orm import Session
 
 from calib import Detection, Station, Stations, Target, TargetAdapter
@@ -66,9 +67,9 @@ def row_values(station: Station) -> dict[str, Any]:
             "error": station.rejected, "freshness": station.freshness}
 
 
-def run_target(run: RunRecord) -> Target:
-    """The run's stored ``target`` column as the one target type (a configuration stored
-    without ``type`` is a checkerboard)."""
+def run_target(run: RunRecord | Row[Any]) -> Target:
+    """The run's stored ``target`` column (of its record or a row read with it) as the one
+    target type (a configuration stored without ``type`` is a checkerboard)."""
     return TargetAdapter.validate_python(run.target)
 
 
