@@ -12,7 +12,9 @@ from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy import event
 
+from service.store import writes
 from service.store.records import CalibrationRecord, RunRecord
 from tests.support.results import full_result, pose_only_result
 from tests.support.service import CELL
@@ -220,3 +222,31 @@ def test_each_cell_and_setup_has_its_own_active_calibration(client: TestClient) 
 def test_registry_needs_the_key(client: TestClient, method: str, path: str) -> None:
     r = client.request(method, path, headers={"Authorization": ""})
     assert r.status_code == 401
+
+
+def statements(client: TestClient) -> list[str]:
+    """The SQL the service runs from now on."""
+    seen: list[str] = []
+    event.listen(client.app.state.db.engine, "before_cursor_execute",
+                 lambda conn, cursor, sql, *rest: seen.append(sql))
+    return seen
+
+
+@pytest.mark.pg_fast
+def test_a_finished_calibration_is_read_once_a_running_one_every_time(
+        client: TestClient) -> None:
+    run_id = add_run(client)
+    done, running = add_calibration(client, run_id, minute=1), \
+        add_calibration(client, run_id, minute=2, state="running")
+    client.post(f"/calibrations/{done}/activate")
+    first = client.get(f"/calibrations/{done}").json()
+    seen = statements(client)
+    assert client.get(f"/calibrations/{done}").json() == first
+    assert client.get("/calibrations/active").json()["calibration"] == first
+    assert not [sql for sql in seen if "FROM calibrations" in sql]  # kept, not read again
+
+    assert client.get(f"/calibrations/{running}").json()["state"] == "running"
+    with client.app.state.db.session() as s:
+        writes.finish_calibration(s, cal_id=running, state="failed", error="stopped")
+    assert client.get(f"/calibrations/{running}").json()["state"] == "failed"
+    assert len([sql for sql in seen if "FROM calibrations" in sql]) == 2

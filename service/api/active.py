@@ -8,11 +8,11 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query
 
 from service.api.deps import SessionDep, SettingsDep
+from service.api.finished import calibration_view
 from service.api.routing import OneThreadRoute
 from service.schemas import (
     ActiveCalibration,
     CalibrationPage,
-    CalibrationPublic,
     CalibrationQuery,
     CalibrationSummary,
 )
@@ -64,8 +64,7 @@ def activate(cal_id: str, session: SessionDep,
 
 def _active(session: SessionDep, *, cell: str, setup: str, history: int) -> ActiveCalibration:
     now, periods = active.current(session, cell=cell, setup=setup, history=history)
-    cal = queries.get_calibration(session, cal_id=now.calibration_id)
     return ActiveCalibration(cell=cell, setup=setup, robot=now.robot,
                              activated_at=now.activated_at,
-                             calibration=CalibrationPublic.model_validate(cal),
+                             calibration=calibration_view(session, cal_id=now.calibration_id),
                              history=periods)

@@ -13,6 +13,7 @@ from fastapi.responses import FileResponse, HTMLResponse, StreamingResponse
 from calib import parse_result
 from drivers.base import RobotIdentity
 from service.api.deps import CalibrationsDep, EventsDep, SessionDep, SettingsDep
+from service.api.finished import calibration_view
 from service.api.reads import Read, add_reads
 from service.api.routing import OneThreadRoute
 from service.api.streams import LastEventId, event_stream, stream_doc
@@ -43,7 +44,7 @@ def create_calibration(run_id: str, calibrations: CalibrationsDep,
 add_reads(router, CalibrationPublic,
           listing=Read("/runs/{run_id}/calibrations", queries.list_calibrations,
                        "list_calibrations", "The run's calibrations, oldest first."),
-          item=Read("/calibrations/{cal_id}", queries.get_calibration, "get_calibration",
+          item=Read("/calibrations/{cal_id}", calibration_view, "get_calibration",
                     "State (``running``, ``done``, ``failed``) and the ``cellcal/result@1`` "
                     "document."))
 
