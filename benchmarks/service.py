@@ -358,11 +358,16 @@ def main() -> int:
                         help="latency over a stored history on SQLite and PostgreSQL instead "
                              "(benchmarks/service_history.py)")
     parser.add_argument("--seconds", type=float, help="--history: load time per level")
+    parser.add_argument("--client", choices=("threads", "light", "both"), default="both",
+                        help="--history: the load generator: httpx threads in this process, "
+                             "a separate asyncio process, or each in turn (default)")
     args = parser.parse_args()
     if args.history:
         from benchmarks.service_history import run_history
 
-        return run_history(quick=args.quick, seconds=args.seconds)
+        return run_history(quick=args.quick, seconds=args.seconds,
+                           clients=("threads", "light") if args.client == "both"
+                           else (args.client,))
     n = args.stations or (20 if args.quick else 80)
 
     def on_term(signum: int, frame: Any) -> None:

@@ -16,6 +16,12 @@ thread opens an external run (``POST /runs``) and finishes it every 0.5 s. Laten
 at the client, request sent to body read. The history is then grown to the second level and
 measured again.
 
+Two load generators, each in turn on the same server (``--client``): ``threads``, the load
+above as 26 ``httpx`` threads in this process, and ``light``, the same load from a separate
+asyncio process (``benchmarks.history_client``). On 2 cores the threaded client's own CPU and
+GIL are part of its figures; a plant's dashboards run on other computers. Both are reported,
+with the server's and the client's CPU per request.
+
     python -m benchmarks.service --history           # 1,000 -> 10,000 calibrations
     python -m benchmarks.service --history --quick   # 200 -> 2,000, 5 stations per run
 
@@ -33,7 +39,7 @@ import secrets
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,6 +49,7 @@ import matplotlib
 import numpy as np
 from sqlalchemy import create_engine, insert
 
+from service.serving.local import LocalService, ServeOptions, local_service
 from service.store.db import Database
 from service.store.pages import Cursor
 from service.store.records import (
@@ -58,12 +65,12 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 from benchmarks import results_dir
+from benchmarks.history_client import CELLS, POST_EVERY_S, THINK_S, get_mix
 
 OUT = results_dir()
 TARGET_P99_MS = 50.0
 TARGET_GROWTH = 1.2
-CLIENTS, LISTENERS, CELLS = 20, 5, 20
-THINK_S, POST_EVERY_S = 0.2, 0.5
+CLIENTS, LISTENERS = 20, 5
 T0 = dt.datetime(2025, 1, 1, tzinfo=dt.UTC)
 
 
@@ -161,22 +168,6 @@ def _set_active(engine: Any) -> None:
 
 # ---- load ----------------------------------------------------------------------------------
 
-def get_mix(cal_ids: list[str], run_ids: list[str], deep: str) -> list[tuple[str, Callable[
-        [random.Random], str]]]:
-    """(kind, path maker): the GETs a plant dashboard and the cells' controllers send."""
-    return [
-        ("GET /runs", lambda r: "/runs?limit=50"),
-        ("GET /runs/{id}", lambda r: f"/runs/{r.choice(run_ids)}"),
-        ("GET /calibrations", lambda r: "/calibrations?limit=50"),
-        ("GET /calibrations?cursor (deep)", lambda r: f"/calibrations?limit=50&cursor={deep}"),
-        ("GET /calibrations?cell&active",
-         lambda r: f"/calibrations?cell=cell-{r.randrange(CELLS):02d}&active=true"),
-        ("GET /calibrations/{id}", lambda r: f"/calibrations/{r.choice(cal_ids)}"),
-        ("GET /calibrations/active",
-         lambda r: f"/calibrations/active?cell=cell-{r.randrange(CELLS):02d}"),
-    ]
-
-
 @dataclass
 class Load:
     """What the load threads share: the service, the measurements, the newest run."""
@@ -247,6 +238,47 @@ def load(url: str, key: str, mix: list[Any], seconds: float) -> Latencies:
     return ld.out
 
 
+def load_light(url: str, key: str, spec: dict[str, Any],
+               seconds: float) -> tuple[Latencies, float]:
+    """The same load from a separate light client process (``benchmarks.history_client``);
+    the latencies and the CPU seconds the client process used during the load."""
+    import json
+    import subprocess
+    import sys
+
+    spec = {**spec, "url": url, "key": key, "seconds": seconds, "clients": CLIENTS,
+            "listeners": LISTENERS}
+    done = subprocess.run([sys.executable, "-m", "benchmarks.history_client"], check=True,
+                          input=json.dumps(spec).encode(), capture_output=True,
+                          timeout=seconds + 120.0)
+    got = json.loads(done.stdout)
+    return Latencies(by_kind=got["by_kind"], errors=got["errors"]), got["cpu_s"]
+
+
+#: The two load generators: ``threads``, 26 ``httpx`` threads in this process (what the
+#: benchmark always did), and ``light``, one asyncio process (``benchmarks.history_client``).
+CLIENT_KINDS = ("threads", "light")
+
+
+def cpu_seconds(pid: int) -> float:
+    """CPU time (user + system) a process and its threads used so far, seconds."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def loaded(client: str, svc: LocalService, mix: list[Any], spec: dict[str, Any],
+           seconds: float) -> tuple[Latencies, float, float]:
+    """The load from ``client``; its latencies and the server's and the client's CPU seconds
+    meanwhile."""
+    server0, mine0 = cpu_seconds(svc.proc.pid), time.process_time()
+    if client == "threads":
+        got = load(svc.url, svc.key, mix, seconds)
+        own = time.process_time() - mine0
+    else:
+        got, own = load_light(svc.url, svc.key, spec, seconds)
+    return got, cpu_seconds(svc.proc.pid) - server0, own
+
+
 # ---- the two databases ---------------------------------------------------------------------
 
 @contextlib.contextmanager
@@ -273,16 +305,21 @@ class Level:
     backend: str
     calibrations: int
     stations: int
+    #: Which load generator (``CLIENT_KINDS``).
+    client: str
     latencies: Latencies
     #: The machine's 1-minute load average at the end of the load (2 cores: above 2, the
     #: service waited for CPU).
     load_average: float
+    #: CPU seconds per request of the server process and of the load generator.
+    server_cpu_ms: float
+    client_cpu_ms: float
 
 
-def measure(kind: str, levels: tuple[int, int], stations: int, seconds: float) -> list[Level]:
-    """Seed, serve and load one database at both history sizes."""
-    from service.serving.local import ServeOptions, local_service
-
+def measure(kind: str, levels: tuple[int, int], stations: int, seconds: float,
+            clients: tuple[str, ...]) -> list[Level]:
+    """Seed, serve and load one database at both history sizes, with each of ``clients``
+    in turn."""
     key = secrets.token_urlsafe(24)
     found: list[Level] = []
     with tempfile.TemporaryDirectory(prefix="cellcal-history-") as tmp_dir, \
@@ -301,9 +338,14 @@ def measure(kind: str, levels: tuple[int, int], stations: int, seconds: float) -
                     f"{svc.url}/runs?limit=500", headers={"Authorization": f"Bearer {key}"},
                     timeout=30).json()]
                 deep = _deep_cursor(url, cal_ids)
-                measured = load(svc.url, key, get_mix(cal_ids, run_ids, deep), seconds)
-                found.append(Level(kind, level, level * stations, measured,
-                                   os.getloadavg()[0]))
+                mix = get_mix(cal_ids, run_ids, deep)
+                spec = {"cal_ids": cal_ids, "run_ids": run_ids, "deep": deep}
+                for client in clients:
+                    got, server_cpu, client_cpu = loaded(client, svc, mix, spec, seconds)
+                    n = max(1, sum(len(v) for v in got.by_kind.values()))
+                    found.append(Level(kind, level, level * stations, client, got,
+                                       os.getloadavg()[0], 1e3 * server_cpu / n,
+                                       1e3 * client_cpu / n))
     return found
 
 
@@ -332,47 +374,55 @@ def _ms(values: list[float], q: float) -> float:
 
 
 def report(levels: list[Level]) -> bool:
-    """The table, the verdicts and the figure; True if every target is met."""
+    """The table, the verdicts and the figure; True if every target is met with every
+    client."""
     kinds = sorted({k for lv in levels for k in lv.latencies.by_kind})
-    print(f"\n{'database':10} {'calibrations':>12} {'request':34} {'n':>6} {'p50 ms':>8} "
-          f"{'p99 ms':>8} {'non-2xx':>7}")
+    print(f"\n{'database':10} {'client':7} {'calibrations':>12} {'request':34} {'n':>6} "
+          f"{'p50 ms':>8} {'p99 ms':>8} {'non-2xx':>7}")
     for lv in levels:
         for kind in kinds:
             got = lv.latencies.by_kind.get(kind, [])
-            print(f"{lv.backend:10} {lv.calibrations:>12,} {kind:34} {len(got):>6} "
-                  f"{_ms(got, 50):>8.1f} {_ms(got, 99):>8.1f} "
+            print(f"{lv.backend:10} {lv.client:7} {lv.calibrations:>12,} {kind:34} "
+                  f"{len(got):>6} {_ms(got, 50):>8.1f} {_ms(got, 99):>8.1f} "
                   f"{lv.latencies.errors.get(kind, 0):>7}")
     ok = True
-    for backend in dict.fromkeys(lv.backend for lv in levels):
-        small, large = (lv for lv in levels if lv.backend == backend)
-        gets = {lv.calibrations: [x for k, v in lv.latencies.by_kind.items()
-                                  if k.startswith("GET") for x in v] for lv in (small, large)}
-        p99_small, p99_large = (_ms(gets[lv.calibrations], 99) for lv in (small, large))
+    for backend, client in dict.fromkeys((lv.backend, lv.client) for lv in levels):
+        small, large = (lv for lv in levels if (lv.backend, lv.client) == (backend, client))
+        p50_small, p50_large = (_ms(_gets(lv), 50) for lv in (small, large))
+        p99_small, p99_large = (_ms(_gets(lv), 99) for lv in (small, large))
         growth = p99_large / p99_small
         met = p99_large < TARGET_P99_MS and growth <= TARGET_GROWTH
         ok &= met
-        n_gets = sum(len(v) for v in gets.values())
-        print(f"{backend}: all GETs p99 {p99_small:.1f} ms at {small.calibrations:,}, "
-              f"{p99_large:.1f} ms at {large.calibrations:,} ({growth:.2f}x; {n_gets} GETs, "
-              f"load average {small.load_average:.1f} / {large.load_average:.1f}): "
+        print(f"{backend}, {client} client: all GETs p50 / p99 {p50_small:.1f} / "
+              f"{p99_small:.1f} ms at {small.calibrations:,}, {p50_large:.1f} / "
+              f"{p99_large:.1f} ms at {large.calibrations:,} ({growth:.2f}x; "
+              f"{len(_gets(small)) + len(_gets(large))} GETs; load average "
+              f"{small.load_average:.1f} / {large.load_average:.1f}; CPU per request: server "
+              f"{small.server_cpu_ms:.1f} / {large.server_cpu_ms:.1f} ms, client "
+              f"{small.client_cpu_ms:.1f} / {large.client_cpu_ms:.1f} ms): "
               f"{'met' if met else 'NOT met'} (target < {TARGET_P99_MS:g} ms, "
               f"<= {TARGET_GROWTH}x)")
     _plot(levels, kinds)
     return ok
 
 
+def _gets(level: Level) -> list[float]:
+    return [x for k, v in level.latencies.by_kind.items() if k.startswith("GET") for x in v]
+
+
 def _plot(levels: list[Level], kinds: list[str]) -> None:
     OUT.mkdir(exist_ok=True)
-    fig, axes = plt.subplots(1, 2, figsize=(13, 5), sharey=True)
+    fig, axes = plt.subplots(1, 2, figsize=(13, 6), sharey=True)
     backends = list(dict.fromkeys(lv.backend for lv in levels))
     for ax, backend in zip(axes, backends, strict=False):
         mine = [lv for lv in levels if lv.backend == backend]
         y = np.arange(len(kinds))
+        height = 0.8 / len(mine)
         for j, lv in enumerate(mine):
-            ax.barh(y + 0.4 * j, [_ms(lv.latencies.by_kind.get(k, []), 99) for k in kinds],
-                    height=0.4, label=f"{lv.calibrations:,} calibrations")
+            ax.barh(y + height * j, [_ms(lv.latencies.by_kind.get(k, []), 99) for k in kinds],
+                    height=height, label=f"{lv.calibrations:,} calibrations, {lv.client} client")
         ax.axvline(TARGET_P99_MS, color="k", ls="--", lw=1, label="target")
-        ax.set_yticks(y + 0.2, kinds)
+        ax.set_yticks(y + 0.4 - height / 2, kinds)
         ax.set_xlabel("p99 latency (ms)")
         ax.set_title(f"{backend}: {CLIENTS} clients, {LISTENERS} SSE listeners")
         ax.legend(loc="lower right", fontsize=8, framealpha=0.9)
@@ -381,9 +431,10 @@ def _plot(levels: list[Level], kinds: list[str]) -> None:
     print(f"wrote {OUT / 'service_history.png'}")
 
 
-def run_history(*, quick: bool, seconds: float | None) -> int:
+def run_history(*, quick: bool, seconds: float | None,
+                clients: tuple[str, ...] = CLIENT_KINDS) -> int:
     levels, stations = ((200, 2000), 5) if quick else ((1000, 10000), 20)
     found: list[Level] = []
     for kind in ("sqlite", "postgresql"):
-        found += measure(kind, levels, stations, seconds or (8.0 if quick else 30.0))
+        found += measure(kind, levels, stations, seconds or (8.0 if quick else 30.0), clients)
     return 0 if report(found) else 1
