@@ -13,7 +13,7 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-from sqlalchemy import Select
+from sqlalchemy import Select, tuple_
 
 from service.errors import UnprocessableError
 
@@ -54,6 +54,9 @@ def newest_first(query: Select[Any], model: Any, *, cursor: Cursor | None,
     """``query`` ordered newest first by ``model``'s ``(created_at, id)``, from after
     ``cursor``, at most ``limit`` rows."""
     if cursor is not None:
-        query = query.where((model.created_at < cursor.created_at)
-                            | ((model.created_at == cursor.created_at) & (model.id < cursor.id)))
+        # one row-value comparison, which both databases answer from the index (a range that
+        # starts at the cursor); the same condition spelt with OR was a filter over every
+        # newer row: a page near the oldest end of 5,000 calibrations read 4,750 rows
+        query = query.where(tuple_(model.created_at, model.id)
+                            < tuple_(cursor.created_at, cursor.id))
     return query.order_by(model.created_at.desc(), model.id.desc()).limit(limit)
