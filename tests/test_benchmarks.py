@@ -24,8 +24,9 @@ BENCHMARKS = {
     "service": "service.png",
     "uncertainty": "uncertainty.png",
 }
-#: Scripts with a ``main`` that are not benchmarks: the OpenCV peer ``end_to_end`` times.
-PEER_SCRIPTS = {"opencv_pipeline"}
+#: Scripts with a ``main`` that are not benchmarks: the OpenCV peer ``end_to_end`` times and
+#: the light load generator of ``service --history``.
+PEER_SCRIPTS = {"opencv_pipeline", "history_client"}
 
 
 def test_every_benchmark_module_is_listed() -> None:
