@@ -265,9 +265,11 @@ def test_a_bad_last_event_id_on_a_validation_stream_is_ignored(client: TestClien
         cal = CalibrationRecord(cell=CELL, run_id=run.id, state="done", options={})
         s.add(cal)
         s.flush()
+        # owned by this service, so its heartbeat's recovery (every 5 s) leaves them alone
         done, running = (ValidationRecord(cell=CELL, robot="mock://", calibration_id=cal.id,
-                                          kind="check", state=state) for state in
-                         ("done", "running"))
+                                          kind="check", state=state,
+                                          instance_id=client.app.state.runtime.instance.id)
+                         for state in ("done", "running"))
         s.add_all([done, running])
         s.commit()
         done_id, running_id = done.id, running.id
