@@ -221,9 +221,25 @@ class EventBus:
             if after is None or after > state["id"]:
                 return [state]
             events = queries.events_after(s, topic=topic, after=after)
-        if (ends_stream(state) and not any(ends_stream(e) for e in events)
-                and not self._queued_for(topic)):  # else its final state event is on its way
-            events.append(state)
+        if ends_stream(state) and not any(ends_stream(e) for e in events):
+            return self._ended_unstored(topic, after, state, events)
+        return events
+
+    def _ended_unstored(self, topic: Topic, after: int, state: dict[str, Any],
+                        events: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        """The backlog of a topic that had ended without a stored final ``state`` event when
+        ``events`` were read. If one of its events is queued, the final state is on its way
+        to the listener. Else read again: the writer takes an event off the queue only once
+        it is stored, so a final state stored since the first read is there now (ending the
+        stream with a made-up state instead repeated the last event's id, and the stored one
+        was never sent). Only a topic whose final state is not stored or queued at all ends
+        with its state made from the row, as of the newest stored event."""
+        if self._queued_for(topic):
+            return events
+        with self.db.session() as s:
+            events = queries.events_after(s, topic=topic, after=after)
+        if not any(ends_stream(e) for e in events):
+            events.append({**state, "id": events[-1]["id"] if events else state["id"]})
         return events
 
 
