@@ -409,6 +409,9 @@ def plot(results: dict[str, list[Outcome]], path: Path) -> None:
     for name in ("cold start", "random", "easy_handeye", "oracle"):
         outs = results[name]
         a.scatter([o.sigma_mm for o in outs], [o.err_mm for o in outs], s=14, label=name)
+    cs = results["cold start"]
+    a.scatter([o.sigma_mm for o in cs], [o.rf_mm for o in cs], s=16, facecolors="none",
+              edgecolors="k", lw=0.6, label="cold start, readings frame")
     lim = np.nanmax([o.sigma_mm for outs in results.values() for o in outs] + [1.0])
     a.plot([0, lim], [0, 2 * lim], "k--", lw=0.8, label="error = 2σ")
     a.set_xscale("log"), a.set_yscale("log")
