@@ -69,7 +69,9 @@ def png_header(width: int, height: int) -> bytes:
 
 # ---- the acceptance check on real data -------------------------------------------------------
 
-@pytest.mark.timeout(240)
+# only a hang guard: two calibrations of 21 real images; with four CPU burners beside other
+# load the command line's alone passed 240 s
+@pytest.mark.timeout(600)
 def test_posted_real_stations_calibrate_like_cellcal_calibrate(tmp_path: Path) -> None:
     doc = json.loads((KINECT / "stations.json").read_text())
     assert len(doc["stations"]) == 21
@@ -89,7 +91,7 @@ def test_posted_real_stations_calibrate_like_cellcal_calibrate(tmp_path: Path) -
         assert (run["state"], run["mode"], run["stations_captured"]) == ("done", "external", 21)
         r = client.post(f"/runs/{run_id}/calibrations", json={})
         assert r.status_code == 202, r.text
-        cal = wait_calibration(client, r.json()["id"])
+        cal = wait_calibration(client, r.json()["id"], timeout=300.0)
     assert cal["state"] == "done", cal["error"]
     served = cal["result"]
     out = tmp_path / "cli.json"
