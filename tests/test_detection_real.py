@@ -3,7 +3,8 @@ copies of them, against ``findChessboardCornersSB`` under several flag sets.
 
 The degradations are made here: low contrast, dark and bright gamma, sensor noise, defocus
 blur and uneven lighting. A board that any of OpenCV's flag sets finds must be detected, in
-the same place (corners within a few px of OpenCV's, whatever their order). The fast test
+the same place (corners within a few px of OpenCV's, whatever their order, wherever OpenCV's
+corner fits the grid of its neighbours; where it does not, ours must fit it better). The fast test
 takes one image per set and two flag sets; the slow one every image and five flag sets.
 """
 
@@ -17,6 +18,7 @@ import numpy as np
 import pytest
 
 from calib.boards import checkerboard, detect_checkerboard
+from calib.boards.grid_check import neighbour_prediction
 from tests.support.helpers import OPENCV_LEFT, SHARED
 
 UR_SETS = [SHARED / "data" / s for s in ("ur-kinect-highR_highT", "ur-kinect-lowR_highT")]
@@ -67,12 +69,32 @@ def _images(every: int) -> list[tuple[str, tuple[int, int]]]:
     return left + _ur_images(every)
 
 
-def _same_grid(ours: np.ndarray, theirs: np.ndarray, board: tuple[int, int]) -> float:
-    """Largest corner distance (px) between two detections of a grid, over the grid flips."""
+#: Squares here are 20-70 px; blur moves SB's corners by a few.
+NEAR_PX = 5.0
+#: A corner farther than this fraction of a square from the place its neighbours predict
+#: (``calib.boards.grid_check``) is off the board's grid; real corners are within 0.062 on
+#: every set here, with sensor noise or not.
+OFF_GRID = 0.07
+
+
+def _same_grid(ours: np.ndarray, theirs: np.ndarray, board: tuple[int, int]) -> bool:
+    """Whether two detections of a grid put the board in the same place, in one of the grid's
+    flips: each of our corners within ``NEAR_PX`` of OpenCV's, or, where OpenCV's corner is
+    off the grid (a Kinect's registration shadow across a row of squares), nearer the grid
+    than OpenCV's."""
     cols, rows = board
     g = theirs.reshape(rows, cols, 2)
-    flips = [g, g[::-1, ::-1], g[::-1], g[:, ::-1]]
-    return min(float(np.abs(f.reshape(-1, 2) - ours).max()) for f in flips)
+    spacing = float(np.median(np.linalg.norm(np.diff(g, axis=1), axis=-1)))
+    theirs_off = np.linalg.norm(g - neighbour_prediction(g), axis=-1)
+    ours_off = np.linalg.norm(ours - neighbour_prediction(ours.reshape(rows, cols, 2))
+                              .reshape(-1, 2), axis=1)
+    for flip in (np.s_[:, :], np.s_[::-1, ::-1], np.s_[::-1, :], np.s_[:, ::-1]):
+        apart = np.linalg.norm(g[flip].reshape(-1, 2) - ours, axis=1)
+        their_off = theirs_off[flip].ravel()
+        nearer = (their_off > OFF_GRID * spacing) & (ours_off < their_off)
+        if ((apart < NEAR_PX) | nearer).all():
+            return True
+    return False
 
 
 def _check(path: str, board: tuple[int, int], degrade: str, flag_sets: list[str]) -> bool:
@@ -90,8 +112,8 @@ def _check(path: str, board: tuple[int, int], degrade: str, flag_sets: list[str]
     det = detect_checkerboard(grey, board)
     assert det.ok, f"{path} ({degrade}): OpenCV reads it with {sorted(found)}; " \
                    f"we say: {det.reason}"
-    # the same board in the same place (squares here are 20-70 px; blur moves SB's corners)
-    assert min(_same_grid(det.corners, c, board) for c in found.values()) < 5.0
+    assert any(_same_grid(det.corners, c, board) for c in found.values()), \
+        f"{path} ({degrade}): not where OpenCV reads the board with {sorted(found)}"
     return True
 
 
@@ -110,6 +132,24 @@ def test_every_board_opencv_reads_is_read_on_every_image(degrade: str) -> None:
     images = _images(every=1)
     compared = sum(_check(path, board, degrade, list(OPENCV_FLAGS)) for path, board in images)
     assert compared >= 0.8 * len(images)
+
+
+def test_a_registration_shadow_does_not_pull_a_corner_off() -> None:
+    """On ur-kinect-lowR_highT's snapshot_8 a Kinect depth-registration shadow (a black wedge)
+    cuts across the board's first row. The sub-pixel refinement pulled the third corner 2.7 px
+    along the wedge's edge: 3.3 px from where its neighbours put it, 3.8 px from
+    ``findChessboardCornersSB``'s. It keeps the grid search's place
+    (``calib.boards.grid_check.keep_consistent``)."""
+    board = (11, 8)
+    path = SHARED / "data" / "ur-kinect-lowR_highT" / "snapshot_8.png"
+    for degrade in ("original", "noise 25"):
+        grey = DEGRADATIONS[degrade](cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
+        grid = detect_checkerboard(grey, board).corners.reshape(8, 11, 2)
+        spacing = np.median(np.linalg.norm(np.diff(grid, axis=1), axis=-1))
+        off = np.linalg.norm(neighbour_prediction(grid) - grid, axis=-1)
+        assert off[0, 2] < 0.03 * spacing, (degrade, off[0, 2])
+        _, sb = cv2.findChessboardCornersSB(grey, board)
+        assert np.linalg.norm(sb.reshape(-1, 2) - grid[0, 2], axis=1).min() < 2.0, degrade
 
 
 def test_low_contrast_board_is_read_and_a_flat_image_is_blank() -> None:

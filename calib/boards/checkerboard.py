@@ -44,6 +44,7 @@ from calib.boards.detection import (
     sharpness,
     sub_pixel,
 )
+from calib.boards.grid_check import keep_consistent
 from calib.boards.markers import markers_seen_reason
 
 #: Images at least this large (smaller side, px) are searched at half size first: SB's cost
@@ -193,7 +194,9 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
         return Detection(ok=False, reason=reason, sharpness=sharp)
 
     corners, ambiguous, contrast = order_corners(grey, raw.reshape(-1, 2), (cols, rows))
-    corners = refine_corners(grey, corners, _spacing(corners, (cols, rows)))
+    spacing = _spacing(corners, (cols, rows))
+    corners = keep_consistent(corners, refine_corners(grey, corners, spacing), (cols, rows),
+                              spacing)
     sharp = region_sharpness(grey, corners)
     metrics = {"sharpness": sharp, "coverage": hull_coverage(corners, grey.shape),
                "mean_contrast": contrast, "ambiguous": ambiguous}
