@@ -93,13 +93,13 @@ def test_database_errors_in_requests_are_json(tmp_path, monkeypatch):
     app = create_app(Settings(data_dir=tmp_path, api_key=KEY))
     with TestClient(app, raise_server_exceptions=False) as client:
         client.headers["Authorization"] = f"Bearer {KEY}"
-        monkeypatch.setattr(queries, "get_run", restarting)
+        monkeypatch.setattr(queries, "get_run_view", restarting)
         r = client.get("/runs/some-run")
         assert r.status_code == 503
         assert r.json() == {"detail": "The database is not answering (server closed the "
                                       "connection unexpectedly); retry in a moment.",
                             "code": "database_unavailable"}
-        monkeypatch.setattr(queries, "get_run", broken)
+        monkeypatch.setattr(queries, "get_run_view", broken)
         r = client.get("/runs/some-run")
         assert r.status_code == 500
         assert r.json() == {"detail": "Internal error (RuntimeError); see the service log.",
