@@ -444,8 +444,10 @@ class Capture:
                 for folder in (self.data_dir / "runs", self.data_dir / rel.parent):
                     folder.mkdir(exist_ok=True)  # never the data directory itself
                 write_png(self.data_dir / rel, station.image)
-            except OSError as exc:
-                raise storage_error(exc, f"writing the image of station {shot.index}") from exc
+            except OSError as exc:  # the directory's own check names the cause best
+                raise (self.motion.storage.problem()
+                       or storage_error(exc, f"writing the image of station {shot.index}")
+                       ) from exc
         row = row_values(station)
 
         def commit(s: Session) -> bool:
