@@ -55,3 +55,18 @@ def test_quick_benchmark_run_writes_its_figure(name: str, tmp_path: Path) -> Non
                           env=env, capture_output=True, text=True, timeout=1700)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert (tmp_path / BENCHMARKS[name]).stat().st_size > 0
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_quick_history_run_reports_every_pair_and_writes_its_figure(tmp_path: Path) -> None:
+    """``service --history --quick`` runs to its end on both databases and both clients. Its
+    exit status says whether the latency targets were met, which depends on the machine, so
+    the test asserts the run's verdict lines and figure instead."""
+    env = {**os.environ, "CELLCAL_BENCH_OUT": str(tmp_path), "OPENBLAS_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.service", "--history", "--quick"],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=1700)
+    assert proc.returncode in (0, 1), proc.stderr[-2000:]
+    verdicts = [line for line in proc.stdout.splitlines() if "all GETs p50 / p99" in line]
+    assert [line.split(",")[0] for line in verdicts] == ["sqlite"] * 2 + ["postgresql"] * 2
+    assert (tmp_path / "service_history.png").stat().st_size > 0
