@@ -31,6 +31,7 @@ from urllib.parse import urlsplit
 import numpy as np
 
 from calib import check_joint_positions, check_ur_pose
+from drivers import rtde_wire
 from drivers.base import RobotIdentity, RobotSession, RobotStatus
 from drivers.errors import (
     EmergencyStopError,
@@ -39,7 +40,7 @@ from drivers.errors import (
     RobotError,
 )
 from drivers.ur_dashboard import dashboard_exchange, parse_identity
-from drivers.ur_rtde_process import RtdeClientGoneError, RtdeProcess
+from drivers.ur_rtde_process import RtdeClientGoneError, RtdeInterface, RtdeProcess
 
 RTDE_PORT = 30004
 SCRIPT_PORT = 30003
@@ -52,44 +53,12 @@ READ_TIMEOUT_S = 10.0
 #: Request/reply round trips the two ur-rtde constructors make (RTDE recipes + dashboard).
 CONSTRUCTOR_ROUND_TRIPS = 40
 
-_SAFETY_PROTECTIVE_STOP = 1 << 2
-_SAFETY_EMERGENCY_STOPS = (1 << 5) | (1 << 6) | (1 << 7)  # system, robot, any e-stop
-_STATUS_PROGRAM_RUNNING = 1 << 1
-_ROBOT_MODES = {-1: "no_controller", 0: "disconnected", 1: "confirm_safety", 2: "booting",
-                3: "power_off", 4: "power_on", 5: "idle", 6: "backdrive", 7: "running",
-                8: "updating_firmware"}
-
 _PROTECTIVE_STOP_MSG = (
     "The robot made a protective stop (usually a collision or a safety limit). Check that "
     "nothing is in the way, unlock the protective stop on the teach pendant, then retry.")
 _EMERGENCY_STOP_MSG = (
     "The robot is emergency-stopped. Release the emergency stop button, reset the robot on "
     "the teach pendant, then retry.")
-
-
-def _recv_exact(sock: socket.socket, n: int) -> bytes:
-    buf = b""
-    while len(buf) < n:
-        chunk = sock.recv(n - len(buf))
-        if not chunk:
-            raise ConnectionError("connection closed by the controller")
-        buf += chunk
-    return buf
-
-
-def _rtde_receive(sock: socket.socket, msg_type: bytes) -> bytes:
-    """Payload of the next RTDE message of type ``msg_type`` (others are skipped)."""
-    while True:
-        size, reply_type = struct.unpack(">HB", _recv_exact(sock, 3))
-        body = _recv_exact(sock, size - 3)
-        if reply_type == msg_type[0]:
-            return body
-
-
-def _rtde_request(sock: socket.socket, msg_type: bytes, payload: bytes = b"") -> bytes:
-    """Send one RTDE request and return the payload of its reply."""
-    sock.sendall(struct.pack(">HB", len(payload) + 3, msg_type[0]) + payload)
-    return _rtde_receive(sock, msg_type)
 
 
 class URRobot(RobotSession):
@@ -110,8 +79,8 @@ class URRobot(RobotSession):
         self.settle_dwell = settle_dwell
         self.motion_timeout = motion_timeout
         self._process: RtdeProcess | None = None  # holds the two ur-rtde interfaces
-        self._control: _Interface | None = None  # rtde_control.RTDEControlInterface
-        self._receive: _Interface | None = None  # rtde_receive.RTDEReceiveInterface
+        self._control: RtdeInterface | None = None  # rtde_control.RTDEControlInterface
+        self._receive: RtdeInterface | None = None  # rtde_receive.RTDEReceiveInterface
         self._lock = threading.RLock()  # one command at a time: ur-rtde is not thread-safe
         self._moving = False
         self._stop_requested = False
@@ -143,9 +112,9 @@ class URRobot(RobotSession):
             self._process = process = RtdeProcess()
             ctor_timeout = self.connect_timeout + PROGRAM_START_S
             try:
-                self._receive = _Interface(process, "receive", READ_TIMEOUT_S)
+                self._receive = RtdeInterface(process, "receive", READ_TIMEOUT_S)
                 self._receive.call("__init__", self.host, timeout=ctor_timeout)
-                self._control = _Interface(process, "control", None)
+                self._control = RtdeInterface(process, "control", None)
                 self._control.call("__init__", self.host, timeout=ctor_timeout)
             except RuntimeError as err:
                 self._process = self._control = self._receive = None
@@ -173,8 +142,8 @@ class URRobot(RobotSession):
             with socket.create_connection((self.host, RTDE_PORT), remaining()) as s:
                 s.settimeout(remaining())
                 t0 = time.monotonic()
-                _rtde_request(s, b"V", struct.pack(">H", 2))
-                _rtde_request(s, b"v")
+                rtde_wire.rtde_request(s, b"V", struct.pack(">H", 2))
+                rtde_wire.rtde_request(s, b"v")
                 per_request = (time.monotonic() - t0) / 2.0
                 if per_request * CONSTRUCTOR_ROUND_TRIPS > remaining():
                     raise RobotConnectionError(
@@ -183,9 +152,9 @@ class URRobot(RobotSession):
                         f"{self.connect_timeout:g} s. Check the network between this computer "
                         "and the robot (a busy or wireless link?).")
                 s.settimeout(remaining())
-                _rtde_request(s, b"O", struct.pack(">d", 125.0) + b"timestamp")
-                _rtde_request(s, b"S")
-                _rtde_receive(s, b"U")  # the first streamed data package
+                rtde_wire.rtde_request(s, b"O", struct.pack(">d", 125.0) + b"timestamp")
+                rtde_wire.rtde_request(s, b"S")
+                rtde_wire.rtde_receive(s, b"U")  # the first streamed data package
             (running,) = dashboard_exchange(self.host, ["running"], remaining())
             if running.lower().endswith("true"):
                 # ur-rtde would stop a running program before its own upload anyway; a control
@@ -217,7 +186,8 @@ class URRobot(RobotSession):
         while True:
             try:
                 streaming = self._receive.getTimestamp() > 0.0
-                running = bool(int(self._receive.getRobotStatus()) & _STATUS_PROGRAM_RUNNING)
+                status = int(self._receive.getRobotStatus())
+                running = bool(status & rtde_wire.STATUS_PROGRAM_RUNNING)
             except RuntimeError:
                 streaming = running = False
             if streaming and running:
@@ -253,7 +223,7 @@ class URRobot(RobotSession):
 
     # ---- state ------------------------------------------------------------------------------
 
-    def _interfaces(self) -> tuple[_Interface, _Interface]:
+    def _interfaces(self) -> tuple[RtdeInterface, RtdeInterface]:
         """(control, receive) if both are connected, else RobotConnectionError."""
         control, receive = self._control, self._receive
         if (self._lost or control is None or receive is None
@@ -340,10 +310,10 @@ class URRobot(RobotSession):
         safety, robot_status, mode = (int(v) for v in values)
         return RobotStatus(
             connected=True,
-            program_running=bool(robot_status & _STATUS_PROGRAM_RUNNING),
-            protective_stop=bool(safety & _SAFETY_PROTECTIVE_STOP),
-            emergency_stop=bool(safety & _SAFETY_EMERGENCY_STOPS),
-            mode=_ROBOT_MODES.get(mode, "unknown"))
+            program_running=bool(robot_status & rtde_wire.STATUS_PROGRAM_RUNNING),
+            protective_stop=bool(safety & rtde_wire.SAFETY_PROTECTIVE_STOP),
+            emergency_stop=bool(safety & rtde_wire.SAFETY_EMERGENCY_STOPS),
+            mode=rtde_wire.ROBOT_MODES.get(mode, "unknown"))
 
     def _raise_if_stopped(self) -> None:
         """ProtectiveStopError / EmergencyStopError if the robot is safety-stopped."""
@@ -528,21 +498,3 @@ class URRobot(RobotSession):
         with self._lock:
             control, _ = self._interfaces()
             self._guarded(control.stopL, 2.0, timeout=self.connect_timeout)
-
-
-class _Interface:
-    """One ur-rtde interface in the driver's RtdeProcess: ``iface.getActualQ()`` runs there.
-
-    ``timeout`` bounds each call (seconds; None for the control interface, whose moves block
-    and are watched by ``URRobot._guarded`` instead).
-    """
-
-    def __init__(self, process: RtdeProcess, name: str, timeout: float | None) -> None:
-        self._process, self._name, self._timeout = process, name, timeout
-
-    def call(self, method: str, *args: object, timeout: float | None = None) -> Any:
-        return self._process.call(self._name, method, *args,
-                                  timeout=self._timeout if timeout is None else timeout)
-
-    def __getattr__(self, method: str) -> Callable[..., Any]:
-        return lambda *args: self.call(method, *args)

@@ -34,6 +34,7 @@ import struct
 import subprocess
 import sys
 import threading
+from collections.abc import Callable
 from typing import Any
 
 _HEADER = struct.Struct(">I")
@@ -231,3 +232,21 @@ def _serve(hub_fd: int, parent_pid: int) -> None:
 
 if __name__ == "__main__":
     _serve(int(sys.argv[1]), int(sys.argv[2]))
+
+
+class RtdeInterface:
+    """One ur-rtde interface in an RtdeProcess: ``iface.getActualQ()`` runs there.
+
+    ``timeout`` bounds each call (seconds; None for the control interface, whose moves block
+    and are watched by ``URRobot._guarded`` instead).
+    """
+
+    def __init__(self, process: RtdeProcess, name: str, timeout: float | None) -> None:
+        self._process, self._name, self._timeout = process, name, timeout
+
+    def call(self, method: str, *args: object, timeout: float | None = None) -> Any:
+        return self._process.call(self._name, method, *args,
+                                  timeout=self._timeout if timeout is None else timeout)
+
+    def __getattr__(self, method: str) -> Callable[..., Any]:
+        return lambda *args: self.call(method, *args)
