@@ -37,6 +37,8 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+from drivers.rtde_wire import recv_exact
+
 _HEADER = struct.Struct(">I")
 #: ``prctl`` option from ``<linux/prctl.h>``.
 _PR_SET_PDEATHSIG = 1
@@ -61,19 +63,9 @@ def _send(sock: socket.socket, obj: object) -> None:
     sock.sendall(_HEADER.pack(len(body)) + body)
 
 
-def _recv_exact(sock: socket.socket, n: int) -> bytes:
-    buf = bytearray()
-    while len(buf) < n:
-        chunk = sock.recv(n - len(buf))
-        if not chunk:
-            raise EOFError
-        buf += chunk
-    return bytes(buf)
-
-
 def _recv(sock: socket.socket) -> Any:
-    (size,) = _HEADER.unpack(_recv_exact(sock, _HEADER.size))
-    return pickle.loads(_recv_exact(sock, size))
+    (size,) = _HEADER.unpack(recv_exact(sock, _HEADER.size))
+    return pickle.loads(recv_exact(sock, size))
 
 
 class RtdeProcess:
