@@ -4,6 +4,7 @@ only what it needs, when it runs (the start-up time itself is measured in
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -45,6 +46,27 @@ def test_a_command_loads_what_it_needs():
     assert {"calib", "numpy", "cv2"} <= loaded
     # the solver's imports (scipy) wait until the images are being read and detected
     assert not {"fastapi", "scipy"} & loaded
+
+
+_BLAS_THREADS = """
+from service.cli.main import build_parser
+build_parser(["calibrate", "x"])  # loads the command: numpy, OpenCV
+import scipy.linalg
+from threadpoolctl import threadpool_info
+print(sorted({i["num_threads"] for i in threadpool_info() if i["internal_api"] == "openblas"}))
+"""
+
+
+@pytest.mark.parametrize(("given", "threads"), [(None, "[1]"), ("2", "[2]")])
+def test_blas_runs_on_one_thread_unless_told_otherwise(given, threads):
+    """Every OpenBLAS the command loads (numpy's, scipy's, OpenCV's) starts with one thread;
+    an OPENBLAS_NUM_THREADS the user set wins."""
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if given is not None:
+        env["OPENBLAS_NUM_THREADS"] = given
+    out = subprocess.run([sys.executable, "-c", _BLAS_THREADS], capture_output=True, text=True,
+                         check=True, env=env)
+    assert out.stdout.strip() == threads
 
 
 def test_the_installed_package_has_the_version_the_command_says():
