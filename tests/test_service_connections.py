@@ -8,6 +8,7 @@ bounded only against a hang."""
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import resource
 import socket
@@ -18,6 +19,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from service.serving.connections import MAX_HEADER_BYTES, ConnectionLimits, guarded_protocol
 from service.serving.local import LocalService, ServeOptions, local_service
 
 KEY = "connections-key-0123456789abcdef"
@@ -197,3 +199,34 @@ def test_beyond_the_cap_idle_connections_make_room_busy_ones_do_not(tmp_path: Pa
         while (r := httpx.get(f"{service.url}/health", timeout=HANG_S)).status_code == 503:
             assert time.monotonic() < deadline
         assert r.status_code == 200
+
+
+def test_headers_beyond_the_bound_are_answered_431_and_closed(
+        header_timeout_service: LocalService) -> None:
+    """A request whose headers pass ``MAX_HEADER_BYTES`` gets the JSON error body and the
+    connection is closed (llhttp, unlike h11, sets no bound of its own); others are served."""
+    service = header_timeout_service
+    with _sockets() as held:
+        sock = socket.create_connection(_address(service), timeout=HANG_S)
+        held.append(sock)
+        sock.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\n")
+        answer = b""
+        with contextlib.suppress(BrokenPipeError, ConnectionResetError):
+            for _ in range(2 * MAX_HEADER_BYTES // 1000):
+                sock.sendall(b"X-Pad: " + b"a" * 991 + b"\r\n")
+        with contextlib.suppress(ConnectionResetError):
+            while chunk := sock.recv(4096):
+                answer += chunk
+        head, _, body = answer.partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 431"), answer[:200]
+        assert json.loads(body)["code"] == "headers_too_large"
+    assert httpx.get(f"{service.url}/health", timeout=HANG_S).status_code == 200
+
+
+def test_the_service_parses_http_with_httptools() -> None:
+    """httptools is a dependency: the guarded protocol is uvicorn's httptools one."""
+    from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+
+    limits = ConnectionLimits(cap=10, header_timeout_s=1.0)
+    assert issubclass(guarded_protocol(limits), HttpToolsProtocol)
+    assert not issubclass(guarded_protocol(limits, parser="h11"), HttpToolsProtocol)
