@@ -357,7 +357,11 @@ def main() -> int:
     parser.add_argument("--history", action="store_true",
                         help="latency over a stored history on SQLite and PostgreSQL instead "
                              "(benchmarks/service_history.py)")
-    parser.add_argument("--seconds", type=float, help="--history: load time per level")
+    parser.add_argument("--seconds", type=float,
+                        help="--history: load time of one block (default 40, --quick 4)")
+    parser.add_argument("--rounds", type=int,
+                        help="--history: rounds of a block on each history size, by turns "
+                             "(default 4, --quick 2)")
     parser.add_argument("--client", choices=("threads", "light", "both"), default="both",
                         help="--history: the load generator: httpx threads in this process, "
                              "a separate asyncio process, or each in turn (default)")
@@ -365,7 +369,7 @@ def main() -> int:
     if args.history:
         from benchmarks.service_history import run_history
 
-        return run_history(quick=args.quick, seconds=args.seconds,
+        return run_history(quick=args.quick, seconds=args.seconds, rounds=args.rounds,
                            clients=("threads", "light") if args.client == "both"
                            else (args.client,))
     n = args.stations or (20 if args.quick else 80)

@@ -9,21 +9,28 @@ For each database (a SQLite file; a throwaway PostgreSQL server, ``tests/support
 the history is seeded straight into the tables (a run of 20 stations with real-sized
 detections, 88 corners each, and one finished calibration with a full result per run, over
 20 cells, every 10th calibration of a cell activated; on PostgreSQL then ``VACUUM ANALYZE``),
-then ``cellcal serve --mock`` runs on it in a subprocess. Load, for ``--seconds`` per level:
-20 client threads each send a GET from the mix below and pause 0.2 s (a dashboard polling);
-5 listeners follow the event stream of the newest run to its end, then the next run's; one
-thread opens an external run (``POST /runs``) and finishes it every 0.5 s. Latency is measured
-at the client, request sent to body read. The history is then grown to the second level and
-measured again.
+then ``cellcal serve --mock`` runs on it in a subprocess. The load: 20 clients each send a
+GET from the mix below and pause 0.2 s (a dashboard polling); 5 listeners follow the event
+stream of the newest run to its end, then the next run's; one client opens an external run
+(``POST /runs``) and finishes it every 0.5 s. Latency is measured at the client, request sent
+to body read.
 
-Two load generators, each in turn on the same server (``--client``): ``threads``, the load
+Both history sizes are measured alike and by turns: each has its own database, seeded alike,
+and its own service, both running; each service gets a warm-up (not measured), then
+``--rounds`` rounds of a ``--seconds`` block on each, in A B B A order, so a change of the
+shared machine's load during the run falls on both sizes.
+Four rounds of 40 s give each request kind about 2,000 requests per size, so its p99 is not a
+handful of samples; the report gives the pooled figures and their spread over the rounds
+(``benchmarks.history_report``).
+
+Two load generators, each in turn on the same servers (``--client``): ``threads``, the load
 above as 26 ``httpx`` threads in this process, and ``light``, the same load from a separate
 asyncio process (``benchmarks.history_client``). On 2 cores the threaded client's own CPU and
 GIL are part of its figures; a plant's dashboards run on other computers. Both are reported,
 with the server's and the client's CPU per request.
 
-    python -m benchmarks.service --history           # 1,000 -> 10,000 calibrations
-    python -m benchmarks.service --history --quick   # 200 -> 2,000, 5 stations per run
+    python -m benchmarks.service --history           # 1,000 and 10,000 calibrations
+    python -m benchmarks.service --history --quick   # 200 and 2,000, 5 stations per run
 
 Prints a table and writes benchmarks/results/service_history.png. Requests go only to
 127.0.0.1, bounded in time; servers and temporary directories are removed on every exit.
@@ -45,10 +52,10 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-import matplotlib
 import numpy as np
 from sqlalchemy import create_engine, insert
 
+from benchmarks.history_client import CELLS, POST_EVERY_S, THINK_S, get_mix
 from service.serving.local import LocalService, ServeOptions, local_service
 from service.store.db import Database
 from service.store.pages import Cursor
@@ -61,13 +68,6 @@ from service.store.records import (
     new_id,
 )
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
-
-from benchmarks import results_dir
-from benchmarks.history_client import CELLS, POST_EVERY_S, THINK_S, get_mix
-
-OUT = results_dir()
 TARGET_P99_MS = 50.0
 TARGET_GROWTH = 1.2
 CLIENTS, LISTENERS = 20, 5
@@ -279,36 +279,43 @@ def loaded(client: str, svc: LocalService, mix: list[Any], spec: dict[str, Any],
     return got, cpu_seconds(svc.proc.pid) - server0, own
 
 
-# ---- the two databases ---------------------------------------------------------------------
+# ---- the two databases, each at both sizes ----------------------------------------------
 
 @contextlib.contextmanager
-def database(kind: str, tmp: Path) -> Iterator[str]:
-    """A new empty database of ``kind`` at the newest schema; its URL."""
+def databases(kind: str, tmp: Path, count: int) -> Iterator[list[str]]:
+    """``count`` new empty databases of ``kind`` at the newest schema; their URLs."""
     if kind == "sqlite":
-        url = f"sqlite:///{tmp / 'history.db'}"
-        Database(url).close()
-        yield url
+        urls = [f"sqlite:///{tmp / f'history-{k}.db'}" for k in range(count)]
+        for url in urls:
+            Database(url).close()
+        yield urls
         return
     from tests.support.postgres import PostgresServer
 
     server = PostgresServer().start()
     try:
-        url = server.url(server.create_database("history"))
-        Database(url).close()
-        yield url
+        urls = [server.url(server.create_database(f"history{k}_")) for k in range(count)]
+        for url in urls:
+            Database(url).close()
+        yield urls
     finally:
         server.stop()
 
 
 @dataclass(frozen=True)
 class Level:
+    """One measured block: a database of ``calibrations`` loaded by ``client`` for one
+    round."""
+
     backend: str
     calibrations: int
     stations: int
     #: Which load generator (``CLIENT_KINDS``).
     client: str
+    #: Which round of the paired small / large blocks.
+    round: int
     latencies: Latencies
-    #: The machine's 1-minute load average at the end of the load (2 cores: above 2, the
+    #: The machine's 1-minute load average at the end of the block (2 cores: above 2, the
     #: service waited for CPU).
     load_average: float
     #: CPU seconds per request of the server process and of the load generator.
@@ -316,37 +323,73 @@ class Level:
     client_cpu_ms: float
 
 
-def measure(kind: str, levels: tuple[int, int], stations: int, seconds: float,
-            clients: tuple[str, ...]) -> list[Level]:
-    """Seed, serve and load one database at both history sizes, with each of ``clients``
-    in turn."""
-    key = secrets.token_urlsafe(24)
+@dataclass(frozen=True)
+class Plan:
+    """How long the load runs: a warm-up of ``warmup_s`` on each service (not measured),
+    then ``rounds`` rounds, each a block of ``block_s`` on the small history and one on the
+    large, in A B B A order (so a drift of the machine's load falls on both alike)."""
+
+    levels: tuple[int, int]
+    stations: int
+    block_s: float
+    rounds: int
+    warmup_s: float
+
+
+@dataclass(frozen=True)
+class Served:
+    """One service over one seeded history, with what its load's requests need."""
+
+    calibrations: int
+    svc: LocalService
+    mix: list[Any]
+    spec: dict[str, Any]
+
+
+def measure(kind: str, plan: Plan, clients: tuple[str, ...]) -> list[Level]:
+    """Seed one database per history size, serve each, and load them by turns, with each
+    of ``clients``: both sizes are measured alike, the same client, warm-up and concurrency,
+    interleaved in time."""
     found: list[Level] = []
     with tempfile.TemporaryDirectory(prefix="cellcal-history-") as tmp_dir, \
-            database(kind, Path(tmp_dir)) as url:
-        cal_ids: list[str] = []
-        for level in levels:
-            t0 = time.perf_counter()
-            cal_ids += seed(url, first=len(cal_ids), count=level - len(cal_ids),
-                            stations=stations)
-            print(f"  {kind}: {level:,} calibrations seeded ({time.perf_counter() - t0:.0f} s)",
-                  flush=True)
-            env = {**_env(), "CELLCAL_DATABASE_URL": url, "CELLCAL_CELL": "cell-00"}
-            with local_service(Path(tmp_dir) / "data", key,
-                               ServeOptions(env=env, startup_timeout=60.0)) as svc:
-                run_ids = [run["id"] for run in httpx.get(
-                    f"{svc.url}/runs?limit=500", headers={"Authorization": f"Bearer {key}"},
-                    timeout=30).json()]
-                deep = _deep_cursor(url, cal_ids)
-                mix = get_mix(cal_ids, run_ids, deep)
-                spec = {"cal_ids": cal_ids, "run_ids": run_ids, "deep": deep}
-                for client in clients:
-                    got, server_cpu, client_cpu = loaded(client, svc, mix, spec, seconds)
+            databases(kind, Path(tmp_dir), len(plan.levels)) as urls, \
+            contextlib.ExitStack() as stack:
+        served = [stack.enter_context(_served(kind, url, level, plan.stations,
+                                              Path(tmp_dir) / f"data-{level}"))
+                  for url, level in zip(urls, plan.levels, strict=True)]
+        for client in clients:
+            for one in served:
+                loaded(client, one.svc, one.mix, one.spec, plan.warmup_s)
+            for r in range(plan.rounds):
+                for one in served if r % 2 == 0 else served[::-1]:
+                    got, server_cpu, client_cpu = loaded(client, one.svc, one.mix, one.spec,
+                                                         plan.block_s)
                     n = max(1, sum(len(v) for v in got.by_kind.values()))
-                    found.append(Level(kind, level, level * stations, client, got,
-                                       os.getloadavg()[0], 1e3 * server_cpu / n,
-                                       1e3 * client_cpu / n))
+                    found.append(Level(kind, one.calibrations, one.calibrations * plan.stations,
+                                       client, r, got, os.getloadavg()[0],
+                                       1e3 * server_cpu / n, 1e3 * client_cpu / n))
+            print(f"  {kind}: {client} client measured (load average "
+                  f"{os.getloadavg()[0]:.1f})", flush=True)
     return found
+
+
+@contextlib.contextmanager
+def _served(kind: str, url: str, level: int, stations: int,
+            data_dir: Path) -> Iterator[Served]:
+    """``url`` seeded with ``level`` calibrations and served by ``cellcal serve --mock``."""
+    key = secrets.token_urlsafe(24)
+    t0 = time.perf_counter()
+    cal_ids = seed(url, first=0, count=level, stations=stations)
+    print(f"  {kind}: {level:,} calibrations seeded ({time.perf_counter() - t0:.0f} s)",
+          flush=True)
+    env = {**_env(), "CELLCAL_DATABASE_URL": url, "CELLCAL_CELL": "cell-00"}
+    with local_service(data_dir, key, ServeOptions(env=env, startup_timeout=60.0)) as svc:
+        run_ids = [run["id"] for run in httpx.get(
+            f"{svc.url}/runs?limit=500", headers={"Authorization": f"Bearer {key}"},
+            timeout=30).json()]
+        deep = _deep_cursor(url, cal_ids)
+        yield Served(level, svc, get_mix(cal_ids, run_ids, deep),
+                     {"cal_ids": cal_ids, "run_ids": run_ids, "deep": deep})
 
 
 def _deep_cursor(url: str, cal_ids: list[str]) -> str:
@@ -367,74 +410,14 @@ def _env() -> dict[str, str]:
     return clean_env()
 
 
-# ---- report --------------------------------------------------------------------------------
-
-def _ms(values: list[float], q: float) -> float:
-    return float(np.percentile(np.asarray(values) * 1e3, q)) if values else float("nan")
-
-
-def report(levels: list[Level]) -> bool:
-    """The table, the verdicts and the figure; True if every target is met with every
-    client."""
-    kinds = sorted({k for lv in levels for k in lv.latencies.by_kind})
-    print(f"\n{'database':10} {'client':7} {'calibrations':>12} {'request':34} {'n':>6} "
-          f"{'p50 ms':>8} {'p99 ms':>8} {'non-2xx':>7}")
-    for lv in levels:
-        for kind in kinds:
-            got = lv.latencies.by_kind.get(kind, [])
-            print(f"{lv.backend:10} {lv.client:7} {lv.calibrations:>12,} {kind:34} "
-                  f"{len(got):>6} {_ms(got, 50):>8.1f} {_ms(got, 99):>8.1f} "
-                  f"{lv.latencies.errors.get(kind, 0):>7}")
-    ok = True
-    for backend, client in dict.fromkeys((lv.backend, lv.client) for lv in levels):
-        small, large = (lv for lv in levels if (lv.backend, lv.client) == (backend, client))
-        p50_small, p50_large = (_ms(_gets(lv), 50) for lv in (small, large))
-        p99_small, p99_large = (_ms(_gets(lv), 99) for lv in (small, large))
-        growth = p99_large / p99_small
-        met = p99_large < TARGET_P99_MS and growth <= TARGET_GROWTH
-        ok &= met
-        print(f"{backend}, {client} client: all GETs p50 / p99 {p50_small:.1f} / "
-              f"{p99_small:.1f} ms at {small.calibrations:,}, {p50_large:.1f} / "
-              f"{p99_large:.1f} ms at {large.calibrations:,} ({growth:.2f}x; "
-              f"{len(_gets(small)) + len(_gets(large))} GETs; load average "
-              f"{small.load_average:.1f} / {large.load_average:.1f}; CPU per request: server "
-              f"{small.server_cpu_ms:.1f} / {large.server_cpu_ms:.1f} ms, client "
-              f"{small.client_cpu_ms:.1f} / {large.client_cpu_ms:.1f} ms): "
-              f"{'met' if met else 'NOT met'} (target < {TARGET_P99_MS:g} ms, "
-              f"<= {TARGET_GROWTH}x)")
-    _plot(levels, kinds)
-    return ok
-
-
-def _gets(level: Level) -> list[float]:
-    return [x for k, v in level.latencies.by_kind.items() if k.startswith("GET") for x in v]
-
-
-def _plot(levels: list[Level], kinds: list[str]) -> None:
-    OUT.mkdir(exist_ok=True)
-    fig, axes = plt.subplots(1, 2, figsize=(13, 6), sharey=True)
-    backends = list(dict.fromkeys(lv.backend for lv in levels))
-    for ax, backend in zip(axes, backends, strict=False):
-        mine = [lv for lv in levels if lv.backend == backend]
-        y = np.arange(len(kinds))
-        height = 0.8 / len(mine)
-        for j, lv in enumerate(mine):
-            ax.barh(y + height * j, [_ms(lv.latencies.by_kind.get(k, []), 99) for k in kinds],
-                    height=height, label=f"{lv.calibrations:,} calibrations, {lv.client} client")
-        ax.axvline(TARGET_P99_MS, color="k", ls="--", lw=1, label="target")
-        ax.set_yticks(y + 0.4 - height / 2, kinds)
-        ax.set_xlabel("p99 latency (ms)")
-        ax.set_title(f"{backend}: {CLIENTS} clients, {LISTENERS} SSE listeners")
-        ax.legend(loc="lower right", fontsize=8, framealpha=0.9)
-    fig.tight_layout()
-    fig.savefig(OUT / "service_history.png", dpi=110)
-    print(f"wrote {OUT / 'service_history.png'}")
-
-
-def run_history(*, quick: bool, seconds: float | None,
+def run_history(*, quick: bool, seconds: float | None, rounds: int | None = None,
                 clients: tuple[str, ...] = CLIENT_KINDS) -> int:
-    levels, stations = ((200, 2000), 5) if quick else ((1000, 10000), 20)
+    """Both databases, then the report; 0 if every target is met, else 1."""
+    from benchmarks.history_report import report
+
+    plan = (Plan((200, 2000), 5, seconds or 4.0, rounds or 2, 1.0) if quick else
+            Plan((1000, 10000), 20, seconds or 40.0, rounds or 4, 5.0))
     found: list[Level] = []
     for kind in ("sqlite", "postgresql"):
-        found += measure(kind, levels, stations, seconds or (8.0 if quick else 30.0), clients)
+        found += measure(kind, plan, clients)
     return 0 if report(found) else 1
