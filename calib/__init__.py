@@ -44,6 +44,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "coldstart": ("Bootstrap", "Guess", "View", "bootstrap", "camera_position"),
     "crossval": ("CrossValidation", "PoseStations"),
     "evidence": ("Trust",),
+    "fields": ("FiniteFloat",),
     "explorer": ("ColdStart", "Proposal"),
     "geometry": (
         "PoseError", "check_joint_positions", "check_transforms", "check_ur_pose",
@@ -69,7 +70,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "refine": ("RefineOptions",),
     "result": (
         "RESULT_FORMAT", "BoardScale", "CameraModel", "Candidate", "CrossValidationBlock",
-        "Finding", "FiniteFloat", "HeldOutStation", "ModelSelection", "Motions", "QualityBlock",
+        "Finding", "HeldOutStation", "ModelSelection", "Motions", "QualityBlock",
         "Rejected", "Result", "Software", "StationFit", "Transform", "Uncertainty", "parse_result",
     ),
     "screw": ("solve_sm",),

@@ -21,11 +21,10 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from calib.fields import FiniteFloat
+
 RESULT_FORMAT = "cellcal/result@1"
 
-#: A float that is neither NaN nor infinite (JSON has neither); every pydantic model of
-#: cellcal that takes numbers takes these.
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 #: A 1-sigma figure: a scalar, or a small-angle / translation vector (3,); None = not estimated.
 Sigma = float | list[float] | None
 Row4 = Annotated[list[FiniteFloat], Field(min_length=4, max_length=4)]

@@ -46,6 +46,11 @@ def test_a_command_loads_what_it_needs():
     assert {"calib", "numpy", "cv2"} <= loaded
     # the solver's imports (scipy) wait until the images are being read and detected
     assert not {"fastapi", "scipy"} & loaded
+    # and so do the result's pydantic models (0.02 s), which the station set does not need
+    out = subprocess.run([sys.executable, "-c", "import sys, service.cli.calibrate; "
+                          "print('calib.result' in sys.modules)"], capture_output=True,
+                         text=True, check=True)
+    assert out.stdout.strip() == "False"
 
 
 _BLAS_THREADS = """

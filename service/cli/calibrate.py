@@ -22,14 +22,13 @@ import sys
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from calib import (
     KAPPA_MODES,
     METHODS,
     ChecksConfiguration,
-    CrossValidationBlock,
     Detection,
-    QualityBlock,
     SolverOptions,
     Station,
     Stations,
@@ -38,6 +37,9 @@ from calib import (
 from service.cli.exit_codes import EXIT_VERDICT_FAIL
 from service.stationsets.format import DEFAULT_MAX_STATIONS, load_station_set
 from service.stationsets.images import DEFAULT_MAX_PIXELS, STDERR_LOCK, read_station_image
+
+if TYPE_CHECKING:  # the result's models load with the solver, not before the images are read
+    from calib import CrossValidationBlock, QualityBlock
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -120,6 +122,8 @@ def check_out_path(out: str) -> None:
 def verdict_line(quality: QualityBlock | None, cv: CrossValidationBlock | None) -> str:
     """One line for people: the verdict (pass when there is none), the cross-validated error
     and the findings' codes."""
+    from calib import QualityBlock
+
     quality = quality or QualityBlock(verdict="pass")
     if cv is None:
         figure = "no cross-validation (no robot poses)"
