@@ -133,7 +133,7 @@ def random_blind_scene(seed: int, setup: str) -> MockScene:
 _READINGS_POSES, _READINGS_LEVER_M = 30, 0.5
 
 
-def readings_hand_eye(scene: MockScene) -> np.ndarray:
+def readings_hand_eye(scene: MockScene, *, scale: bool = False) -> np.ndarray:
     """The hand-eye (4, 4) as the arm's own readings see it over the safety box: the truth the
     best possible calibration can reach, which the benchmark measures errors against too.
 
@@ -144,6 +144,12 @@ def readings_hand_eye(scene: MockScene) -> np.ndarray:
     hand-eye X: no calibration from the readings can tell them apart, and every use of the
     calibration through the readings wants the latter. A and B are fitted by least squares
     to random poses in the box (tool turned up to 30 degrees from the start).
+
+    ``scale``: the readings' translations may also be off by a common factor ``s``,
+    ``F ≈ A S(P) B`` with ``S`` scaling a pose's translation. Projection does not change when
+    every length scales, so a calibration that estimates the board's scale κ sees that
+    factor only as a κ of ``κ / s`` and returns the hand-eye with its translation over ``s``;
+    one holding κ at 1 cannot absorb it. True fits the similarity and returns that hand-eye.
     """
     X = scene.hand_eye_matrix
     if scene.kinematics is None or scene.workspace is None:
@@ -164,14 +170,25 @@ def readings_hand_eye(scene: MockScene) -> np.ndarray:
     def transform(v: np.ndarray) -> np.ndarray:
         return make_transform(Rotation.from_rotvec(v[:3]).as_matrix(), v[3:])
 
+    def scaled(s: float) -> np.ndarray:
+        P_s = P.copy()
+        P_s[:, :3, 3] *= s
+        return P_s
+
+    def factor(v: np.ndarray) -> float:
+        return 1.0 + v[12] if scale else 1.0
+
     def residuals(v: np.ndarray) -> np.ndarray:
-        E = F_inv @ transform(v[:6]) @ P @ transform(v[6:])
+        """v: A and B as rotation vector and translation, then s - 1 when ``scale``."""
+        E = F_inv @ transform(v[:6]) @ scaled(factor(v)) @ transform(v[6:12])
         return np.column_stack([_READINGS_LEVER_M * Rotation.from_matrix(
             E[:, :3, :3]).as_rotvec(), E[:, :3, 3]]).ravel()
 
-    v = least_squares(residuals, np.zeros(12)).x
-    A, B = transform(v[:6]), transform(v[6:])
-    return B @ X if scene.setup == "eye_in_hand" else invert(A) @ X
+    v = least_squares(residuals, np.zeros(13 if scale else 12)).x
+    A, B = transform(v[:6]), transform(v[6:12])
+    X_r = B @ X if scene.setup == "eye_in_hand" else invert(A) @ X
+    X_r[:3, 3] /= factor(v)
+    return X_r
 
 
 def _ur_pose(T: np.ndarray) -> list[float]:
