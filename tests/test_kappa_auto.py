@@ -1,6 +1,6 @@
 """``kappa: auto`` decides by prediction (calib.selection): a board printed 0.5 % large is
 seen and corrected, while an exact board on an arm with systematic kinematic errors — which
-bias κ by a few 0.1 % — is left at its entered size and passes (issue 8)."""
+scatter κ by a few 0.1 % — is not reported as off and passes (issue 8)."""
 
 from __future__ import annotations
 
@@ -56,11 +56,30 @@ def test_a_board_half_a_percent_large_is_estimated_and_reported(n, seed):
 @pytest.mark.parametrize(("n", "seed"), [(12, 0), (12, 1), pytest.param(20, 0, marks=MORE),
                                          pytest.param(20, 3, marks=MORE)])
 def test_an_exact_board_on_an_arm_with_kinematic_errors_passes(n, seed):
+    """No board warning, and κ and the hand-eye within 3 σ of the truth.
+
+    Not "κ held at 1" (asserted until 2026-11-26): on 12-20 stations this arm's
+    pose-dependent errors scatter κ by ±0.3-0.4 % (formal σ and jackknife agree; 60
+    noise-free stations of the same arm give κ 1.0000 and 0.9992, so the errors are no
+    scale), and some draws put it 2 σ from 1: [12-0] κ = 1.0080 ± 0.0040, [20-3] 0.9966.
+    A 0.5 % board gives the same evidence on some draws (``benchmarks.kappa_nu`` seeds 0,
+    12, 57: 2-3 σ), where holding κ moved the hand-eye 3.6 mm at a σ of 0.15 mm; so κ is
+    estimated beyond 1 σ (``calib.selection.KAPPA_SIGMAS``) and such a draw of an exact
+    board gets an estimated κ whose σ covers it. What must hold is what the user is told:
+    the board is not called off (``board_scale`` needs 3 σ) and the result is as uncertain
+    as it says (benchmarks/README.md, the κ/ν section).
+    """
     res = calibrate(with_board(1.0, kinematic_errors=True), n, seed)
     quality = res.trust.quality
     assert quality.verdict == "pass", [f.message for f in quality.findings]
     assert "board_scale" not in {f.code for f in quality.findings}
-    assert abs(res.kappa - 1.0) < 0.002
+    # held (exactly 1, no σ) or estimated within 3 σ of the true 1
+    assert abs(res.kappa - 1.0) <= 3 * float(res.sigmas.get("kappa") or 0.0)
+    # the true hand-eye: this scene has no workspace box, so the one its readings see
+    # (mocks.blindcells.readings_hand_eye) is the same, and κ's readings-frame truth is 1
+    X = load_scene(SCENE).hand_eye_matrix
+    error = np.linalg.norm(res.hand_eye[:3, 3] - X[:3, 3])
+    assert error <= 3 * np.linalg.norm(res.sigmas["hand_eye_trans_m"])
     # the robot's errors show in the prediction error, and the report says so
     info = [f for f in quality.findings if f.code == "high_prediction_error"]
     assert all(f.severity == "info" for f in info)
