@@ -31,7 +31,8 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "boards": (
         "MIN_CONTRAST", "Board", "BoardTarget", "Charuco", "CharucoTarget", "Checkerboard",
         "CheckerboardTarget", "ChecksConfiguration", "Detection", "Target", "TargetAdapter",
-        "board_from_target", "board_points", "detect_checkerboard", "target_from_board",
+        "board_from_target", "board_points", "detect_checkerboard", "opencv_out_of_memory",
+        "target_from_board",
     ),
     "bounds": ("cramer_rao_bound",),
     "calibration": ("Calibration", "PoseOnlyResult", "calibrate"),

@@ -137,10 +137,26 @@ def test_large_textures_under_the_pixel_cap_cost_a_bounded_search(
     first, where no board is, each is a skipped station within a 6 CPU-s budget (2.4 and
     1.8 CPU-s measured). Not every texture is that cheap: a regular grid larger than the board
     costs the detector much even on the reduced copy (32-pixel checkers: 5 CPU-s at 0.4 MP,
-    12.5 at 1 MP), and is left to the budget."""
+    12.5 at 1 MP): ``test_grid_bombs_are_skipped_stations`` below."""
     with limited(tmp_path, image_cpu_s=6.0) as client:
         run_id, pose = external_run(client), robot_pose(client)
         r = post(client, run_id, pose=pose, image=make_png(6000, 4000))
         assert r.status_code == 201, r.text
         assert r.json()["state"] == "skipped" and r.json()["error"]["code"] == "not_detected"
         assert r.json()["image_size"] == [6000, 4000]
+
+
+@pytest.mark.timeout(300)
+def test_grid_bombs_are_skipped_stations(tmp_path: Path) -> None:
+    """Regular checker grids larger than the board, a few kB on the wire: 32-pixel checkers at
+    1 MP took 12.8 CPU-s of fallback searches, and 64-pixel ones made OpenCV fail an assertion
+    (500). Each is now a skipped station saying what is in view; the budget stays the default
+    (20 CPU-s), so a search that still ran its fallbacks would not be refused here, only told
+    apart by its reason."""
+    with limited(tmp_path) as client:
+        run_id, pose = external_run(client), robot_pose(client)
+        for square in (32, 64):
+            r = post(client, run_id, pose=pose, image=checker_png(1000, 1000, square))
+            assert r.status_code == 201, r.text
+            assert r.json()["state"] == "skipped" and r.json()["error"]["code"] == "not_detected"
+            assert "regular grid of about" in r.json()["error"]["detail"]

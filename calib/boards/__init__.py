@@ -22,7 +22,7 @@ from calib.boards.checkerboard import (
     detect_checkerboard,
     order_corners,
 )
-from calib.boards.detection import MIN_CONTRAST, MIN_SHARPNESS, Detection
+from calib.boards.detection import MIN_CONTRAST, MIN_SHARPNESS, Detection, opencv_out_of_memory
 from calib.boards.targets import (
     TARGET_TYPES,
     Target,
@@ -50,6 +50,7 @@ __all__ = [
     "board_points",
     "detect_charuco",
     "detect_checkerboard",
+    "opencv_out_of_memory",
     "order_corners",
     "target_from_board",
 ]

@@ -37,6 +37,7 @@ from calib.boards.detection import (
     as_grey,
     blank_reason,
     blurred_reason,
+    find_board_sb,
     grey_range,
     hull_coverage,
     refine_corners,
@@ -45,6 +46,7 @@ from calib.boards.detection import (
     sub_pixel,
 )
 from calib.boards.grid_check import keep_consistent
+from calib.boards.lattice import larger_than_board
 from calib.boards.markers import markers_seen_reason
 
 #: Images at least this large (smaller side, px) are searched at half size first: SB's cost
@@ -189,7 +191,8 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
         if sharp < min_sharpness:
             reason = f"image too blurred (sharpness {sharp:.3f} < {min_sharpness:.3f})"
         else:
-            reason = (markers_seen_reason(grey, f"{cols}x{rows}-corner checkerboard")
+            reason = ((survey.lattice((cols, rows)) is None  # a dense grid is slow to scan
+                       and markers_seen_reason(grey, f"{cols}x{rows}-corner checkerboard"))
                       or _diagnose_missing_board(survey, (cols, rows)))
         return Detection(ok=False, reason=reason, sharpness=sharp)
 
@@ -217,38 +220,39 @@ def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], survey: _GridSu
     (a quarter-size start is up to 2 px off, beyond the full-size window). Only when the
     default call fails is the full image searched with each of ``_FALLBACK_FLAGS`` in turn,
     and last the exhaustive search on a locally equalised copy (CLAHE) for boards in shadow or
-    glare; except when ``survey`` sees a board larger than ``inner_corners``: SB reads a
-    board of exactly the size asked for, so the searches could not succeed (a wrong
-    ``inner_corners`` is then told in a fraction of a second instead of several). ``quick``
+    glare; except when ``survey`` sees a board larger than ``inner_corners``, or more grid
+    corners than 1.5 such boards (``calib.boards.lattice``): SB reads a board of exactly the
+    size asked for, so the searches could not succeed (a wrong ``inner_corners`` is told in a
+    fraction of a second instead of several; a checker texture costs no fallback). ``quick``
     (faint images, usually blank frames) tries the normalised searches alone.
     """
     in_view = survey
     if min(grey.shape) >= _COARSE_MIN_SIZE:
         half = cv2.pyrDown(grey)
         if min(grey.shape) >= _QUARTER_MIN_SIZE:
-            found, raw = cv2.findChessboardCornersSB(cv2.pyrDown(half), inner_corners)
+            found, raw = find_board_sb(cv2.pyrDown(half), inner_corners)
             if found:
                 start = raw.reshape(-1, 2) * 2.0 + 0.5  # half-size pixels
                 corners, converged = sub_pixel(half, start, _spacing(start, inner_corners))
                 if converged.all():
                     return True, corners * 2.0 + 0.5
-        found, raw = cv2.findChessboardCornersSB(half, inner_corners)
+        found, raw = find_board_sb(half, inner_corners)
         if found:
             return True, raw * 2.0 + 0.5
         in_view = _GridSurvey(half)  # a grid has the same size at half size, 4x cheaper
-    found, raw = cv2.findChessboardCornersSB(grey, inner_corners)
+    found, raw = find_board_sb(grey, inner_corners)
     if found:
         return True, raw
-    if not quick and in_view.larger_than(inner_corners):
+    if (not quick and in_view.larger_than(inner_corners)) or survey.lattice(inner_corners):
         return False, None
     for flags in _FALLBACK_FLAGS[:2] if quick else _FALLBACK_FLAGS:
-        found, raw = cv2.findChessboardCornersSB(grey, inner_corners, flags=flags)
+        found, raw = find_board_sb(grey, inner_corners, flags)
         if found:
             return True, raw
     if quick:
         return False, None
-    found, raw = cv2.findChessboardCornersSB(_CLAHE.apply(grey), inner_corners,
-                                             flags=_FALLBACK_FLAGS[1])
+    found, raw = find_board_sb(_CLAHE.apply(grey), inner_corners,
+                               _FALLBACK_FLAGS[1])
     return (True, raw) if found else (False, None)
 
 
@@ -326,13 +330,22 @@ class _GridSurvey:
         self.grey = grey
         self._grid: np.ndarray | None = None  # (rows, cols, 2) px
         self._done = False
+        self._lattice: dict[tuple[int, int], int | None] = {}
+
+    def lattice(self, inner_corners: tuple[int, int]) -> int | None:
+        """The regular grid corners in view when more than 1.5 boards of ``inner_corners``
+        have (``calib.boards.lattice``), else None."""
+        if inner_corners not in self._lattice:
+            self._lattice[inner_corners] = larger_than_board(self.grey, inner_corners)
+        return self._lattice[inner_corners]
 
     @property
     def grid(self) -> np.ndarray | None:
         if not self._done:
             self._done = True
-            found, pts, meta = cv2.findChessboardCornersSBWithMeta(
-                self.grey, (3, 3), cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_LARGER)
+            found, pts, meta = find_board_sb(
+                self.grey, (3, 3), cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_LARGER,
+                with_meta=True)
             if found and pts is not None:
                 grid = pts.reshape(*meta.shape[:2], 2).astype(float)
                 lo, hi = grey_range(self.grey)
@@ -390,7 +403,10 @@ def _diagnose_missing_board(survey: _GridSurvey, inner_corners: tuple[int, int])
     """Reason for a failed detection: off-image, wrong size, or simply not found, from the
     grid ``survey`` sees compared with what was asked for."""
     cols, rows = inner_corners
-    grid = survey.grid
+    grid, lattice = survey.grid, survey.lattice(inner_corners)
+    if lattice is not None and not survey.larger_than(inner_corners):
+        return (f"board not found: a regular grid of about {lattice} corners is in view, more "
+                f"than a {cols}x{rows}-corner board has (check inner_corners)")
     if grid is None:
         return f"board not found ({cols}x{rows} inner corners expected)"
     grey = survey.grey
@@ -472,7 +488,7 @@ def grid_mismatch(image: np.ndarray, inner_corners: tuple[int, int]) -> str | No
     seen = sorted(grid.shape[1::-1], reverse=cols >= rows)  # in the configured order
     if seen == sorted((cols, rows), reverse=cols >= rows):
         return None
-    found, _ = cv2.findChessboardCornersSB(survey.grey, tuple(seen))
+    found, _ = find_board_sb(survey.grey, tuple(seen))
     if not found:
         return None
     return (f"found {_article(seen[0])} {seen[0]}x{seen[1]} grid of inner corners, you "

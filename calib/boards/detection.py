@@ -91,6 +91,35 @@ def as_grey(image: object) -> tuple[np.ndarray | None, str | None]:
     return np.ascontiguousarray(image), None
 
 
+#: How OpenCV says an allocation failed (under a worker's address-space limit): its allocator's
+#: message, or the assertion ``u != 0`` in ``UMat::create`` when the allocator returned
+#: nothing; which one depends on where the work ran out.
+OPENCV_OUT_OF_MEMORY = ("Insufficient memory", "Failed to allocate", "u != 0")
+
+
+def opencv_out_of_memory(exc: cv2.error) -> bool:
+    """Whether an OpenCV error is a failed allocation."""
+    return any(sign in str(exc) for sign in OPENCV_OUT_OF_MEMORY)
+
+
+def find_board_sb(grey: np.ndarray, inner_corners: tuple[int, int], flags: int = 0, *,
+                  with_meta: bool = False) -> tuple:
+    """OpenCV's sector-based board search, ``(found, corners)``, or with ``with_meta``
+    ``(found, corners, meta)`` (``findChessboardCornersSBWithMeta``). An assertion that fails
+    inside the search is a board not found, so that detection never raises on an image: its
+    neighbour index fails on some regular grids (``result.full()`` in ``getNeighbors``, on a
+    500x500 image of 32-pixel checkers). A failed allocation (:func:`opencv_out_of_memory`)
+    still raises."""
+    try:
+        if with_meta:
+            return cv2.findChessboardCornersSBWithMeta(grey, inner_corners, flags)
+        return cv2.findChessboardCornersSB(grey, inner_corners, flags=flags)
+    except cv2.error as exc:
+        if opencv_out_of_memory(exc):
+            raise
+        return (False, None, None) if with_meta else (False, None)
+
+
 def grey_range(grey: np.ndarray) -> tuple[float, float]:
     """1st and 99th percentile grey levels of a uint8 image, from its 256-bin histogram
     (exact for integer levels, and many times faster than ``np.percentile``)."""

@@ -14,9 +14,12 @@ An image a cell controller posts (``service.runs.external``) is untrusted: a str
   first, and at full size only if the board is there: a search that finds nothing runs every
   fallback search, 37-44 CPU-s at 24 MP (checker texture, stripes, an upscaled photo) against
   0.9-1.3 s for one that finds the board; on the reduced copy those textures cost 1.8-2.4 CPU-s
-  (measured). What stays costly is left to the CPU budget: an image whose reduced copy shows
-  the board but whose full size does not, and regular grids larger than the board, which the
-  detector searches slowly at any size (32-pixel checkers: 5 CPU-s at 0.4 MP, 12.5 at 1 MP);
+  (measured). A regular checker grid larger than the board made every fallback search run
+  slowly at any size (32-pixel checkers: 12.8 CPU-s at 1 MP, 8-pixel ones 26.9); the detector
+  now counts the grid's corners first and stops there (``calib.boards.lattice``: 0.7-0.8
+  CPU-s for those). What stays costly is left to the CPU budget: an image whose reduced copy
+  shows the board but whose full size does not, and any image the fallback searches run on,
+  as on a real image without its board (about 2-5 CPU-s per searched megapixel);
 * each search has a CPU budget, ``Settings.image_cpu_s``: the kernel ends a worker that
   passes it (``RLIMIT_CPU``), and the post is answered 422 ``image_too_complex``; the pool
   starts a fresh worker for the next image.
@@ -35,7 +38,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calib import ChecksConfiguration, Detection, Target, board_from_target
+from calib import (
+    ChecksConfiguration,
+    Detection,
+    Target,
+    board_from_target,
+    opencv_out_of_memory,
+)
 from service.api.guard import PayloadTooLargeError
 from service.errors import UnprocessableError
 from service.jobs.workers import WorkerPool
@@ -70,12 +79,6 @@ class Developed:
     problem: str | None = None
     out_of_memory: bool = False
     seen: str | None = None  # what the image shows instead of the board (``Board.mismatch``)
-
-
-#: How OpenCV says an allocation failed (under the worker's address-space limit): its
-#: allocator's message, or the assertion ``u != 0`` in ``UMat::create`` when the allocator
-#: returned nothing; which one depends on where the search ran out.
-OPENCV_OUT_OF_MEMORY = ("Insufficient memory", "Failed to allocate", "u != 0")
 
 
 def check_pixels(data: bytes, max_pixels: int) -> None:
@@ -126,7 +129,7 @@ def develop(job: ImageJob) -> Developed:
     except MemoryError:
         return Developed(out_of_memory=True)
     except cv2.error as exc:
-        if any(sign in str(exc) for sign in OPENCV_OUT_OF_MEMORY):
+        if opencv_out_of_memory(exc):
             return Developed(out_of_memory=True)
         raise
 
