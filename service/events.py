@@ -26,7 +26,7 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from sqlalchemy.orm import Session
@@ -56,6 +56,7 @@ class EventBus:
             self._relay.start()
         self._closed = False
         self._queue: deque[tuple[Topic, dict[str, Any]]] = deque()  # to store, in order
+        self._finishing: dict[Topic, int] = {}  # topics whose final state is being saved
         self._queued = threading.Condition()
         self._writing = threading.Lock()  # one writer at a time: the ids follow the queue
         self._stopping = threading.Event()  # close(): the writer ends with an empty queue
@@ -111,6 +112,36 @@ class EventBus:
             if not self._writer_done:
                 return
         self._write_queued()
+
+    def finish(self, topic: Topic, save: Callable[[], bool], *,
+               retry: Callable[[Callable[[], dict[str, Any]]], dict[str, Any]] | None = None
+               ) -> bool:
+        """End ``topic``: ``save()`` stores its final state (False when it did not, e.g. the
+        run was already in it), then its ``state`` event is read back (through ``retry``,
+        which calls the read and may repeat it) and queued; whether it was saved.
+
+        From before the save until the event is queued the topic counts as having an event on
+        its way (:meth:`_queued_for`): a listener that reconnects in between, when the final
+        state is in the database but its event in no queue, waits for the event instead of
+        ending its stream with a state made from the row under an old id, and so never misses
+        the stored final event. An exception from ``save`` or the read leaves the event to the
+        caller (a listener that waited meanwhile gets the event the caller publishes later)."""
+        with self._queued:
+            self._finishing[topic] = self._finishing.get(topic, 0) + 1
+        try:
+            if not save():
+                return False
+
+            def read() -> dict[str, Any]:
+                return self.state(topic)
+
+            self.publish(topic, read() if retry is None else retry(read))
+            return True
+        finally:
+            with self._queued:
+                self._finishing[topic] -= 1
+                if not self._finishing[topic]:
+                    del self._finishing[topic]
 
     def flush(self, timeout: float) -> bool:
         """Wait until every event published so far is stored; False if ``timeout`` s passed
@@ -178,9 +209,10 @@ class EventBus:
             log_state_event(topic.kind, topic.id, stored)
 
     def _queued_for(self, topic: Topic) -> bool:
-        """True if an event of ``topic`` waits to be stored."""
+        """True if an event of ``topic`` waits to be stored, or its final state is being saved
+        (:meth:`finish`)."""
         with self._queued:
-            return any(queued == topic for queued, _ in self._queue)
+            return topic in self._finishing or any(queued == topic for queued, _ in self._queue)
 
     def _fan_out(self, topic: Topic, event: dict[str, Any]) -> None:
         for loop, queue in self._listeners.get(topic, ()):
@@ -228,12 +260,13 @@ class EventBus:
     def _ended_unstored(self, topic: Topic, after: int, state: dict[str, Any],
                         events: list[dict[str, Any]]) -> list[dict[str, Any]]:
         """The backlog of a topic that had ended without a stored final ``state`` event when
-        ``events`` were read. If one of its events is queued, the final state is on its way
-        to the listener. Else read again: the writer takes an event off the queue only once
-        it is stored, so a final state stored since the first read is there now (ending the
-        stream with a made-up state instead repeated the last event's id, and the stored one
-        was never sent). Only a topic whose final state is not stored or queued at all ends
-        with its state made from the row, as of the newest stored event."""
+        ``events`` were read. If one of its events is queued, or its final state is being saved
+        (:meth:`finish`), the final state is on its way to the listener. Else read again: the
+        writer takes an event off the queue only once it is stored, so a final state stored
+        since the first read is there now (ending the stream with a made-up state instead
+        repeated the last event's id, and the stored one was never sent). Only a topic whose
+        final state is not stored or queued at all ends with its state made from the row, as
+        of the newest stored event."""
         if self._queued_for(topic):
             return events
         with self.db.session() as s:

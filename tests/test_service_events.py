@@ -13,24 +13,29 @@ import pytest
 from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
-from service.events import EventBus
+from service import events
+from service.events import EventBus, ends_stream
 from service.metrics import CONTENT_TYPE_LATEST
-from service.store import writes
+from service.store import queries, writes
 from service.store.records import (
     CalibrationRecord,
     RunRecord,
     StationRecord,
+    Topic,
     ValidationRecord,
 )
+from tests.support.helpers import wait_for
 from tests.support.results import full_result
 from tests.support.service import (
     CELL,
     Event,
+    external_run,
     finished,
     gated_opener,
     read_events,
     service,
     start_run,
+    wait_calibration,
     wait_run,
 )
 
@@ -107,6 +112,57 @@ def test_a_final_state_stored_during_a_reconnect_comes_once(
     assert ids == sorted(set(ids)), "ids repeat or go backwards"
     assert [kind for _, kind, _ in events] == ["station"] * 3 + ["state"]
     assert events[-1][2]["state"] == "done"
+
+
+@pytest.mark.timeout(180)
+def test_a_listener_reconnecting_as_a_job_ends_waits_for_its_final_event(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A job's final state is saved, then read back and queued as its ``state`` event: by a
+    run's capture as it ends, by a request that finishes a run, by a calibration's outcome
+    (``EventBus.finish``). A listener that reconnected between the save and the queueing found
+    the final state in the database and its event nowhere, so its stream ended with a state
+    made from the row under an old id, and the stored final event never reached it. Here a
+    reconnect's backlog is read at exactly that moment, every time: inside the read back
+    itself, after the save and before the queueing. It must not end the stream; the stored
+    final event comes after it."""
+    buses: list[EventBus] = []
+    ended: set[Topic] = set()  # the first read of a final state is the read back
+    backlogs: dict[Topic, list[dict[str, Any]]] = {}
+    state_event = events.state_event
+
+    def reconnect_as_read_back(s: Any, topic: Topic) -> dict[str, Any]:
+        state = state_event(s, topic)
+        if ends_stream(state) and topic not in ended and buses:
+            ended.add(topic)  # the backlog's own reads of the state pass through here
+            backlogs[topic] = buses[0].backlog(topic, after=0)
+        return state
+
+    monkeypatch.setattr(events, "state_event", reconnect_as_read_back)
+    with service(tmp_path) as client:
+        buses.append(client.app.state.runtime.events)
+        captured = start_run(client, 3)  # ends by its capture
+        assert wait_run(client, captured, finished)["state"] == "done"
+        posted = external_run(client)  # ends by a request
+        assert client.post(f"/runs/{posted}/finish").status_code == 200
+        r = client.post(f"/runs/{captured}/calibrations", json={})  # ends by its outcome
+        assert r.status_code == 202, r.text
+        assert wait_calibration(client, r.json()["id"])["state"] in ("done", "failed")
+        topics = [Topic("run", posted), Topic("calibration", r.json()["id"]),
+                  Topic("run", captured)]
+
+        def final_stored(topic: Topic) -> bool:
+            with buses[0].db.session() as s:
+                return any(ends_stream(e) for e in queries.events_after(s, topic=topic, after=0))
+
+        wait_for("the final events", lambda: all(final_stored(t) for t in topics))
+        for topic in topics:
+            assert topic in backlogs, f"{topic}: the final state was not read back by the bus"
+            backlog = backlogs[topic]
+            assert not any(ends_stream(e) for e in backlog), (topic, backlog)
+            seen = max((e["id"] for e in backlog), default=0)
+            after = buses[0].backlog(topic, after=seen)
+            assert [e["type"] for e in after if ends_stream(e)] == ["state"], (topic, after)
+            assert after[-1]["id"] > seen and ends_stream(after[-1])
 
 
 @pytest.mark.pg_fast

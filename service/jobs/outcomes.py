@@ -22,7 +22,9 @@ import json
 import logging
 import os
 import threading
+from collections.abc import Callable
 from datetime import datetime
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -67,35 +69,40 @@ class Outcomes:
         values = {**values, "finished_at": utcnow()}
         with self._lock:  # shown from now on, while the write is tried
             self._pending[topic] = values
-        try:
-            retry_transient(lambda: self._store(topic, values),
-                            budget_s=self.settings.database_retry_s,
-                            what=f"storing the outcome of {topic.kind} {topic.id}")
-        except Exception as exc:  # DatabaseUnavailableError, or a fault of the disk
-            log.error("%s %s: %s; the outcome is spooled and stored once the database "
-                      "answers", topic.kind, topic.id, exc)
-            self._spool(topic, values)
-            return
-        with self._lock:
-            self._pending.pop(topic, None)
-        self._publish(topic)
 
-    def _store(self, topic: Topic, values: dict[str, Any]) -> None:
-        with self.db.session() as s:
-            if topic.kind == "calibration":
-                writes.finish_calibration(s, cal_id=topic.id, **values)
-            else:
-                writes.finish_validation(s, val_id=topic.id, **values)
+        def save() -> bool:
+            try:
+                retry_transient(lambda: self._store(topic, values),
+                                budget_s=self.settings.database_retry_s,
+                                what=f"storing the outcome of {topic.kind} {topic.id}")
+            except Exception as exc:  # DatabaseUnavailableError, or a fault of the disk
+                log.error("%s %s: %s; the outcome is spooled and stored once the database "
+                          "answers", topic.kind, topic.id, exc)
+                self._spool(topic, values)
+                return False
+            with self._lock:
+                self._pending.pop(topic, None)
+            return True
 
-    def _publish(self, topic: Topic) -> None:
-        """The final ``state`` event; retried, and left to the drain thread if it fails."""
-        try:
-            retry_transient(lambda: self.events.publish_state(topic),
-                            budget_s=self.settings.database_retry_s,
-                            what=f"publishing the end of {topic.kind} {topic.id}")
-        except DatabaseUnavailableError as exc:
+        def retry(read: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+            return retry_transient(read, budget_s=self.settings.database_retry_s,
+                                   what=f"publishing the end of {topic.kind} {topic.id}")
+
+        try:  # one step: the final state is never stored without its event on the way
+            self.events.finish(topic, save, retry=retry)
+        except DatabaseUnavailableError as exc:  # stored; the drain thread publishes it
             log.error("%s %s: %s", topic.kind, topic.id, exc)
             self._spool(topic, None)
+
+    def _store(self, topic: Topic, values: dict[str, Any] | None) -> bool:
+        """Store ``values`` (nothing when they are None or empty: stored already); True."""
+        if values:
+            with self.db.session() as s:
+                if topic.kind == "calibration":
+                    writes.finish_calibration(s, cal_id=topic.id, **values)
+                else:
+                    writes.finish_validation(s, val_id=topic.id, **values)
+        return True
 
     # ---- the spool -------------------------------------------------------------------------
 
@@ -130,9 +137,7 @@ class Outcomes:
                 pending = list(self._pending.items())
             for topic, values in pending:
                 try:
-                    if values:
-                        self._store(topic, values)
-                    self.events.publish_state(topic)
+                    self.events.finish(topic, partial(self._store, topic, values))
                 except Exception as exc:  # still unavailable: the next round tries again
                     log.debug("%s %s still spooled: %s", topic.kind, topic.id, exc)
                     continue
@@ -160,8 +165,7 @@ class Outcomes:
             except (OSError, ValueError, KeyError, TypeError) as exc:
                 log.error("spooled outcome %s cannot be read (%s); left in place", path, exc)
                 continue
-            self._store(topic, values)
-            self.events.publish_state(topic)
+            self.events.finish(topic, partial(self._store, topic, values))
             path.unlink()
             stored += 1
         return stored

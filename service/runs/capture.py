@@ -51,7 +51,7 @@ from drivers.errors import (
 )
 from drivers.stall import STALL_AFTER
 from service.cell.motion import Motion
-from service.events import EventBus, run_state_event
+from service.events import EventBus
 from service.store import queries, writes
 from service.store.db import DatabaseUnavailableError, retry_transient
 from service.store.records import RunRecord, Topic
@@ -187,14 +187,17 @@ class Capture:
         Retried for as long as the service runs: a run must not stay ``capturing`` without a
         thread (if the service stops first, its next start marks the run ``interrupted``).
         """
-        try:
-            changed = self._in_session(lambda s: writes.finish_run(
+        def save() -> bool:
+            return self._in_session(lambda s: writes.finish_run(
                 s, run_id=self.run_id, token=self.token, state=state, error=error,
-                error_code=code),
-                f"ending run {self.run_id} as {state}", budget_s=math.inf)
-            if changed:
-                self._publish(self._in_session(lambda s: run_state_event(s, run_id=self.run_id),
-                                               "reading the run state"))
+                error_code=code), f"ending run {self.run_id} as {state}", budget_s=math.inf)
+
+        def retry(read: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+            return retry_transient(read, budget_s=self.settings.database_retry_s,
+                                   what="reading the run state", stopping=self.motion.stopping)
+
+        try:
+            self.events.finish(Topic("run", self.run_id), save, retry=retry)
         except DatabaseUnavailableError as exc:
             log.error("run %s: %s", self.run_id, exc)
 

@@ -102,7 +102,7 @@ class RunManager(MotionJobs):
         if not changed:
             raise ConflictError(f"Run {run_id} changed state meanwhile; read it and retry.",
                                 code="invalid_state")
-        self._publish_state(run_id)
+        self.events.publish_state(Topic("run", run_id))
         if run.mode == "robot":
             self._start_capture(run_id, token, cold=run.cold_start is not None)
 
@@ -119,25 +119,28 @@ class RunManager(MotionJobs):
 
     def _transition(self, run_id: str, sources: tuple[str, ...], target: str, *,
                     same_ok: str) -> str | None:
-        """Move a run from one of ``sources`` to ``target``; the old owner token."""
-        with self.db.session() as s:
-            run = queries.get_run(s, run_id=run_id)
-            if run.state == same_ok:
-                return None
-            if run.state not in sources:
-                raise ConflictError(f"Run {run_id} is {run.state}; it cannot become {target}.",
-                                    code="invalid_state")
-            owner = run.owner
-            changed = writes.move_run(s, run_id=run_id, from_state=run.state, state=target,
-                                     owner=None)
-        if not changed:
-            raise ConflictError(f"Run {run_id} changed state meanwhile; read it and retry.",
-                                code="invalid_state")
-        self._publish_state(run_id)
-        return owner
+        """Move a run from one of ``sources`` to ``target`` and publish its state (one
+        ``EventBus.finish`` step); the old owner token."""
+        owners: list[str | None] = []
 
-    def _publish_state(self, run_id: str) -> None:
-        self.events.publish_state(Topic("run", run_id))
+        def save() -> bool:
+            with self.db.session() as s:
+                run = queries.get_run(s, run_id=run_id)
+                if run.state == same_ok:
+                    return False
+                if run.state not in sources:
+                    raise ConflictError(f"Run {run_id} is {run.state}; it cannot become "
+                                        f"{target}.", code="invalid_state")
+                owners.append(run.owner)
+                changed = writes.move_run(s, run_id=run_id, from_state=run.state,
+                                         state=target, owner=None)
+            if not changed:
+                raise ConflictError(f"Run {run_id} changed state meanwhile; read it and retry.",
+                                    code="invalid_state")
+            return True
+
+        self.events.finish(Topic("run", run_id), save)
+        return owners[0] if owners else None
 
     def _start_capture(self, run_id: str, token: str, *, cold: bool) -> None:
         kind = ColdStartCapture if cold else Capture
