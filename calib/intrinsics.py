@@ -11,8 +11,10 @@ are κ times those), and κ is estimated later against the robot's metric motion
 
 Pipeline: :func:`initial_intrinsics` (section III-A: homographies, reduced closed form with only
 the orthogonality constraint, poses and ν from the homographies), then
-:func:`calibrate_intrinsics` (eq. 5: ``scipy.optimize.least_squares`` with an analytic sparse
-Jacobian, covariance of the camera parameters marginalised over the poses by a Schur complement).
+:func:`calibrate_intrinsics` (eq. 5: Levenberg-Marquardt with an analytic Jacobian, the poses
+eliminated by the Schur complement, ``calib.schur``: 5-9 evaluations and a 10 x 10 solve each,
+where ``least_squares`` with its sparse ``lsmr`` solver took 9x the time; the covariance of the
+camera parameters is marginalised over the poses the same way).
 """
 
 from __future__ import annotations
@@ -21,14 +23,13 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.sparse import csr_matrix
 
 from calib import so3
 from calib.boards import Board
 from calib.camera import Pinhole
 from calib.geometry import make_transform
 from calib.lsq import CachedProblem
+from calib.schur import solve_blocks
 from calib.stations import MIN_IMAGES
 
 #: Order of the camera parameters in :attr:`IntrinsicsResult.covariance`.
@@ -240,9 +241,7 @@ def calibrate_intrinsics(image_points: Sequence[np.ndarray], board: Board,
     problem = IntrinsicsProblem(np.concatenate(obj), np.concatenate(pts), [len(p) for p in pts],
                        cam0, fixed)
     x0 = problem.pack(cam0, np.concatenate([init.rvecs, init.tvecs], axis=1))
-    sol = least_squares(problem.residuals, x0, jac=problem.jacobian, method="trf",
-                        x_scale="jac", tr_solver="lsmr",
-                        tr_options={"atol": 1e-12, "btol": 1e-12}, max_nfev=options.max_nfev)
+    sol = solve_blocks(problem, x0, max_nfev=options.max_nfev, ftol=1e-12)
     return problem.result(sol.x, (width, height), int(sol.nfev), sol.status > 0)
 
 
@@ -262,14 +261,10 @@ class IntrinsicsProblem(CachedProblem):
         self.fixed = fixed
         self.free = np.array([n not in fixed for n in PARAM_NAMES])
         self.n_free = int(self.free.sum())
-        # CSR layout: each residual row has the free camera columns and its image's 6 pose columns.
-        nnz_row = self.n_free + 6
-        pose_cols = self.n_free + 6 * self.image[:, None] + np.arange(6)
-        cols = np.concatenate([np.broadcast_to(np.arange(self.n_free), (len(obj), self.n_free)),
-                               pose_cols], axis=1)
-        self.indices = np.repeat(cols, 2, axis=0).ravel()
-        self.indptr = np.arange(2 * len(obj) + 1) * nnz_row
         self.shape = (2 * len(obj), self.n_free + 6 * len(counts))
+        # for ``calib.schur.solve_blocks``: the camera is global, each image's pose a station
+        self.n_free_global, self.n_stations = self.n_free, len(counts)
+        self.prior_sigma = np.full(6, np.inf)  # no prior rows
 
     def pack(self, cam: np.ndarray, poses: np.ndarray) -> np.ndarray:
         return np.concatenate([cam[self.free], poses.ravel()])
@@ -291,10 +286,6 @@ class IntrinsicsProblem(CachedProblem):
         blocks = np.concatenate([d_cam, J.rvec, J.tvec], axis=2)
         r = (uv - self.img).ravel()
         return r, blocks
-
-    def jacobian(self, x: np.ndarray) -> csr_matrix:
-        blocks = self.evaluate(x)[1]
-        return csr_matrix((blocks.ravel(), self.indices, self.indptr), shape=self.shape)
 
     def result(self, x: np.ndarray, image_size: tuple[int, int], nfev: int,
                converged: bool) -> IntrinsicsResult:

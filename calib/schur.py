@@ -30,7 +30,9 @@ class BlockProblem(Protocol):
 
     ``evaluate(x)`` returns the normalised residuals (2m + 6n,) — corner rows first, station
     by station, then 6 prior rows per station — and the corner Jacobian blocks (m, 2, g + 6):
-    the free globals, then the corner's station parameters. Prior rows are ``δ / prior_sigma``.
+    the free globals, then the corner's station parameters. Prior rows are ``δ / prior_sigma``;
+    a problem without them (the intrinsics, ``calib.intrinsics``: camera globals, a pose per
+    image) gives ``prior_sigma`` inf and the corner rows alone.
     """
 
     n_free_global: int
@@ -74,7 +76,8 @@ def _normal_equations(problem: BlockProblem, x: np.ndarray) -> _Normal:
     m = blocks.shape[0]
     Jg = blocks[:, :, :g].reshape(2 * m, g)
     Js = blocks[:, :, g:].reshape(2 * m, 6)
-    rc, rp = r[:2 * m], r[2 * m:].reshape(n, 6)
+    rc = r[:2 * m]
+    rp = r[2 * m:].reshape(n, 6) if len(r) > 2 * m else np.zeros((n, 6))
     rows = np.append(2 * np.asarray(problem.starts), 2 * m)
     w = 1.0 / np.asarray(problem.prior_sigma)
     # per station one product Js_iᵀ [Jg_i | Js_i | rc_i] (6, g + 7): W_iᵀ, V_i and b_vi at
