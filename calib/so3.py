@@ -1,9 +1,9 @@
 """SO(3): cross-product matrices, exp/log and the left Jacobian, vectorised over stacks.
 
-The one place for rotation-vector algebra. Exp and log go through
-``scipy.spatial.transform.Rotation``, imported on first use (scipy.spatial takes a fifth of a
-second to load, which the geometry and station-set checks do not need); the left Jacobian
-(not in scipy) is the closed form
+The one place for rotation-vector algebra. Exp and log are closed forms on numpy arrays
+(Rodrigues; the quaternion by Shepperd's method): the solvers call them hundreds of times on
+a few dozen matrices, where ``scipy.spatial.transform.Rotation``'s per-call overhead (50-100
+µs) was a fifth of a calibration's solve. The left Jacobian is the closed form
 
     J_l(φ) = I + (1 - cos θ)/θ² [φ]x + (θ - sin θ)/θ³ [φ]x²,   θ = |φ|
 
@@ -13,12 +13,7 @@ with Taylor series near θ = 0. It is the derivative of a left perturbation:
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
-
-if TYPE_CHECKING:
-    from scipy.spatial.transform import Rotation
 
 # Below this rotation angle (rad) the left Jacobian uses its Taylor series.
 _SMALL_ANGLE = 1e-4
@@ -35,23 +30,64 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 
 def exp(rvec: np.ndarray) -> np.ndarray:
-    """Rotation matrices of rotation vectors (rad), shape (..., 3) -> (..., 3, 3)."""
+    """Rotation matrices of rotation vectors (rad), shape (..., 3) -> (..., 3, 3).
+
+    Rodrigues' formula ``R = I + (sin θ / θ) [φ]x + ((1 - cos θ) / θ²) [φ]x²``, with Taylor
+    series below ``_SMALL_ANGLE``.
+    """
     rvec = np.asarray(rvec, dtype=float)
-    R = _rotation().from_rotvec(rvec.reshape(-1, 3)).as_matrix()
-    return R.reshape(*rvec.shape[:-1], 3, 3)
+    theta = np.linalg.norm(rvec, axis=-1)[..., None, None]
+    small = theta < _SMALL_ANGLE
+    t = np.where(small, 1.0, theta)
+    t2 = theta * theta
+    a = np.where(small, 1.0 - t2 / 6.0, np.sin(t) / t)
+    b = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(t)) / (t * t))
+    W = skew(rvec)
+    return np.eye(3) + a * W + b * (W @ W)
 
 
 def log(R: np.ndarray) -> np.ndarray:
-    """Rotation vectors (rad, angle in [0, π]) of rotation matrices, (..., 3, 3) -> (..., 3)."""
+    """Rotation vectors (rad, angle in [0, π]) of rotation matrices, (..., 3, 3) -> (..., 3).
+
+    Through the unit quaternion (Shepperd's method: from the largest of its four squared
+    components, accurate at every angle, also near π), then ``φ = 2 atan2(|v|, w) v / |v|``
+    with ``w ≥ 0``.
+    """
     R = np.asarray(R, dtype=float)
-    rvec = _rotation().from_matrix(R.reshape(-1, 3, 3)).as_rotvec()
-    return rvec.reshape(*R.shape[:-2], 3)
+    q = _quaternion(R.reshape(-1, 3, 3))
+    q *= np.where(q[:, 3:] < 0.0, -1.0, 1.0)
+    v, w = q[:, :3], q[:, 3]
+    norm_v = np.linalg.norm(v, axis=1)
+    angle = 2.0 * np.arctan2(norm_v, w)
+    small = norm_v < 1e-12
+    # φ = angle / |v| v; for tiny |v| angle / |v| -> 2 / w
+    scale = np.where(small, 2.0 / np.where(small, w, 1.0), angle / np.where(small, 1.0, norm_v))
+    return (v * scale[:, None]).reshape(*R.shape[:-2], 3)
 
 
-def _rotation() -> type[Rotation]:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation
+def _quaternion(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions (x, y, z, w) of rotation matrices (n, 3, 3), Shepperd's method."""
+    diag = np.stack([R[:, 0, 0], R[:, 1, 1], R[:, 2, 2], R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2]],
+                    axis=1)
+    choice = np.argmax(diag, axis=1)
+    q = np.empty((len(R), 4))
+    for k in range(4):
+        m = choice == k
+        if not m.any():
+            continue
+        r = R[m]
+        if k == 3:  # w largest
+            q[m] = np.stack([r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0],
+                             r[:, 1, 0] - r[:, 0, 1], 1.0 + diag[m, 3]], axis=1)
+            continue
+        i, j, h = k, (k + 1) % 3, (k + 2) % 3
+        qm = np.empty((int(m.sum()), 4))
+        qm[:, i] = 1.0 - diag[m, 3] + 2.0 * r[:, i, i]
+        qm[:, j] = r[:, j, i] + r[:, i, j]
+        qm[:, h] = r[:, h, i] + r[:, i, h]
+        qm[:, 3] = r[:, h, j] - r[:, j, h]
+        q[m] = qm
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def left_jacobian(rvec: np.ndarray) -> np.ndarray:
