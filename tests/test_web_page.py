@@ -164,6 +164,10 @@ def test_click_through_run_calibrate_report_export(served: LocalService, tmp_pat
         browser.js("(() => { const b = document.querySelector('#calibrate');"
                    " b.click(); b.click(); })()")
         assert browser.js("document.querySelector('#calibrate').disabled")
+        # and stays so through a refresh of the run, which each event of the followed run
+        # makes (one that came late re-enabled it mid-calibration: failed at load ~30)
+        assert browser.js("refreshRun().then(() => document.querySelector('#calibrate')"
+                          ".disabled)")
         browser.wait_for("the calibration", "document.querySelector('#status').textContent"
                          " === 'calibration finished'")
         run_id = browser.js("currentRun")

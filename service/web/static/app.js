@@ -6,6 +6,9 @@ const $ = (selector) => document.querySelector(selector);
 let key = sessionStorage.getItem("cellcal-key") || "";
 let currentRun = null;
 let stream = null;
+// A calibrate request of this page is in flight: its button stays disabled whatever a run
+// refresh (on each event of the followed run) says about the run.
+let calibrating = false;
 
 function setStatus(text) { $("#status").textContent = text; }
 
@@ -117,7 +120,8 @@ async function refreshRun() {
     button.disabled = !ACTIONS[button.dataset.action](run);
   }
   $("[data-action=finish]").hidden = run.mode !== "external";
-  $("#calibrate").disabled = run.state === "capturing" || run.stations_captured === 0;
+  $("#calibrate").disabled = calibrating || run.state === "capturing" ||
+    run.stations_captured === 0;
   $("#run-error").hidden = !run.error;
   $("#run-error").textContent = run.error ? run.error.detail : "";
   const seen = run.stations_captured + run.stations_skipped;
@@ -479,10 +483,11 @@ for (const button of document.querySelectorAll("[data-action]")) {
   }));
 }
 
-// Calibrate disables itself while its request runs, and sends an Idempotency-Key, so a
+// Calibrate disables itself until its calibration ends, and sends an Idempotency-Key, so a
 // double click starts one solve.
 $("#calibrate").addEventListener("click", () => {
   const button = $("#calibrate");
+  calibrating = true;
   button.disabled = true;
   const options = { method: $("#method").value, kappa: $("#kappa").value };
   run(async () => {
@@ -499,7 +504,10 @@ $("#calibrate").addEventListener("click", () => {
     await showCalibration(created.id);
     await loadRunResult(currentRun);
     setStatus("calibration finished");
-  }).finally(() => refreshRun().catch(() => { button.disabled = false; }));
+  }).finally(() => {
+    calibrating = false;
+    return refreshRun().catch(() => { button.disabled = false; });
+  });
 });
 
 // The address fragment (never sent to the server) may carry the key, taken once and removed,
