@@ -101,7 +101,10 @@ def _timeout_at_least(item: pytest.Item, floor: float) -> None:
     """Raise a ``timeout`` marker below ``floor`` to it. A test's timeout only catches a hang
     (the tests wait for conditions, never for time), yet the 10-40 s ones failed tests that
     were merely slow: under four CPU burners, or other sessions' load (~25 on two cores), a
-    test runs 5-10x slower than alone. A hang still fails, after ``floor`` s."""
+    test runs 5-10x slower than alone. A floor of 120 s was not enough either: at load 26-34
+    two solver tests of tests/test_pipeline.py that took 21 and 39 s at load 20-27 ran past
+    it (the kernel shares the cores between sessions, and the suite's own workers, services
+    and browsers share the suite's part). A hang still fails, after ``floor`` s."""
     marker = item.get_closest_marker("timeout")
     if floor and marker is not None and marker.args and float(marker.args[0]) < floor:
         item.add_marker(pytest.mark.timeout(floor, *marker.args[1:], **marker.kwargs),
