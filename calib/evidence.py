@@ -13,7 +13,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -26,12 +26,12 @@ from calib.crossval import (
 )
 from calib.handeye import HandEyeResult, calibrate_hand_eye
 from calib.joint import CellParameters, JointResult
-from calib.jointfit import JointData, JointFit, JointModel, fit_joint
+from calib.jointfit import JointData, JointModel
 from calib.quality import QualityInputs, assess, irreconcilable
 from calib.refine import RefineOptions, scale_translations
 from calib.result import QualityBlock
 from calib.selection import ModelCandidate, Modes, Selection, select_joint_model
-from calib.uncertainty import UncertaintyEstimate, honest, with_held_shift
+from calib.uncertainty import UncertaintyEstimate, honest
 
 #: Leading names of the pose-only candidates (``calib.handeye`` methods).
 POSE_CANDIDATES = ("sm", "refine")
@@ -80,31 +80,9 @@ def choose_joint(data: JointData, station_ids: Sequence[str], base: JointModel,
                       and chosen is not None and c.model.robot_map == chosen.robot_map), None)
     result = fit.result(first.stations, first.rejected, noise=None if estimated is None else (
         estimated.sigma_px, estimated.noise.rot_rad, estimated.noise.trans_m))
-    uncertainty = honest(result.sigmas, selection.chosen.cv.estimates, FoldEstimate.of(result))
-    # κ, ν held at 1 by the selection (not by the user): the poses' σ include the shift to the
-    # same model estimating them (calib.uncertainty)
-    held = [p for p in ("kappa", "nu") if chosen is not None and p in chosen.fix
-            and p not in base.fix and not (p == "kappa" and kappa == "fixed")]
-    if held and chosen is not None:
-        uncertainty = with_held_shift(uncertainty, held, FoldEstimate.of(fit.cell), FoldEstimate.of(
-            _freed(selection, data, fit, replace(chosen, fix=tuple(
-                p for p in chosen.fix if p not in held)))))
-    return JointChoice(result=result, selection=selection, uncertainty=uncertainty)
-
-
-def _freed(selection: Selection, data: JointData, fit: JointFit, model: JointModel
-           ) -> CellParameters:
-    """The parameters of ``model`` (the chosen one with κ and/or ν freed) on all stations:
-    its candidate's fit when the selection tried it, else fitted from the chosen ``fit`` at
-    the noise levels that fit ended with."""
-    for c in selection.candidates:
-        if c.model is not None and c.fit is not None and set(c.model.fix) == set(model.fix) \
-                and c.model.estimate_noise == model.estimate_noise \
-                and c.model.robot_map == model.robot_map:
-            return c.fit.cell
-    return fit_joint(replace(data, sigma_px=fit.sigma_px),
-                     replace(model, noise=fit.noise, estimate_noise=False), fit.cell,
-                     corrections=fit.corrections).cell
+    return JointChoice(result=result, selection=selection,
+                       uncertainty=honest(result.sigmas, selection.chosen.cv.estimates,
+                                          FoldEstimate.of(result)))
 
 
 def method_cross_validation(data: JointData, station_ids: Sequence[str],

@@ -83,11 +83,6 @@ class Uncertainty(_Block):
         None, description="per parameter, which figure was reported")
     formal: dict[str, Sigma] | None = Field(None, description="from the Jacobian")
     jackknife: dict[str, Sigma] | None = Field(None, description="spread over the folds")
-    held_at_one: list[str] | None = Field(
-        None, description="parameters the model selection held at 1 (kappa, nu)")
-    held_shift: dict[str, Sigma] | None = Field(
-        None, description="per pose σ, the shift when those are estimated instead; half "
-                          "its square is added to the σ's square")
 
 
 class StationFit(_Block):

@@ -17,24 +17,12 @@ A vector (the three rotation or translation components of a pose) is compared as
 the root-sum-square of its components; when the jackknife wins, the formal components are
 scaled up to its size — the formal shape, far less noisy, at the level the data show. So the
 reported σ is never below the jackknife by more than that factor.
-
-A parameter the model selection held at 1 (κ or ν: estimating it did not predict clearly
-better, ``calib.selection``) is not known to be 1, only not shown to differ. Both σ's above
-take it as exact, so the pose estimates lose the spread its own uncertainty would give them:
-a board 0.1 % larger than entered moves a camera 1.2 m away by 1.2 mm, far beyond their σ.
-The shift of the pose estimates between the chosen model and the same model with the held
-parameters estimated (``d``, per axis) therefore enters their σ: the truth may lie with either
-model and the data do not say which, so with the two equally likely the chosen estimate's
-mean square error is ``σ² + d²/2`` (post-selection inference; cf. the model-averaging
-variance of Buckland, Burnham & Augustin, *Biometrics* 53, 1997, eq. 9). The selection
-preferred the held model, so equal weights are the cautious end. A parameter the user holds
-fixed (``kappa='fixed'``) adds nothing.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -54,10 +42,7 @@ class UncertaintyEstimate:
     ``hand_eye_trans_m``, ``target_pose_rot_rad``, ``target_pose_trans_m``); ``formal`` and
     ``jackknife`` the same names; ``source`` maps each name to ``formal`` or ``jackknife``
     (the larger as a block; a jackknife vector is reported as the formal one scaled to its
-    size). ``folds`` is the number of jackknife groups (0: none). ``held`` names the parameters
-    the model selection held at 1, ``shift`` the pose estimates' shift (3,) per name when
-    they are estimated instead, half its square added to the square of ``sigmas`` (module
-    docstring).
+    size). ``folds`` is the number of jackknife groups (0: none).
     """
 
     sigmas: dict[str, float | np.ndarray]
@@ -65,8 +50,6 @@ class UncertaintyEstimate:
     jackknife: dict[str, float | np.ndarray]
     source: dict[str, str]
     folds: int
-    held: tuple[str, ...] = ()
-    shift: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def note(self) -> str:
@@ -80,18 +63,11 @@ class UncertaintyEstimate:
                 f"{self.folds} cross-validation folds, the jackknife counting when it exceeds "
                 f"the formal value by more than its own noise ({JACKKNIFE_NOISE:g}x); ")
         if not wider:
-            text += ("the formal value is reported everywhere (the jackknife is within its "
-                     "noise of it or smaller)")
-        else:
-            text += ("the data scatter more than the noise model says for "
-                     + ", ".join(wider) + " (jackknife reported, as the formal components "
-                     "scaled to its size: the robot likely has systematic errors)")
-        if self.held:
-            text += ("; the poses' σ include how far they move when "
-                     + " and ".join(self.held) + ", held at 1 by the model selection, "
-                     "is estimated instead (half its square added to theirs: either model "
-                     "may be right)")
-        return text
+            return text + ("the formal value is reported everywhere (the jackknife is within its "
+                           "noise of it or smaller)")
+        return text + ("the data scatter more than the noise model says for "
+                       + ", ".join(wider) + " (jackknife reported, as the formal components "
+                       "scaled to its size: the robot likely has systematic errors)")
 
 
 def fold_deviations(estimates: Sequence[FoldEstimate], reference: FoldEstimate
@@ -146,27 +122,6 @@ def honest(formal: dict[str, float | np.ndarray], estimates: Sequence[FoldEstima
         source[name] = "jackknife" if wider else "formal"
     return UncertaintyEstimate(sigmas=sigmas, formal=dict(formal), jackknife=jk, source=source,
                        folds=len(estimates) if jk else 0)
-
-
-#: The pose estimates of ``fold_deviations`` that :func:`with_held_shift` widens.
-POSE_SIGMAS = ("hand_eye_rot_rad", "hand_eye_trans_m", "target_pose_rot_rad",
-               "target_pose_trans_m")
-
-
-def with_held_shift(estimate: UncertaintyEstimate, held: Sequence[str], chosen: FoldEstimate,
-                    freed: FoldEstimate) -> UncertaintyEstimate:
-    """``estimate`` with the pose σ widened by the shift from ``chosen`` (the parameters
-    ``held`` at 1) to ``freed`` (the same model estimating them): ``sqrt(σ² + d²/2)`` per
-    axis (module docstring)."""
-    if not held:
-        return estimate
-    shift = {name: np.abs(dev[0]) for name, dev in fold_deviations([freed], chosen).items()
-             if name in POSE_SIGMAS}
-    sigmas = dict(estimate.sigmas)
-    for name, d in shift.items():
-        if name in sigmas:
-            sigmas[name] = np.hypot(np.asarray(sigmas[name], dtype=float), d / np.sqrt(2.0))
-    return replace(estimate, sigmas=sigmas, held=tuple(held), shift=shift)
 
 
 #: The 90 % bound on the norm of a 3-vector error (a pose's rotation or translation) as a

@@ -179,8 +179,7 @@ def _uncertainty_extras(trust: Trust | None) -> dict[str, Any]:
         return {}
     u = trust.uncertainty
     return {"note": u.note, "jackknife_folds": u.folds, "source": u.source,
-            "formal": u.formal, "jackknife": u.jackknife,
-            **({"held_at_one": list(u.held), "held_shift": u.shift} if u.held else {})}
+            "formal": u.formal, "jackknife": u.jackknife}
 
 
 def _mm(v: float | None) -> float | None:
