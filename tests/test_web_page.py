@@ -177,8 +177,10 @@ def test_click_through_run_calibrate_report_export(served: LocalService, tmp_pat
         assert httpx.get(f"{served.url}/calibrations/{cals[0]['id']}", headers=AUTH
                          ).json()["options"]["kappa"] == "estimate"
         row = "#calibrations tbody tr:first-child"
-        assert browser.js(f"document.querySelector('{row} td:nth-child(4)').textContent") \
-            == "done"
+        # the table refreshes on its own event, after the status line (under load it lagged)
+        browser.wait_for("the calibration's row to show done",
+                         f"document.querySelector('{row} td:nth-child(4)').textContent"
+                         " === 'done'")
         verdict = text(browser, f"{row} td:nth-child(5)")
         assert verdict in ("pass", "warn"), verdict
         assert text(browser, "#figures dd.verdict, #figures dd.pass, #figures dd.warn") \
