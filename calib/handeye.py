@@ -21,8 +21,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from calib import so3
 from calib.chain import (
     MotionPairs,
     check_motion_diversity,
@@ -79,8 +79,7 @@ def validate_stations(T_base_tcp: np.ndarray, T_cam_target: np.ndarray) -> tuple
 
 def average_transform(Ts: np.ndarray) -> np.ndarray:
     """Mean of transforms (n, 4, 4): chordal rotation mean and mean translation, (4, 4)."""
-    R = Rotation.from_matrix(Ts[:, :3, :3]).mean().as_matrix()
-    return make_transform(R, Ts[:, :3, 3].mean(axis=0))
+    return make_transform(so3.mean(Ts[:, :3, :3]), Ts[:, :3, 3].mean(axis=0))
 
 
 def solve_screw(T_base_tcp: np.ndarray, C: np.ndarray, setup: str,

@@ -34,8 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.spatial.transform import Rotation
 
+from calib import so3
 from calib.boards import Board
 from calib.camera import Pinhole, solve_pnp
 from calib.chain import (
@@ -281,8 +281,7 @@ def look_at_view(look_at: np.ndarray, tilt: float, azimuth: float, roll: float,
     tilt the camera x axis is at angle ``roll`` from the board x axis.
     """
     tilt_axis = np.array([np.cos(azimuth), np.sin(azimuth), 0.0])
-    R = (Rotation.from_rotvec(tilt * tilt_axis) * Rotation.from_rotvec([0.0, 0.0, roll]))
-    R_target_cam = R.as_matrix()
+    R_target_cam = so3.exp(tilt * tilt_axis) @ so3.exp(np.array([0.0, 0.0, roll]))
     origin = np.asarray(look_at, dtype=float) - distance * R_target_cam[:, 2]
     return invert(make_transform(R_target_cam, origin))
 

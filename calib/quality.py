@@ -22,8 +22,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from calib import so3
 from calib.crossval import CrossValidation
 from calib.result import Finding, QualityBlock
 
@@ -160,8 +160,8 @@ def _weak_rotation(ev: QualityInputs) -> Finding | None:
     """Spread of the tool orientations about their mean: principal angles (deg)."""
     if ev.T_base_tcp is None:
         return None
-    R = Rotation.from_matrix(ev.T_base_tcp[:, :3, :3])
-    dev = (R.mean().inv() * R).as_rotvec()
+    R = ev.T_base_tcp[:, :3, :3]
+    dev = so3.log(so3.mean(R).T @ R)
     spread = np.degrees(np.sqrt(np.linalg.eigvalsh(np.cov(dev.T) + 1e-18)[::-1]))
     if spread[0] >= WEAK_ROTATION_DEG and spread[1] >= WEAK_SECOND_AXIS_DEG:
         return None

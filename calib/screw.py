@@ -24,7 +24,6 @@ Quaternions here are scalar-first ``(w, x, y, z)``, internal only.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from calib import so3
 from calib.geometry import make_transform, rotation_angle
@@ -134,7 +133,7 @@ def solve_sm(A: np.ndarray, B: np.ndarray, *, length_scale: float = 1.0) -> np.n
     q, qp = q / scale, qp / scale
     # t_X = q' q^-1 (vector part); for unit q, q^-1 is the conjugate
     t = _quat_mul(qp, q * np.array([1.0, -1.0, -1.0, -1.0]))[1:]
-    R = Rotation.from_quat(q, scalar_first=True).as_matrix()
+    R = so3.from_quaternion(np.roll(q, -1))  # scalar first -> (x, y, z, w)
     return make_transform(R, t * length_scale)
 
 

@@ -1,9 +1,13 @@
-"""SO(3): cross-product matrices, exp/log and the left Jacobian, vectorised over stacks.
+"""SO(3): cross-product matrices, exp/log, quaternions, the mean and the left Jacobian,
+vectorised over stacks.
 
-The one place for rotation-vector algebra. Exp and log are closed forms on numpy arrays
+The one place for rotation algebra in ``calib``. Exp and log are closed forms on numpy arrays
 (Rodrigues; the quaternion by Shepperd's method): the solvers call them hundreds of times on
 a few dozen matrices, where ``scipy.spatial.transform.Rotation``'s per-call overhead (50-100
-µs) was a fifth of a calibration's solve. The left Jacobian is the closed form
+µs) was a fifth of a calibration's solve. The mean is the chordal L2 mean of the unit
+quaternions (the eigenvector of largest eigenvalue of ``Σ q qᵀ``; Markley, Cheng, Crassidis
+and Oshman, "Averaging Quaternions", J. Guidance Control Dyn. 30(4):1193, 2007), the same as scipy's
+``Rotation.mean``. The left Jacobian is the closed form
 
     J_l(φ) = I + (1 - cos θ)/θ² [φ]x + (θ - sin θ)/θ³ [φ]x²,   θ = |φ|
 
@@ -63,6 +67,35 @@ def log(R: np.ndarray) -> np.ndarray:
     # φ = angle / |v| v; for tiny |v| angle / |v| -> 2 / w
     scale = np.where(small, 2.0 / np.where(small, w, 1.0), angle / np.where(small, 1.0, norm_v))
     return (v * scale[:, None]).reshape(*R.shape[:-2], 3)
+
+
+def quaternion(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions (x, y, z, w) of rotation matrices, (..., 3, 3) -> (..., 4); the sign
+    is either one (``q`` and ``-q`` are the same rotation)."""
+    R = np.asarray(R, dtype=float)
+    return _quaternion(R.reshape(-1, 3, 3)).reshape(*R.shape[:-2], 4)
+
+
+def from_quaternion(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices of quaternions (x, y, z, w), normalised first, (..., 4) -> (..., 3, 3).
+    """
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    xx, yy, zz, ww = x * x, y * y, z * z, w * w
+    xy, xz, xw, yz, yw, zw = x * y, x * z, x * w, y * z, y * w, z * w
+    return np.stack([
+        np.stack([xx - yy - zz + ww, 2.0 * (xy - zw), 2.0 * (xz + yw)], axis=-1),
+        np.stack([2.0 * (xy + zw), -xx + yy - zz + ww, 2.0 * (yz - xw)], axis=-1),
+        np.stack([2.0 * (xz - yw), 2.0 * (yz + xw), -xx - yy + zz + ww], axis=-1)], axis=-2)
+
+
+def mean(R: np.ndarray) -> np.ndarray:
+    """Chordal L2 mean of rotation matrices (n, 3, 3) -> (3, 3) (module docstring): the
+    rotation whose unit quaternion maximises ``Σ (qᵀ q_i)²``, sign-free."""
+    q = quaternion(R).reshape(-1, 4)
+    _, vectors = np.linalg.eigh(q.T @ q / len(q))
+    return from_quaternion(vectors[:, -1])
 
 
 def _quaternion(R: np.ndarray) -> np.ndarray:

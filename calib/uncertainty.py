@@ -25,8 +25,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from calib import so3
 from calib.crossval import FoldEstimate
 
 #: The jackknife replaces the formal σ only when it is larger by more than this factor (its
@@ -81,8 +81,7 @@ def fold_deviations(estimates: Sequence[FoldEstimate], reference: FoldEstimate
     for name, attr in (("hand_eye", "hand_eye"), ("target_pose", "target_pose")):
         T_ref = getattr(reference, attr)
         T = np.stack([getattr(e, attr) for e in estimates])
-        out[f"{name}_rot_rad"] = Rotation.from_matrix(
-            T[:, :3, :3] @ T_ref[:3, :3].T).as_rotvec()
+        out[f"{name}_rot_rad"] = so3.log(T[:, :3, :3] @ T_ref[:3, :3].T)
         out[f"{name}_trans_m"] = T[:, :3, 3] - T_ref[:3, 3]
     out["kappa"] = np.array([e.kappa for e in estimates])
     out["nu"] = np.array([e.nu for e in estimates])

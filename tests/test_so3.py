@@ -61,3 +61,36 @@ def test_left_update_rotates_on_the_left_and_adds_the_translation():
     assert np.allclose(T[:3, :3], so3.exp(xi[:3]) @ T0[:3, :3])
     assert np.allclose(T[:3, 3], T0[:3, 3] + xi[3:]) and np.allclose(T[3], [0, 0, 0, 1])
     assert np.allclose(so3.left_update(T0, np.zeros(6)), T0)
+
+
+def test_quaternions_agree_with_scipy_either_way():
+    """``quaternion`` and ``from_quaternion`` are inverse, and match scipy's (x, y, z, w)
+    convention up to the sign of q; ``from_quaternion`` normalises its input."""
+    R = so3.exp(ROTVECS)
+    q = so3.quaternion(R)
+    assert q.shape == (len(ROTVECS), 4) and so3.quaternion(R[0]).shape == (4,)
+    assert np.allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-15)
+    reference = Rotation.from_matrix(R).as_quat()
+    assert np.allclose(np.abs(np.sum(q * reference, axis=1)), 1.0, atol=1e-15)
+    assert np.allclose(so3.from_quaternion(q), R, atol=1e-15)
+    raw = RNG.normal(size=(6, 4)) * 3.0  # not unit
+    assert np.allclose(so3.from_quaternion(raw), Rotation.from_quat(raw).as_matrix(),
+                       atol=1e-15)
+    assert so3.from_quaternion(raw.reshape(2, 3, 4)).shape == (2, 3, 3, 3)
+
+
+@pytest.mark.parametrize("spread", [0.05, 0.8, 2.5])
+def test_mean_is_scipys_chordal_mean(spread):
+    """The chordal L2 mean of clustered and of widely spread rotations, against scipy's
+    ``Rotation.mean``; the order of the rotations does not matter, and a tight cluster's
+    mean lies near its centre."""
+    rng = np.random.default_rng(11)
+    centre = so3.exp(np.array([0.4, -1.2, 2.0]))
+    R = so3.exp(rng.normal(0.0, spread, (9, 3))) @ centre
+    M = so3.mean(R)
+    assert M.shape == (3, 3)
+    assert np.allclose(M @ M.T, np.eye(3), atol=1e-14) and np.isclose(np.linalg.det(M), 1.0)
+    assert np.allclose(M, Rotation.from_matrix(R).mean().as_matrix(), atol=1e-13)
+    assert np.allclose(so3.mean(R[::-1]), M, atol=1e-13)
+    if spread < 0.1:
+        assert np.linalg.norm(so3.log(M.T @ centre)) < spread
