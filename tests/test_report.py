@@ -8,6 +8,7 @@ import hashlib
 import json
 import re
 from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from html.parser import HTMLParser
 from types import SimpleNamespace
 
@@ -299,3 +300,17 @@ def test_rest_report_of_a_capture_run(client, monkeypatch) -> None:
     rendering.set_result("<p>rendered late</p>")
     wait_for("the late page to be kept", cached.is_file)
     assert client.get(f"/calibrations/{cal_id}/report").text == "<p>rendered late</p>"
+    # the worker died while rendering (out of memory, killed): 503 at once, saying so, and the
+    # next request renders the page again (issue 22, a variant of row 7: before, 500)
+    cached.unlink()
+    died: Future[str] = Future()
+    died.set_exception(BrokenProcessPool("a child process terminated abruptly"))
+    again: Future[str] = Future()
+    again.set_result("<p>rendered again</p>")
+    renderings = iter([died, again])
+    monkeypatch.setattr(reports, "_pool", SimpleNamespace(submit=lambda *args: next(renderings),
+                                                          shutdown=lambda: None))
+    lost = client.get(f"/calibrations/{cal_id}/report")
+    assert lost.status_code == 503 and lost.headers["Retry-After"] == "5", lost.text
+    assert lost.json()["code"] == "report_worker_died" and cal_id in lost.json()["detail"]
+    assert client.get(f"/calibrations/{cal_id}/report").text == "<p>rendered again</p>"

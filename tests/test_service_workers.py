@@ -19,6 +19,7 @@ import numpy as np
 
 from calib.geometry import ur_pose_from_matrix
 from mocks.scene import default_scene, sample_station_poses
+from service.jobs.workers import WorkerPool
 from service.serving.local import LocalService, ServeOptions, local_service
 from tests.support.helpers import wait_for
 
@@ -132,3 +133,20 @@ def test_calibration_queue_is_bounded(tmp_path):
         wait_for("the queued calibrations", lambda: all(
             c["state"] != "running" for c in client.get(path).json()), 120)
         assert client.post(path, json={}).status_code == 202  # room again
+
+
+def test_a_pool_whose_idle_worker_died_starts_new_workers():
+    """A worker killed while idle (the out-of-memory killer, an operator's ``kill``) broke its
+    ``ProcessPoolExecutor`` for good: every later calibration, report and posted image was
+    answered 500, and each calibration asked for stayed ``running`` (issue 22, a variant of
+    row 4). The pool starts new workers at the next task instead."""
+    pool = WorkerPool(1, lambda message: None)
+    try:
+        first = pool.submit(os.getpid).result(timeout=60)
+        os.kill(first, signal.SIGKILL)
+        # the executor has seen the death once it has reaped the worker
+        wait_for("the dead worker reaped", lambda: not Path(f"/proc/{first}").exists(), 60)
+        second = pool.submit(os.getpid).result(timeout=60)
+    finally:
+        pool.shutdown()
+    assert second != first

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
+import functools
 import logging
 import multiprocessing
 import os
@@ -100,15 +101,21 @@ class WorkerPool:
     ``submit`` hands the call to one long-lived thread, which is where the pool spawns its
     workers (``ProcessPoolExecutor`` starts them in the submitting thread), so the parent-death
     signal is tied to a thread that ends only with :meth:`shutdown` or the process.
+
+    A worker that dies while idle (the kernel's out-of-memory killer, a ``kill``) breaks a
+    ``ProcessPoolExecutor`` for good: it refuses every later task. Such a pool is replaced by
+    a new one at the next ``submit``, so one dead worker does not fail every later
+    calibration, report or posted image until the service is restarted.
     """
 
     def __init__(self, workers: int, on_progress: Callable[[Any], None], *,
                  memory_bytes: int | None = None, nice: int = 0) -> None:
         context = multiprocessing.get_context("spawn")
         self._receive, send = context.Pipe(duplex=False)
-        self._pool = cf.ProcessPoolExecutor(
-            workers, mp_context=context, initializer=_init_worker,
+        self._new_pool = functools.partial(
+            cf.ProcessPoolExecutor, workers, mp_context=context, initializer=_init_worker,
             initargs=(os.getpid(), _ProgressPipe(send, context.Lock()), memory_bytes))
+        self._pool = self._new_pool()
         # Linux keeps a nice value per thread and a new process inherits its creator's: the
         # spawning thread takes ``nice``, so the workers run at it from their first import
         self._spawner = cf.ThreadPoolExecutor(1, thread_name_prefix="worker-spawner",
@@ -133,7 +140,18 @@ class WorkerPool:
                 log.exception("calibration progress %r", message)
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> cf.Future[Any]:
-        return self._spawner.submit(self._pool.submit, fn, *args).result()
+        return self._spawner.submit(self._submit, fn, *args).result()
+
+    def _submit(self, fn: Callable[..., Any], *args: Any) -> cf.Future[Any]:
+        """On the spawning thread: submit, to a new pool if a worker of this one died."""
+        try:
+            return self._pool.submit(fn, *args)
+        except cf.process.BrokenProcessPool:
+            log.warning("a worker process had died (out of memory, or killed); new worker "
+                        "processes are started")
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = self._new_pool()
+            return self._pool.submit(fn, *args)
 
     def shutdown(self) -> None:
         """Cancel queued work and let the workers go; does not wait for a running solve."""

@@ -81,19 +81,26 @@ class Reports:
             return path
         with self._lock:
             future = self._rendering.get(cal_id)
+            new = future is None
             if future is None:
                 if self._pool is None:
                     # a lower priority: capture's threads get the cores first
                     self._pool = WorkerPool(1, lambda message: None, nice=REPORT_NICE)
                 future = self._pool.submit(render, job())
                 self._rendering[cal_id] = future
-                future.add_done_callback(lambda f: self._keep(cal_id, f))
+        if new:  # outside the lock, which ``_keep`` takes (at once if it has ended already)
+            future.add_done_callback(lambda f: self._keep(cal_id, f))
         try:
             return future.result(timeout=self.wait_s)
         except cf.TimeoutError:
             raise NotReadyError(
                 f"The report of calibration {cal_id} is still being rendered; retry in "
                 f"{RETRY_AFTER_S} s.", code="report_rendering",
+                retry_after_s=RETRY_AFTER_S) from None
+        except cf.process.BrokenProcessPool:  # the next request renders it in a new worker
+            raise NotReadyError(
+                f"The process rendering the report of calibration {cal_id} died (out of "
+                f"memory, or killed); retry in {RETRY_AFTER_S} s.", code="report_worker_died",
                 retry_after_s=RETRY_AFTER_S) from None
 
     def cached(self, cal_id: str) -> Path:
