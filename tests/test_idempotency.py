@@ -86,3 +86,16 @@ def test_a_key_in_flight_is_409_and_a_bad_key_400(tmp_path: Path) -> None:
         bad = client.post("/runs", json=EXTERNAL, headers={"Idempotency-Key": "two words"})
         assert bad.status_code == 400 and bad.json()["code"] == "invalid_idempotency_key"
         assert _runs(client) == 0
+
+
+def test_a_body_nested_too_deep_is_422_with_a_key_too(tmp_path: Path) -> None:
+    """Issue 22, a variant of its bad-input checks: the key's request hash parsed the body
+    first, and a body nested 100,000 levels deep made it a 500 (without a key FastAPI's own
+    parser answered 422)."""
+    nested = b'{"poses": ' + b"[" * 100_000 + b"]" * 100_000 + b"}"
+    with _client(tmp_path) as client:
+        for headers in ({}, {"Idempotency-Key": "k-5"}):
+            r = client.post("/runs", content=nested,
+                            headers={"Content-Type": "application/json", **headers})
+            assert r.status_code == 422 and r.json()["code"] == "invalid_request", r.text
+        assert _runs(client) == 0

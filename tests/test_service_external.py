@@ -225,6 +225,12 @@ def test_upload_beyond_the_body_limit_is_413_and_stores_nothing(client: TestClie
     ({"pose": "[0, 0, 0.5, NaN, 0, 0]"}, "pose: expected a JSON list of numbers"),
     ({"pose": "[0, 0, 500, 0, 0, 0]"}, "millimetres"),
     ({"pose": "[0.4, 0, 0.5, 3.1, 0, 0]", "joints": "[0, 90, 0, 0, 0, 0]"}, "degrees"),
+    # issue 22, variants of its pose checks (each was a 500): nested too deep for the JSON
+    # parser, and an integer with more digits than Python converts
+    ({"pose": "[" * 100_000 + "]" * 100_000}, "pose: expected a JSON list of numbers"),
+    ({"pose": "[" + "9" * 5000 + ", 0, 0.5, 0, 0, 0]"}, "pose: expected a JSON list of numbers"),
+    ({"pose": "[0.4, 0, 0.5, 3.1, 0, 0]", "joints": "[" * 100_000},
+     "joints: expected a JSON list of numbers"),
 ])
 def test_malformed_pose_or_joints_is_422(client: TestClient, fields: dict[str, str],
                                          match: str) -> None:

@@ -69,7 +69,7 @@ class InProgressError(ConflictError, code="request_in_progress"):
 
 def request_hash(method: str, path: str, body: bytes) -> str:
     """SHA-256 of what was asked; a JSON body counts by its content, not its spacing."""
-    with contextlib.suppress(ValueError):
+    with contextlib.suppress(ValueError, RecursionError):  # not JSON, or nested too deep
         body = json.dumps(json.loads(body), sort_keys=True, separators=(",", ":")).encode()
     return hashlib.sha256(b"%s %s\n%s" % (method.encode(), path.encode(), body)).hexdigest()
 

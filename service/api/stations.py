@@ -8,7 +8,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, UploadFile, status
 from fastapi.responses import FileResponse
-from pydantic import TypeAdapter, ValidationError
+from pydantic import TypeAdapter
 
 from service.api.deps import RunsDep, SessionDep, SettingsDep
 from service.api.routing import OneThreadRoute
@@ -91,7 +91,7 @@ def _vector(text: str | None, name: str) -> list[float] | None:
     try:
         value: Any = json.loads(text)
         return _VECTOR.validate_python(value)
-    except (json.JSONDecodeError, ValidationError):
+    except (ValueError, RecursionError):  # not JSON, too many digits, nested too deep
         raise UnprocessableError(f"{name}: expected a JSON list of numbers like "
                                  "[0.4, -0.1, 0.5, 3.14, 0.0, 0.0], got "
                                  f"{text[:80]!r}", code="invalid_pose") from None
