@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib import Station, check_ur_pose, matrix_from_ur_pose, pose_error
+from calib import Station, check_ur_pose, check_ur_vector, matrix_from_ur_pose, pose_error
 from drivers.base import Camera, ReportsFreshness, Robot
 from drivers.errors import RobotError
 
@@ -77,6 +77,18 @@ def capture_station(robot: Robot, camera: Camera, tcp_target: np.ndarray,
                            freshness=still.freshness)
 
 
+def read_tcp_pose(robot: Robot) -> np.ndarray:
+    """The robot's TCP pose reading, shape (6,), checked as a commanded pose is: finite, a
+    rotation vector within π rad, a translation in metres. A reading that is not (a driver
+    or controller fault: NaN, degrees, millimetres) raises ``RobotError`` (code
+    ``invalid_reading``) instead of being stored with an image, planned from or shown."""
+    try:
+        return check_ur_vector(np.asarray(robot.tcp_pose(), dtype=float),
+                               "the robot's TCP pose reading")
+    except ValueError as exc:
+        raise RobotError(f"{exc}; the reading was not used.", code="invalid_reading") from None
+
+
 @dataclass(frozen=True)
 class Still:
     """A frame of a robot at rest and the pose read after it (``grab_at_rest``)."""
@@ -97,10 +109,10 @@ def grab_at_rest(robot: Robot, camera: Camera, *, grab_timeout: float = 2.0,
     taken and ``RobotError`` (code ``moved_during_grab``) is raised rather than pairing an
     image with the wrong pose.
     """
-    before = robot.tcp_pose()
+    before = read_tcp_pose(robot)
     image = camera.grab(timeout=grab_timeout)
     grabbed_at = time.time()
-    after = robot.tcp_pose()
+    after = read_tcp_pose(robot)
     pose_read_at = time.time()
     angle, dist = pose_error(matrix_from_ur_pose(before), matrix_from_ur_pose(after))
     if dist > max_drift[0] or angle > max_drift[1]:

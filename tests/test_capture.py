@@ -77,6 +77,33 @@ def test_capture_refuses_a_robot_that_moved_during_the_grab(rig) -> None:
     assert err.value.code == "moved_during_grab"
 
 
+class MisreadRobot:
+    """The mock robot whose pose readings come out wrong (a driver or controller fault)."""
+
+    def __init__(self, robot: MockRobot, misread) -> None:
+        self.robot, self.misread = robot, misread
+
+    def tcp_pose(self) -> np.ndarray:
+        return self.misread(self.robot.tcp_pose())
+
+    def __getattr__(self, name: str):
+        return getattr(self.robot, name)
+
+
+@pytest.mark.timeout(30)
+@pytest.mark.parametrize(("misread", "why"), [
+    (lambda p: np.r_[np.nan, p[1:]], "NaN"),
+    (lambda p: np.r_[p[:3] * 1000.0, p[3:]], "millimetres"),
+    (lambda p: np.r_[p[:3], np.rad2deg(p[3:])], "degrees")])
+def test_capture_refuses_a_robot_reading_that_is_no_pose(rig, misread, why) -> None:
+    """Issue 22, a variant of its pose checks: a reading of NaN, millimetres or degrees was
+    stored with the image (NaN made every later listing of the run's stations a 500)."""
+    robot, camera = rig
+    with pytest.raises(RobotError, match=why) as err:
+        capture_station(MisreadRobot(robot, misread), camera, station_targets(1, 2)[0])
+    assert err.value.code == "invalid_reading"
+
+
 def test_capture_validates_the_target(rig) -> None:
     robot, camera = rig
     with pytest.raises(ValueError, match="shape"):

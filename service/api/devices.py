@@ -5,6 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 from pydantic import BaseModel, Field
 
+from drivers.capture import read_tcp_pose
 from drivers.errors import CameraError, DeviceError, RobotError
 from service.api.deps import DevicesDep, SettingsDep
 from service.api.routing import OneThreadRoute
@@ -64,7 +65,7 @@ def get_devices(devices: DevicesDep, settings: SettingsDep) -> DevicesPublic:
         robot_info = RobotInfo(url=settings.robot, connected=st.connected, ready=st.ready,
                                mode=st.mode, protective_stop=st.protective_stop,
                                emergency_stop=st.emergency_stop,
-                               tcp_pose=[float(v) for v in robot.tcp_pose()])
+                               tcp_pose=[float(v) for v in read_tcp_pose(robot)])
     except DeviceError as exc:
         robot_info.error = _error(exc)
     try:

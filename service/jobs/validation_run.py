@@ -44,6 +44,7 @@ from calib import (
     ur_pose_from_matrix,
 )
 from drivers.base import Robot
+from drivers.capture import read_tcp_pose
 
 #: Approach distance (m) above each point, along the board normal.
 DEFAULT_APPROACH_M = 0.03
@@ -237,7 +238,7 @@ def run_dot_hit(robot: Robot, points: Mapping[str, ArrayLike], board: BoardEstim
     p_target = np.array([np.asarray(points[i], dtype=float).reshape(3) for i in ids])
     commanded = p_target @ T_base_target[:3, :3].T + T_base_target[:3, 3]
 
-    start = matrix_from_ur_pose(robot.tcp_pose())
+    start = matrix_from_ur_pose(read_tcp_pose(robot))
     touch = [tcp_pose_for_probe(p, T_base_target[:3, 2], T_tcp_probe, start) for p in commanded]
     above = [approach_pose(T, T_tcp_probe, probe.approach) for T in touch]
     if cell.workspace_check is not None:
@@ -250,7 +251,7 @@ def run_dot_hit(robot: Robot, points: Mapping[str, ArrayLike], board: BoardEstim
         robot.move_linear(ur_pose_from_matrix(T_above), speed=probe.speed)
         robot.move_linear(ur_pose_from_matrix(T_touch), speed=probe.touch_speed)
         robot.wait_settled()
-        reading = matrix_from_ur_pose(robot.tcp_pose())
+        reading = matrix_from_ur_pose(read_tcp_pose(robot))
         reached = (reading @ T_tcp_probe)[:3, 3]
         error = None
         if (truth := cell.ground_truth) is not None:

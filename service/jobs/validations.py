@@ -25,7 +25,7 @@ from calib import (
     ur_pose_from_matrix,
 )
 from drivers.base import GroundTruthSource, Robot
-from drivers.capture import CaptureOptions
+from drivers.capture import CaptureOptions, read_tcp_pose
 from drivers.errors import DeviceError, RobotConnectionError
 from service.cell.motion import Motion, MotionJobs
 from service.errors import ConflictError, ServiceError, UnprocessableError
@@ -142,7 +142,7 @@ class Validations(MotionJobs):
         """Observe the board from where the robot stands (eq. 24 needs a current view), then
         touch each point; the report document."""
         robot, camera = self.motion.devices.get()
-        tcp_pose = robot.tcp_pose()
+        tcp_pose = read_tcp_pose(robot)
         image = camera.grab(timeout=self.settings.grab_timeout_s)
         det = plan.cell.board.detect(image)
         if not det.ok:

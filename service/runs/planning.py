@@ -23,6 +23,7 @@ from calib import (
     ur_pose_from_matrix,
 )
 from drivers import registry
+from drivers.capture import read_tcp_pose
 from service.cell.motion import Motion
 from service.errors import UnprocessableError
 
@@ -43,7 +44,7 @@ def plan_poses(motion: Motion, *, n: int, target: Target,
     X, K, dist = hints.hand_eye, hints.K, hints.dist
     robot, camera = motion.devices.get()
     with motion.robot_lock:
-        P0 = matrix_from_ur_pose(robot.tcp_pose())
+        P0 = matrix_from_ur_pose(read_tcp_pose(robot))
         image = camera.grab(timeout=settings.grab_timeout_s)
     h, w = image.shape[:2]
     if K is None:
@@ -88,7 +89,7 @@ def cold_start_plan(motion: Motion, *, target: Target, stations: int | None,
     and the pose must lie in the workspace box (422 ``outside_workspace``)."""
     robot, camera = motion.devices.get()
     with motion.robot_lock:
-        start = robot.tcp_pose()
+        start = read_tcp_pose(robot)
         image = camera.grab(timeout=motion.settings.grab_timeout_s)
     if (outside := motion.outside_workspace(start)) is not None:
         raise UnprocessableError(f"The robot's current pose: {outside}; jog it into the box "
