@@ -325,6 +325,28 @@ def test_max_stations_holds_for_external_runs(tmp_path: Path) -> None:
         assert len(client.get(f"/runs/{run_id}/stations").json()) == 3
 
 
+@pytest.mark.timeout(120)
+def test_max_stations_holds_for_every_kind_of_run(tmp_path: Path) -> None:
+    """Issue 22, a variant of row 6: a tolerance run went on to its own max_stations (40 by
+    default) and a cold start to its stations, past CELLCAL_MAX_STATIONS. Now a run that
+    asks for more is refused at once, and a tolerance run's default stops at the limit."""
+    with TestClient(create_app(settings(tmp_path, max_stations=3))) as client:
+        client.headers.update(AUTH)
+        tolerance = {"tolerance_mm": 1e-3, "tolerance_deg": 1e-4}
+        for body in ({"stations": 4}, {"poses": [[0.4, 0, 0.5, 3.1, 0, 0]] * 4},
+                     {**tolerance, "max_stations": 40}):
+            r = client.post("/runs", json=body)
+            assert r.status_code == 422, r.text
+            assert r.json()["code"] == "too_many_stations"
+            assert "at most 3 (CELLCAL_MAX_STATIONS)" in r.json()["detail"]
+        assert client.get("/runs").json() == []
+        r = client.post("/runs", json=tolerance)  # never met: it stops at the limit
+        assert r.status_code == 201, r.text
+        run = wait_run(client, r.json()["id"], lambda run: run["state"] != "capturing", 600)
+        assert run["cold_start"]["stop_rule"]["max_stations"] == 3
+        assert len(client.get(f"/runs/{run['id']}/stations").json()) <= 3, run
+
+
 @pytest.mark.timeout(60)
 @pytest.mark.parametrize("target", [
     {"inner_corners": [9, 6], "square_size_m": 1e-320},

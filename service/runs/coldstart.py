@@ -163,6 +163,8 @@ class ColdStartCapture(Capture):
                 return "max_stations"
             if index >= 2 * limit + 8:  # far more lost views than stations: give up
                 return "no_feasible_view"
+            if index >= self.settings.max_stations:  # the service's limit on a run's stations
+                return "max_stations"
             if self.motion.stopping.is_set() or not self._owns():
                 return None
             proposal = planner.propose()

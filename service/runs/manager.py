@@ -12,7 +12,13 @@ from service.events import EventBus
 from service.runs.capture import Capture
 from service.runs.coldstart import ColdStartCapture
 from service.runs.external import ExternalStations
-from service.runs.planning import check_poses, cold_start_plan, informed_backend, plan_poses
+from service.runs.planning import (
+    check_poses,
+    check_station_count,
+    cold_start_plan,
+    informed_backend,
+    plan_poses,
+)
 from service.schemas import RunCreate
 from service.serving.logs import lifecycle
 from service.store import queries, writes
@@ -41,6 +47,9 @@ class RunManager(MotionJobs):
         elif body.mode == "robot":
             self.motion.check_free()
             rule = body.stop_rule
+            if rule is not None and body.max_stations is None:  # the default, within the limit
+                rule.max_stations = min(rule.max_stations, self.settings.max_stations)
+            check_station_count(self.motion, rule.max_stations if rule else body.stations or 0)
             if rule is None and informed_backend(self.motion):
                 assert body.stations is not None
                 poses = check_poses(self.motion, plan_poses(self.motion, n=body.stations,

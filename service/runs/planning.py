@@ -107,11 +107,20 @@ def cold_start_plan(motion: Motion, *, target: Target, stations: int | None,
             "exploratory_moves": 0, "sigma_history": [], "notes": []}
 
 
-def check_poses(motion: Motion, poses: list[list[float]]) -> list[list[float]]:
-    """Refuse poses that are malformed, implausible or outside the workspace box (422)."""
+def check_station_count(motion: Motion, n: int) -> None:
+    """422 ``too_many_stations`` if a run of ``n`` stations passes ``max_stations``: the
+    service's limit holds for every kind of run (planned, given poses, a cold start or a
+    tolerance, and external runs as they grow)."""
     limit = motion.settings.max_stations
-    if len(poses) > limit:
-        raise UnprocessableError(f"{len(poses)} poses; at most {limit} per run.")
+    if n > limit:
+        raise UnprocessableError(f"{n} stations asked for; a run may have at most {limit} "
+                                 "(CELLCAL_MAX_STATIONS).", code="too_many_stations")
+
+
+def check_poses(motion: Motion, poses: list[list[float]]) -> list[list[float]]:
+    """Refuse poses that are too many, malformed, implausible or outside the workspace box
+    (422)."""
+    check_station_count(motion, len(poses))
     try:
         check_ur_poses(np.asarray(poses, dtype=float), "poses")
     except ValueError as exc:
