@@ -55,3 +55,27 @@ def test_an_unknown_id_is_still_404_with_the_error_body(client: TestClient) -> N
     r = client.get("/runs/" + "0" * 32)
     assert r.status_code == 404
     assert r.json()["code"] == "not_found"
+
+
+def test_every_request_closes_its_session(client: TestClient,
+                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """The session is no ``yield`` dependency: the route's one worker-thread call closes it
+    (a session left open would still be in its transaction, holding its connection), and a
+    request refused before its endpoint ran never began one."""
+    run_id = external_run(client)
+    db = client.app.state.db  # type: ignore[attr-defined]
+    made: list[Any] = []
+
+    def recorded(**kwargs: Any) -> Any:
+        made.append(new_session(**kwargs))
+        return made[-1]
+
+    new_session = db.new_session
+    monkeypatch.setattr(db, "new_session", recorded)
+    for path, status in ((f"/runs/{run_id}", 200), ("/runs?limit=50", 200),
+                         ("/calibrations?limit=50", 200), ("/runs/" + "0" * 32, 404),
+                         ("/runs?limit=0", 422), ("/calibrations/active?cell=none", 404)):
+        made.clear()
+        assert client.get(path).status_code == status, path
+        assert len(made) == 1, path
+        assert not made[0].in_transaction(), path
