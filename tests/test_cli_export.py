@@ -57,6 +57,10 @@ def test_intrinsics_only_result_exports_what_it_has(tmp_path: Path,
 
 @pytest.mark.parametrize(("content", "status", "message"), [
     ("{not json", EXIT_USAGE, "not JSON"),
+    # issue 22, variants of its bad inputs (an internal error before): nested too deep for
+    # the parser, an integer of more digits than Python converts
+    ("[" * 100_000 + "]" * 100_000, EXIT_USAGE, "not JSON (maximum recursion depth"),
+    ('{"format": ' + "9" * 5000 + "}", EXIT_USAGE, "not JSON (Exceeds the limit"),
     ('{"format": "cellcal/stations@1"}', EXIT_USAGE, "not a cellcal result"),
     ("[1, 2]", EXIT_USAGE, "not a cellcal result"),
     (None, EXIT_FAILED, "No such file"),

@@ -201,8 +201,9 @@ def test_report_prints_to_a_pdf_through_chromium(ur_result, tmp_path, capsys,
 def test_bad_report_input_is_one_line(tmp_path, capsys) -> None:
     (tmp_path / "other.json").write_text(json.dumps({"format": "cellcal/stations@1"}))
     (tmp_path / "broken.json").write_text("{")
+    (tmp_path / "deep.json").write_text("[" * 100_000 + "]" * 100_000)  # an internal error before
     for name, message in [("missing.json", "cannot read"), ("other.json", "not a cellcal result"),
-                          ("broken.json", "not valid JSON")]:
+                          ("broken.json", "not JSON"), ("deep.json", "not JSON")]:
         assert main(["report", str(tmp_path / name), "--out", str(tmp_path / "r.html")]) == 2
         err = capsys.readouterr().err
         assert err.startswith("cellcal: error: ") and message in err and err.count("\n") == 1

@@ -10,17 +10,12 @@ it has.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 from calib import Result, parse_result
+from service.cli.files import read_json
 from service.exports import FORMATS, ExportNames, export, formats_help
-
-#: Larger files are not result documents (a result with 10,000 stations is about 30 MB).
-MAX_RESULT_BYTES = 256 * 1024 * 1024
-
-
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,14 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def read_result(path: str) -> Result:
     """A ``cellcal/result@1`` document from a file; ValueError naming what is wrong."""
-    file = Path(path)
-    if file.stat().st_size > MAX_RESULT_BYTES:
-        raise ValueError(f"{path}: larger than {MAX_RESULT_BYTES // 2**20} MB; not a result "
-                         "file")
-    try:
-        doc = json.loads(file.read_bytes())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: not JSON ({exc})") from None
+    doc = read_json(Path(path))
     match doc:
         case {"format": "cellcal/result@1"}:
             return parse_result(doc, path)

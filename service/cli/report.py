@@ -17,6 +17,7 @@ import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from service.cli.files import read_json
 from service.results.identity import ReportIdentity
 
 if TYPE_CHECKING:
@@ -43,11 +44,9 @@ def run(args: argparse.Namespace) -> int:
     from service.results.report import render_report
 
     try:
-        doc = json.loads(args.result.read_text())
+        doc = read_json(args.result)
     except OSError as exc:
         raise ValueError(f"{args.result}: cannot read ({exc.strerror or exc})") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{args.result}: not valid JSON ({exc})") from None
     match doc:
         case {"format": "cellcal/result@1"}:
             pass

@@ -11,13 +11,13 @@ is --url (CELLCAL_URL), its key --api-key (CELLCAL_API_KEY).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
 
 from service.cli import client
 from service.cli.exit_codes import EXIT_FAILED
+from service.cli.files import parse_json, read_json
 
 _COLUMNS = ["id", "state", "mode", "stations_captured", "stations_skipped", "stations_planned",
             "created_at"]
@@ -92,7 +92,7 @@ def _start(service: client.Service, args: argparse.Namespace) -> int:
         if args.max_stations is not None:
             body["max_stations"] = args.max_stations
     else:
-        body = {"poses": _read_poses(args.poses)}
+        body = {"poses": _read_file(args.poses, "--poses")}
     if args.target is not None:
         body["target"] = _read_target(args.target)
     run_id = service.post("/runs", body)["id"]
@@ -114,12 +114,8 @@ def _start(service: client.Service, args: argparse.Namespace) -> int:
 
 def _read_target(value: str) -> dict[str, Any]:
     """``--target``: a JSON object given inline or in a file (the service checks its fields)."""
-    text = value if value.lstrip().startswith("{") else _read_text(Path(value), "--target")
-
-    try:
-        target = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"--target: not JSON ({exc.msg} at character {exc.pos})") from None
+    target = (parse_json(value, "--target") if value.lstrip().startswith("{")
+              else _read_file(Path(value), "--target"))
     if not isinstance(target, dict):
         raise ValueError("--target: a JSON object is needed, e.g. {\"type\": \"checkerboard\", "
                          "\"inner_corners\": [9, 6], \"square_size_m\": 0.025}")
@@ -146,18 +142,10 @@ class StationCount:
         return self.done, None
 
 
-def _read_poses(path: Path) -> Any:
+def _read_file(path: Path, option: str) -> Any:
+    """The JSON document in the file an option names; ``ValueError`` with one line if it
+    cannot be read, is too large or is not JSON."""
     try:
-        return json.loads(_read_text(path, "--poses"))
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not JSON ({exc})") from None
-
-
-def _read_text(path: Path, option: str) -> str:
-    """The text of the file an option names; ``ValueError`` with one line if unreadable."""
-    try:
-        return path.read_text()
+        return read_json(path)
     except OSError as exc:
         raise ValueError(f"{option} {path}: cannot read ({exc.strerror or exc})") from None
-    except UnicodeDecodeError as exc:
-        raise ValueError(f"{option} {path}: not a text file ({exc.reason})") from None

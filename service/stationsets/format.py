@@ -126,7 +126,7 @@ def load_station_set(directory: str | Path, *,
                          f"{max_bytes / 1e6:.0f} MB allowed for {max_stations} stations")
     try:
         raw = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+    except (ValueError, RecursionError) as exc:  # also too many digits, nested too deep
         raise ValueError(f"{path}: not valid JSON ({exc})") from None
     n = len(raw["stations"]) if isinstance(raw, dict) and isinstance(raw.get("stations"),
                                                                      list) else 0
