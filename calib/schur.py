@@ -24,6 +24,8 @@ from typing import Protocol
 
 import numpy as np
 
+from calib.levmar import levenberg_marquardt, solve_scaled
+
 
 class BlockProblem(Protocol):
     """What the solver needs of ``calib.joint._Problem``.
@@ -100,64 +102,26 @@ def _reduced(ne: _Normal, damping: float) -> tuple[np.ndarray, np.ndarray, np.nd
     return S, b, V_inv
 
 
-def _solve_scaled(S: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``S⁻¹ b`` with Jacobi scaling (the globals span pixels to radians)."""
-    d = np.sqrt(np.clip(np.diag(S), 1e-300, None))
-    if not (np.isfinite(S).all() and np.isfinite(b).all()):
-        raise np.linalg.LinAlgError("non-finite normal equations")
-    return np.linalg.lstsq(S / d[:, None] / d[None, :], b / d, rcond=1e-14)[0] / d
-
-
 def _step(ne: _Normal, damping: float) -> np.ndarray:
     S, b, V_inv = _reduced(ne, damping)
-    dg = _solve_scaled(S, b)
+    dg = solve_scaled(S, b)
     dv = np.einsum("nij,nj->ni", V_inv, ne.b_v - np.einsum("nij,i->nj", ne.W, dg))
     return -np.concatenate([dg, dv.ravel()])
 
 
-#: Floor of the Marquardt damping λ, and where it starts: the Gauss-Newton step.
-_MIN_DAMPING = 1e-9
-#: λ after a failed step at the floor.
-_FIRST_DAMPING = 1e-4
-
-
 def solve_blocks(problem: BlockProblem, x0: np.ndarray, *, max_nfev: int = 50,
                  ftol: float = 1e-10) -> BlockSolution:
-    """Minimise ``Σ r(x)²`` from ``x0`` by Levenberg-Marquardt on the reduced system.
+    """Minimise ``Σ r(x)²`` from ``x0`` by Levenberg-Marquardt on the reduced system
+    (``calib.levmar``: Gauss-Newton's step first, Marquardt's damping after a failed one).
 
-    Marquardt's damping (the diagonal scaled by ``1 + λ``); λ shrinks after a successful step
-    and grows after a failed one. The first step is Gauss-Newton's (λ at its floor): from the
-    nearby starts of cross-validation and model selection it lands on the minimum, where a
-    start at λ = 1e-4 crawls along the problem's ill-conditioned directions (κ, ν and the
-    focal length) for 5-8 steps; a first step that fails goes on from λ = 1e-4. Converged
-    when a step changes the cost by less than ``ftol`` relative (the ``ftol`` of
-    ``least_squares``; at the minimum rounding may make that a rise, which no damping could
-    undo) or the step is negligible.
+    From the nearby starts of cross-validation and model selection the first step lands on
+    the minimum, where a start at λ = 1e-4 crawls along the problem's ill-conditioned
+    directions (κ, ν and the focal length) for 5-8 steps. ``ftol`` is the relative change of
+    the cost that ends the search (the ``ftol`` of ``least_squares``).
     """
-    x = np.asarray(x0, dtype=float).copy()
-    ne = _normal_equations(problem, x)
-    nfev, damping = 1, _MIN_DAMPING
-    while nfev < max_nfev:
-        try:
-            dx = _step(ne, damping)
-        except np.linalg.LinAlgError:
-            break
-        x_new = x + dx
-        trial = _normal_equations(problem, x_new)
-        nfev += 1
-        if np.isfinite(trial.cost) and trial.cost <= ne.cost * (1.0 + ftol):
-            small = abs(ne.cost - trial.cost) <= ftol * ne.cost or \
-                np.abs(dx).max() <= 1e-14 * (1.0 + np.abs(x).max())
-            if trial.cost <= ne.cost:
-                x, ne = x_new, trial
-            damping = max(damping / 5.0, _MIN_DAMPING)
-            if small:
-                return BlockSolution(x=x, cost=ne.cost, nfev=nfev, converged=True)
-        else:
-            damping = max(8.0 * damping, _FIRST_DAMPING)
-            if damping > 1e8:
-                return BlockSolution(x=x, cost=ne.cost, nfev=nfev, converged=True)
-    return BlockSolution(x=x, cost=ne.cost, nfev=nfev, converged=False)
+    x, ne, nfev, converged = levenberg_marquardt(
+        lambda x: _normal_equations(problem, x), _step, x0, max_nfev=max_nfev, ftol=ftol)
+    return BlockSolution(x=x, cost=ne.cost, nfev=nfev, converged=converged)
 
 
 def prior_redundancy(problem: BlockProblem, x: np.ndarray) -> tuple[float, float]:
