@@ -69,12 +69,14 @@ class EventBus:
         """Store the queued events (for at most ``flush_s`` seconds if the database does not
         answer), then end every stream, open or opened later, with the ``shutdown`` event,
         and stop relaying other services' events: the service is stopping."""
+        deadline = time.monotonic() + flush_s
         with self._queued:
             self._stopping.set()
             self._queued.notify_all()
         if not self.flush(flush_s):
             self._giving_up.set()
-        self._writer.join(5.0)
+        # a writer held in a statement by a locked database is not waited for beyond it
+        self._writer.join(max(0.0, deadline - time.monotonic()))
         self._giving_up.set()  # an event published from now on is tried once
         if self._relay is not None:
             self._relay.close()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import signal
 import socket
+import sqlite3
 import threading
 from pathlib import Path
 from typing import Any
@@ -153,6 +154,35 @@ def test_sigterm_ends_streams_of_jobs_that_are_not_ending(service_dir: Path) -> 
     first, last = listener.events[0], listener.events[-1]
     assert (first.type, first.data["state"]) == ("state", "paused")
     assert last.type == "shutdown" and last.id is None and "shutting down" in last.data["detail"]
+
+
+@pytest.mark.slow
+def test_sigterm_with_the_database_locked_ends_the_streams_and_the_process(
+        service_dir: Path) -> None:
+    """SIGTERM while another process holds the SQLite write lock (issue 22, a variant of rows
+    1 and 4): each step of the shutdown waited for the database's 30 s busy timeout, the
+    process took 50 s with a 10 s grace period and the listener's stream was dropped without
+    a final event. Now the stream ends with one, and the end of the grace period ends the
+    process (a 30 s lock outlasts it)."""
+    with local_service(service_dir, KEY, ServeOptions(args=("--graceful-timeout", "10"))) \
+            as service:
+        run_id = _post(service, "/runs", {"stations": 200}).json()["id"]
+        follower = Listener(f"{service.url}/runs/{run_id}/events")
+        follower.start()
+        follower.wait_for(2)
+        lock = sqlite3.connect(service_dir / "cellcal.db", isolation_level=None, timeout=HANG_S)
+        try:
+            lock.execute("BEGIN EXCLUSIVE")
+            service.proc.send_signal(signal.SIGTERM)
+            follower.join(HANG_S)
+            code = service.proc.wait(HANG_S)
+        finally:
+            lock.close()  # rolls back
+        log = service.log.read_text()
+    assert follower.error is None and not follower.is_alive()
+    assert follower.events[-1].type in ("state", "shutdown"), follower.events[-3:]
+    assert code == -signal.SIGTERM
+    assert "grace period over before the shutdown ended: exiting now" in log, log
 
 
 def test_a_second_signal_exits_at_once(service_dir: Path) -> None:

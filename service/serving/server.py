@@ -7,13 +7,18 @@ once (``Runtime.halt``, from a thread: a device call must not run in a signal ha
 shutdown then lets the motion jobs end their in-flight station and record their state (runs
 ``interrupted``, so ``resume`` continues them; validations ``failed``), ends every event stream
 with its final event (``EventBus.close``) and only then waits for the connections, all within
-one grace period counted from the signal. A second signal ends the process at once.
+one grace period counted from the signal. A second signal ends the process at once, and so
+does the end of the grace period: a database that does not answer (a write lock held by
+another process) held each step of the shutdown for its busy timeout, and a SIGTERM with a
+listener took 50 s instead of 10, the listener's stream dropped without its final event.
+The jobs get the grace period less ``_STREAMS_S``, which is kept for ending the streams.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import signal
 import socket
 import threading
@@ -34,6 +39,9 @@ GRACEFUL_TIMEOUT_S = 10.0
 _DROP_MARGIN_S = 1.0
 #: Longest wait for queued events to be stored before the streams end, seconds.
 _FLUSH_S = 5.0
+#: The end of the grace period kept for ending the event streams after the jobs, seconds
+#: (at most a quarter of the grace period).
+_STREAMS_S = 3.0
 
 
 class CellServer(uvicorn.Server):
@@ -60,6 +68,9 @@ class CellServer(uvicorn.Server):
         self._deadline = time.monotonic() + self.graceful_timeout
         log.info("signal %s: stopping the robot, then shutting down (within %g s)",
                  signal.Signals(sig).name, self.graceful_timeout)
+        timer = threading.Timer(self.graceful_timeout, self._exit_now, args=(sig,))
+        timer.daemon = True
+        timer.start()
         runtime = self._runtime()
         if runtime is not None:
             threading.Thread(target=runtime.halt, name="halt", daemon=True).start()
@@ -72,10 +83,12 @@ class CellServer(uvicorn.Server):
         if self._deadline is None:  # stopped without a signal
             self._deadline = time.monotonic() + self.graceful_timeout
         runtime = self._runtime()
-        if runtime is not None:
-            await asyncio.to_thread(runtime.stop_jobs, self._left())
-            await asyncio.to_thread(runtime.events.close, min(_FLUSH_S, self._left()))
         margin = min(_DROP_MARGIN_S, self.graceful_timeout / 4)
+        if runtime is not None:
+            streams = min(_STREAMS_S, self.graceful_timeout / 4)
+            await asyncio.to_thread(runtime.stop_jobs, max(0.0, self._left() - streams))
+            await asyncio.to_thread(runtime.events.close,
+                                    min(_FLUSH_S, max(0.0, self._left() - 2 * margin)))
         dropper = asyncio.get_running_loop().call_later(max(self._left() - margin, 0.0),
                                                         self._drop_connections)
         self.config.timeout_graceful_shutdown = max(self._left(), margin)
@@ -83,6 +96,14 @@ class CellServer(uvicorn.Server):
             await super().shutdown(sockets)
         finally:
             dropper.cancel()
+
+    def _exit_now(self, sig: int) -> None:
+        """The grace period is over and the process still runs (a step of the shutdown waits
+        for a database that does not answer): the signal again, which ends it at once (a
+        timer thread cannot reset a handler). The robot was stopped at the first signal;
+        what a job had not stored, a restart recovers."""
+        log.warning("grace period over before the shutdown ended: exiting now")
+        os.kill(os.getpid(), sig)
 
     def _drop_connections(self) -> None:
         """Abort the connections still open (a client that sends or reads nothing)."""
