@@ -67,6 +67,9 @@ class ServeOptions:
     #: Called in the child before it runs the service (after the parent-death signal is set),
     #: e.g. to lower its resource limits.
     preexec: Callable[[], None] | None = None
+    #: The child's working directory, first on its ``sys.path`` (default: this process's), e.g.
+    #: another version of the code checked out there (``benchmarks.history_cpu``).
+    cwd: Path | None = None
 
 
 @contextlib.contextmanager
@@ -86,7 +89,8 @@ def local_service(data_dir: Path, key: str,
         child_env = {**(os.environ if options.env is None else options.env),
                      "CELLCAL_DATA_DIR": str(data_dir), "CELLCAL_API_KEY": key}
         with log.open("wb") as sink:
-            proc = subprocess.Popen(cmd, env=child_env, stdout=sink, stderr=subprocess.STDOUT,
+            proc = subprocess.Popen(cmd, env=child_env, cwd=options.cwd, stdout=sink,
+                                    stderr=subprocess.STDOUT,
                                     stdin=subprocess.DEVNULL, start_new_session=True,
                                     pass_fds=(sock.fileno(),),
                                     preexec_fn=_child_setup(options.preexec))
