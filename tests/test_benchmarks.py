@@ -24,9 +24,10 @@ BENCHMARKS = {
     "service": "service.png",
     "uncertainty": "uncertainty.png",
 }
-#: Scripts with a ``main`` that are not benchmarks: the OpenCV peer ``end_to_end`` times and
-#: the light load generator of ``service --history``.
-PEER_SCRIPTS = {"opencv_pipeline", "history_client"}
+#: Scripts with a ``main`` that are not benchmarks: the OpenCV peer ``end_to_end`` times, the
+#: light load generator of ``service --history``, and the paired server-CPU comparison of git
+#: revisions under that history's GETs (a tool for one change, no figure).
+PEER_SCRIPTS = {"opencv_pipeline", "history_client", "history_cpu"}
 
 
 def test_every_benchmark_module_is_listed() -> None:
