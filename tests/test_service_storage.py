@@ -75,6 +75,11 @@ def test_a_deleted_data_directory_fails_the_run_and_new_ones(tmp_path: Path) -> 
         assert run["stations_captured"] + run["stations_skipped"] < 40
         degraded(client, "storage_unavailable")
         refused(client.post("/runs", json={"poses": poses(3)}), "storage_unavailable")
+        # every other new job too (issue 22, a variant of row 5: each was accepted, done and
+        # stored in the database file that had lost its name), checked before its ids are
+        for path in (f"/runs/{run_id}/calibrations", "/calibrations/x/activate",
+                     "/calibrations/x/checks", "/calibrations/x/validations"):
+            refused(client.post(path), "storage_unavailable")
         (tmp_path / "data").mkdir()  # another directory in its place: still not the data
         degraded(client, "storage_unavailable")
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Depends, Query
 
-from service.api.deps import SessionDep, SettingsDep
+from service.api.deps import SessionDep, SettingsDep, writable_storage
 from service.api.finished import calibration_view
 from service.api.routing import OneThreadRoute
 from service.schemas import (
@@ -52,7 +52,7 @@ def get_active(session: SessionDep, settings: SettingsDep,
                    setup=setup or settings.calibration_setup(), history=history)
 
 
-@router.post("/{cal_id}/activate", responses={
+@router.post("/{cal_id}/activate", dependencies=[Depends(writable_storage)], responses={
     404: {"description": "no such calibration"},
     409: {"description": "the calibration is running or failed"}})
 def activate(cal_id: str, session: SessionDep,

@@ -7,12 +7,18 @@ import json
 from pathlib import Path
 from typing import Annotated
 
-from fastapi import APIRouter, Query, Response, status
+from fastapi import APIRouter, Depends, Query, Response, status
 from fastapi.responses import FileResponse, HTMLResponse, StreamingResponse
 
 from calib import parse_result
 from drivers.base import RobotIdentity
-from service.api.deps import CalibrationsDep, EventsDep, SessionDep, SettingsDep
+from service.api.deps import (
+    CalibrationsDep,
+    EventsDep,
+    SessionDep,
+    SettingsDep,
+    writable_storage,
+)
 from service.api.finished import calibration_view
 from service.api.reads import Read, add_reads
 from service.api.routing import OneThreadRoute
@@ -30,7 +36,8 @@ from service.store.stations import captured_station_set
 router = APIRouter(tags=["calibrations"], route_class=OneThreadRoute)
 
 
-@router.post("/runs/{run_id}/calibrations", status_code=status.HTTP_202_ACCEPTED, responses={
+@router.post("/runs/{run_id}/calibrations", status_code=status.HTTP_202_ACCEPTED,
+             dependencies=[Depends(writable_storage)], responses={
     409: {"description": "the run is still capturing"},
     422: {"description": "malformed options or too few captured stations"},
     429: {"description": "max_queued_calibrations solves are already queued or running"}})

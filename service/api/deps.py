@@ -59,6 +59,13 @@ async def get_devices(request: Request) -> Devices:
     return request.app.state.devices
 
 
+async def writable_storage(request: Request) -> None:
+    """503 ``storage_unavailable`` or ``disk_full`` while the data directory takes no writes:
+    a calibration, validation or activation started then was stored in a database file that
+    no longer had a name and lost at the next start (issue 22, row 5), as new runs are."""
+    request.app.state.runtime.motion.storage.check()
+
+
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 SessionDep = Annotated[Session, Depends(get_session)]
 RunsDep = Annotated[RunManager, Depends(get_runs)]

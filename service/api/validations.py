@@ -6,10 +6,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TypeVar
 
-from fastapi import APIRouter, status
+from fastapi import APIRouter, Depends, status
 from fastapi.responses import StreamingResponse
 
-from service.api.deps import EventsDep, ValidationsDep
+from service.api.deps import EventsDep, ValidationsDep, writable_storage
 from service.api.reads import Read, add_reads
 from service.api.routing import OneThreadRoute
 from service.api.streams import LastEventId, event_stream, stream_doc
@@ -27,6 +27,7 @@ def starts_validation(path: str, unprocessable: str) -> Callable[[F], F]:
     busy = "the calibration is not done, or the robot is busy (an active run or another " \
            "validation)"
     return router.post(path, status_code=status.HTTP_202_ACCEPTED,
+                       dependencies=[Depends(writable_storage)],
                        responses={409: {"description": busy},
                                   422: {"description": unprocessable}})
 
