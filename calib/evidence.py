@@ -23,6 +23,7 @@ from calib.crossval import (
     PoseStations,
     cross_validate_fixed_camera,
     cross_validate_poses,
+    fold_indices,
 )
 from calib.handeye import HandEyeResult, calibrate_hand_eye
 from calib.joint import CellParameters, JointResult
@@ -78,11 +79,16 @@ def choose_joint(data: JointData, station_ids: Sequence[str], base: JointModel,
     estimated = next((c.fit for c in selection.candidates
                       if c.model is not None and c.model.estimate_noise and c.fit
                       and chosen is not None and c.model.robot_map == chosen.robot_map), None)
-    result = fit.result(first.stations, first.rejected, noise=None if estimated is None else (
-        estimated.sigma_px, estimated.noise.rot_rad, estimated.noise.trans_m))
+    noise = None if estimated is None else (
+        estimated.sigma_px, estimated.noise.rot_rad, estimated.noise.trans_m)
+    result = fit.result(first.stations, first.rejected, noise=noise)
+    # what the jackknife over the chosen model's folds shows if that noise model holds
+    folds = fold_indices(len(data))
+    expected = fit.expected_jackknife(folds, noise=noise) \
+        if len(folds) == selection.chosen.cv.folds else {}
     return JointChoice(result=result, selection=selection,
                        uncertainty=honest(result.sigmas, selection.chosen.cv.estimates,
-                                          FoldEstimate.of(result)))
+                                          FoldEstimate.of(result), expected))
 
 
 def method_cross_validation(data: JointData, station_ids: Sequence[str],

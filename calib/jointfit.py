@@ -20,6 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from calib.chain import RobotNoise
+from calib.foldspread import expected_jackknife
 from calib.joint import (
     GLOBAL_PARAMS,
     CellParameters,
@@ -105,17 +106,36 @@ class JointFit:
         are estimated in one step at this fit's weights.
         """
         res = self.problem.result(self.solution, stations, rejected)
-        factors = None if noise is None else (
-            (noise[0] / self.sigma_px) ** 2, (noise[1] / self.noise.rot_rad) ** 2,
-            (noise[2] / self.noise.trans_m) ** 2)
         try:
-            free_cov = _sandwich(self.problem, self.solution.x, factors)
+            free_cov = _sandwich(self.problem, self.solution.x, self.factors(noise))
         except np.linalg.LinAlgError:
             return res
         cov = np.zeros((len(GLOBAL_PARAMS), len(GLOBAL_PARAMS)))
         free = self.problem.free
         cov[np.ix_(free, free)] = free_cov
         return replace(res, covariance=cov, sigmas=sigmas_from_covariance(cov))
+
+
+    def factors(self, noise: tuple[float, float, float] | None = None
+                ) -> tuple[float, float, float]:
+        """Variance factors of the corner, robot-rotation and robot-translation residuals:
+        those of the noise levels ``noise`` (σ_px, σ_rot, σ_trans) against the weights of
+        this fit's problem, else estimated in one step at those weights
+        (``variance_factors``). A fit that estimated its noise weighted its last solve with
+        the levels before their last update, not with ``sigma_px`` and ``noise``."""
+        if noise is None:
+            return variance_factors(self.problem, self.solution.x)
+        weights = self.problem
+        return ((noise[0] / weights.sigma_px) ** 2, (noise[1] / weights.noise.rot_rad) ** 2,
+                (noise[2] / weights.noise.trans_m) ** 2)
+
+    def expected_jackknife(self, folds: Sequence[np.ndarray], *,
+                           noise: tuple[float, float, float] | None = None
+                           ) -> dict[str, float | np.ndarray]:
+        """The fold jackknife's σ this fit's noise model predicts for ``folds`` (held-out
+        station indices), at the variance factors of :meth:`result` with the same ``noise``
+        (``calib.foldspread``)."""
+        return expected_jackknife(self.problem, self.solution.x, folds, self.factors(noise))
 
 
 def fit_joint(data: JointData, model: JointModel, start: CellParameters, *,
@@ -168,9 +188,9 @@ def variance_factors(problem: JointProblem, x: np.ndarray) -> tuple[float, float
 
 
 def _sandwich(problem: JointProblem, x: np.ndarray,
-              factors: tuple[float, float, float] | None = None) -> np.ndarray:
+              factors: tuple[float, float, float]) -> np.ndarray:
     """Covariance of the free globals under the group variance factors (``JointFit.result``)."""
-    f_corner, f_rot, f_trans = factors or variance_factors(problem, x)
+    f_corner, f_rot, f_trans = factors
     J = problem.jacobian(x)
     H = (J.T @ J).toarray()
     g = problem.n_free_global

@@ -83,6 +83,9 @@ class Uncertainty(_Block):
         None, description="per parameter, which figure was reported")
     formal: dict[str, Sigma] | None = Field(None, description="from the Jacobian")
     jackknife: dict[str, Sigma] | None = Field(None, description="spread over the folds")
+    jackknife_expected: dict[str, Sigma] | None = Field(
+        None, description="the spread over the folds the noise model predicts (the "
+                          "jackknife scales the formal sigma by its excess over this)")
 
 
 class StationFit(_Block):

@@ -179,7 +179,8 @@ def _uncertainty_extras(trust: Trust | None) -> dict[str, Any]:
         return {}
     u = trust.uncertainty
     return {"note": u.note, "jackknife_folds": u.folds, "source": u.source,
-            "formal": u.formal, "jackknife": u.jackknife}
+            "formal": u.formal, "jackknife": u.jackknife,
+            **({"jackknife_expected": u.expected} if u.expected else {})}
 
 
 def _mm(v: float | None) -> float | None:
