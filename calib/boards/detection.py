@@ -10,6 +10,7 @@ sub-pixel on the image itself.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, overload
 
 import cv2
 import numpy as np
@@ -102,14 +103,32 @@ def opencv_out_of_memory(exc: cv2.error) -> bool:
     return any(sign in str(exc) for sign in OPENCV_OUT_OF_MEMORY)
 
 
+@overload
+def find_board_sb(grey: np.ndarray, inner_corners: tuple[int, int], flags: int = 0, *,
+                  with_meta: Literal[False] = False) -> tuple[bool, np.ndarray | None]: ...
+
+
+@overload
+def find_board_sb(grey: np.ndarray, inner_corners: tuple[int, int], flags: int = 0, *,
+                  with_meta: Literal[True]
+                  ) -> tuple[bool, np.ndarray | None, np.ndarray | None]: ...
+
+
 def find_board_sb(grey: np.ndarray, inner_corners: tuple[int, int], flags: int = 0, *,
                   with_meta: bool = False) -> tuple:
-    """OpenCV's sector-based board search, ``(found, corners)``, or with ``with_meta``
-    ``(found, corners, meta)`` (``findChessboardCornersSBWithMeta``). An assertion that fails
-    inside the search is a board not found, so that detection never raises on an image: its
-    neighbour index fails on some regular grids (``result.full()`` in ``getNeighbors``, on a
-    500x500 image of 32-pixel checkers). A failed allocation (:func:`opencv_out_of_memory`)
-    still raises."""
+    """OpenCV's sector-based board search on ``grey`` (H, W) uint8 for ``inner_corners``
+    (cols, rows): ``(found, corners)``, corners (N, 1, 2) float32 px, N = cols * rows, or
+    with ``with_meta`` ``(found, corners, meta)`` (``findChessboardCornersSBWithMeta``; meta
+    (rows, cols) of the grid found, which ``CALIB_CB_LARGER`` lets be larger, N its size). An
+    assertion that fails inside the search is a board not found, so that detection never
+    raises on an image: its neighbour index fails on some regular grids (``result.full()`` in
+    ``getNeighbors``, on a 500x500 image of 32-pixel checkers). A failed allocation
+    (:func:`opencv_out_of_memory`) still raises.
+
+    Every board search of ``calib`` goes through here. Benchmarks and tests call
+    ``cv2.findChessboardCornersSB`` directly on purpose: they compare with what an OpenCV
+    user's own call gets.
+    """
     try:
         if with_meta:
             return cv2.findChessboardCornersSBWithMeta(grey, inner_corners, flags)
