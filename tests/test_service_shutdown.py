@@ -67,6 +67,11 @@ class Listener(threading.Thread):
         assert self.stations() >= stations, self.events
 
 
+def _stations_in(run: dict[str, Any]) -> int:
+    """The stations a run's state (its ``state`` event or its REST view) counts as seen."""
+    return run["stations_captured"] + run["stations_skipped"]
+
+
 def _post(service: LocalService, path: str, body: Any = None) -> httpx.Response:
     return httpx.post(service.url + path, json=body, headers=AUTH, timeout=60)
 
@@ -111,9 +116,8 @@ def test_sigterm_stops_the_run_ends_every_stream_and_exits(service_dir: Path) ->
     # under load the first station can be stored before the listener subscribes
     first = follower.events[0]
     assert first.type == "state", follower.events[:2]
-    before_listening = first.data["stations_captured"] + first.data["stations_skipped"]
-    assert last.data["stations_captured"] + last.data["stations_skipped"] == \
-        before_listening + follower.stations()
+    told = _stations_in(first.data) + follower.stations()  # every station the stream told of
+    assert _stations_in(last.data) == told
     assert code == -signal.SIGTERM, log
     # the order: the robot stopped before uvicorn began closing connections
     assert log.index("stopping the robot") < log.index("Shutting down"), log
@@ -124,8 +128,7 @@ def test_sigterm_stops_the_run_ends_every_stream_and_exits(service_dir: Path) ->
             as again:
         run = httpx.get(f"{again.url}/runs/{run_id}", headers=AUTH, timeout=60).json()
         assert run["state"] == "interrupted"
-        assert run["stations_captured"] + run["stations_skipped"] == \
-            before_listening + follower.stations()
+        assert _stations_in(run) == told
         assert _post(again, f"/runs/{run_id}/resume").status_code == 200
         assert _post(again, f"/runs/{run_id}/cancel").status_code == 200
 
