@@ -1,6 +1,8 @@
 """The RTDE wire protocol's framing (a 2-byte size and a 1-byte type ahead of each payload),
 enough for the UR driver's probe to talk to a controller with plain sockets and real timeouts
-before it hands the connection to ur-rtde (see ``drivers.ur``)."""
+before it hands the connection to ur-rtde (see ``drivers.ur``), and the codes of the status
+outputs the driver reads. :func:`recv_exact` also reads the driver's own channel to its ur-rtde
+process (``drivers.ur_rtde_process``)."""
 
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ ROBOT_MODES = {-1: "no_controller", 0: "disconnected", 1: "confirm_safety", 2: "
 
 
 def recv_exact(sock: socket.socket, n: int) -> bytes:
+    """Exactly ``n`` bytes from ``sock``; ConnectionError when it closes first."""
     buf = b""
     while len(buf) < n:
         chunk = sock.recv(n - len(buf))

@@ -164,6 +164,24 @@ class RtdeProcess:
         self.kill()
 
 
+class RtdeInterface:
+    """One ur-rtde interface in an RtdeProcess: ``iface.getActualQ()`` runs there.
+
+    ``timeout`` bounds each call (seconds; None for the control interface, whose moves block
+    and are watched by ``URRobot._guarded`` instead).
+    """
+
+    def __init__(self, process: RtdeProcess, name: str, timeout: float | None) -> None:
+        self._process, self._name, self._timeout = process, name, timeout
+
+    def call(self, method: str, *args: object, timeout: float | None = None) -> Any:
+        return self._process.call(self._name, method, *args,
+                                  timeout=self._timeout if timeout is None else timeout)
+
+    def __getattr__(self, method: str) -> Callable[..., Any]:
+        return lambda *args: self.call(method, *args)
+
+
 # ---- the child ------------------------------------------------------------------------------
 
 def _serve_channel(sock: socket.socket, interfaces: dict[str, Any],
@@ -224,21 +242,3 @@ def _serve(hub_fd: int, parent_pid: int) -> None:
 
 if __name__ == "__main__":
     _serve(int(sys.argv[1]), int(sys.argv[2]))
-
-
-class RtdeInterface:
-    """One ur-rtde interface in an RtdeProcess: ``iface.getActualQ()`` runs there.
-
-    ``timeout`` bounds each call (seconds; None for the control interface, whose moves block
-    and are watched by ``URRobot._guarded`` instead).
-    """
-
-    def __init__(self, process: RtdeProcess, name: str, timeout: float | None) -> None:
-        self._process, self._name, self._timeout = process, name, timeout
-
-    def call(self, method: str, *args: object, timeout: float | None = None) -> Any:
-        return self._process.call(self._name, method, *args,
-                                  timeout=self._timeout if timeout is None else timeout)
-
-    def __getattr__(self, method: str) -> Callable[..., Any]:
-        return lambda *args: self.call(method, *args)
