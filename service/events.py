@@ -27,6 +27,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
+from functools import partial
 from typing import Any
 
 from sqlalchemy.orm import Session
@@ -133,10 +134,7 @@ class EventBus:
         try:
             if not save():
                 return False
-
-            def read() -> dict[str, Any]:
-                return self.state(topic)
-
+            read = partial(self.state, topic)
             self.publish(topic, read() if retry is None else retry(read))
             return True
         finally:
@@ -236,9 +234,7 @@ class EventBus:
 
     def publish_state(self, topic: Topic) -> None:
         """Publish the topic's stored state as a ``state`` event."""
-        with self.db.session() as s:
-            event = state_event(s, topic)
-        self.publish(topic, event)
+        self.publish(topic, self.state(topic))
 
     def state(self, topic: Topic) -> dict[str, Any]:
         """The topic's ``state`` event (404 for an unknown id)."""
