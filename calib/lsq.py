@@ -13,8 +13,9 @@ class CachedProblem:
     """Base of a least-squares problem whose ``_compute(x)`` returns residuals and blocks.
 
     ``evaluate`` returns ``(residuals, blocks)`` of the last ``x`` without recomputing them;
-    ``residuals`` is the callable to hand to ``least_squares``. Subclasses build the sparse
-    Jacobian from the blocks.
+    ``residuals`` is the callable to hand to ``least_squares``. The blocks go to
+    ``calib.schur.solve_blocks`` (``calib.intrinsics``, ``calib.joint``); ``calib.joint`` also
+    builds its sparse Jacobian from them.
     """
 
     _cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None

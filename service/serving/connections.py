@@ -123,9 +123,10 @@ class ConnectionLimits:
 
 
 class ConnectionGuard:
-    """Mixed in before one of uvicorn's HTTP/1.1 protocols: it under ``limits`` (set by
-    ``guarded_protocol``). Uses what both protocols have: ``transport``, ``loop``, ``cycle``
-    (the request in progress or last answered) and their asyncio callbacks."""
+    """Mixed in before one of uvicorn's HTTP/1.1 protocols, it puts that protocol's
+    connections under ``limits`` (set by ``guarded_protocol``). Uses what both protocols have:
+    ``transport``, ``loop``, ``cycle`` (the request in progress or last answered) and their
+    asyncio callbacks."""
 
     limits: ConnectionLimits
     transport: asyncio.Transport
