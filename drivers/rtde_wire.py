@@ -1,6 +1,6 @@
 """The RTDE wire protocol's framing (a 2-byte size and a 1-byte type ahead of each payload),
 enough for the UR driver's probe to talk to a controller with plain sockets and real timeouts
-before it hands the connection to ur-rtde (see ``drivers.ur``), and the codes of the status
+before it hands the connection to ur-rtde (``drivers.ur_probe``), and the codes of the status
 outputs the driver reads. :func:`recv_exact` also reads the driver's own channel to its ur-rtde
 process (``drivers.ur_rtde_process``)."""
 

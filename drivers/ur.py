@@ -6,12 +6,12 @@ subclass whose message a shop-floor person can act on; no ``RuntimeError`` from 
 
 Why connecting starts with our own probe: the ur-rtde constructors hold the GIL while they
 block, so a worker thread with a deadline cannot interrupt them (the waiting thread never gets to
-run). Before constructing them we therefore check, with plain sockets and real timeouts, that the
-controller is reachable, answers RTDE requests, streams data and serves the dashboard, and that
-it answers fast enough for the ~40 request/reply round trips the constructors make to fit in
-``connect_timeout``. After a successful probe the constructors return in well under a second;
-the one slow path left is a control program that never starts, which ur-rtde itself gives up on
-after about 5 s.
+run). Before constructing them we therefore check (``drivers.ur_probe``), with plain sockets
+and real timeouts, that the controller is reachable, answers RTDE requests, streams data and
+serves the dashboard, and that it answers fast enough for the ~40 request/reply round trips the
+constructors make to fit in ``connect_timeout``. After a successful probe the constructors
+return in well under a second; the one slow path left is a control program that never starts,
+which ur-rtde itself gives up on after about 5 s.
 
 The interfaces live in a child process (``drivers.ur_rtde_process``): ur-rtde can crash with
 SIGSEGV after a short network drop, and that must end a connection, not the service. A crash of
@@ -20,8 +20,6 @@ the child is reported like any lost connection, naming the signal.
 
 from __future__ import annotations
 
-import socket
-import struct
 import threading
 import time
 from collections.abc import Callable
@@ -40,18 +38,13 @@ from drivers.errors import (
     RobotError,
 )
 from drivers.ur_dashboard import dashboard_exchange, parse_identity
+from drivers.ur_probe import probe_controller
 from drivers.ur_rtde_process import RtdeClientGoneError, RtdeInterface, RtdeProcess
-
-RTDE_PORT = 30004
-SCRIPT_PORT = 30003
 
 #: Longest wait for the control program's start inside the RTDEControlInterface constructor, s.
 PROGRAM_START_S = 6.0
 #: Bound of one status call into the ur-rtde process (a stuck process is killed), seconds.
 READ_TIMEOUT_S = 10.0
-
-#: Request/reply round trips the two ur-rtde constructors make (RTDE recipes + dashboard).
-CONSTRUCTOR_ROUND_TRIPS = 40
 
 _PROTECTIVE_STOP_MSG = (
     "The robot made a protective stop (usually a collision or a safety limit). Check that "
@@ -108,7 +101,7 @@ class URRobot(RobotSession):
         """
         with self._lock:
             self.close()
-            self._probe()
+            probe_controller(self.host, self.connect_timeout)
             self._process = process = RtdeProcess()
             ctor_timeout = self.connect_timeout + PROGRAM_START_S
             try:
@@ -130,48 +123,6 @@ class URRobot(RobotSession):
             self._lost = False
             if process is not None:
                 process.close()  # the ur-rtde destructors disconnect (about 0.5 s each)
-
-    def _probe(self) -> None:
-        """Check reachability and responsiveness with real timeouts; raise RobotConnectionError."""
-        deadline = time.monotonic() + self.connect_timeout
-
-        def remaining() -> float:
-            return max(deadline - time.monotonic(), 0.01)
-
-        try:
-            with socket.create_connection((self.host, RTDE_PORT), remaining()) as s:
-                s.settimeout(remaining())
-                t0 = time.monotonic()
-                rtde_wire.rtde_request(s, b"V", struct.pack(">H", 2))
-                rtde_wire.rtde_request(s, b"v")
-                per_request = (time.monotonic() - t0) / 2.0
-                if per_request * CONSTRUCTOR_ROUND_TRIPS > remaining():
-                    raise RobotConnectionError(
-                        f"The robot controller at {self.host} answers too slowly "
-                        f"({per_request * 1e3:.0f} ms per request) to connect within "
-                        f"{self.connect_timeout:g} s. Check the network between this computer "
-                        "and the robot (a busy or wireless link?).")
-                s.settimeout(remaining())
-                rtde_wire.rtde_request(s, b"O", struct.pack(">d", 125.0) + b"timestamp")
-                rtde_wire.rtde_request(s, b"S")
-                rtde_wire.rtde_receive(s, b"U")  # the first streamed data package
-            (running,) = dashboard_exchange(self.host, ["running"], remaining())
-            if running.lower().endswith("true"):
-                # ur-rtde would stop a running program before its own upload anyway; a control
-                # script whose client died mid-move never takes that request (it waits for
-                # the dead client's handshake), so the dashboard stops it first.
-                dashboard_exchange(self.host, ["stop"], remaining())
-            socket.create_connection((self.host, SCRIPT_PORT), remaining()).close()
-        except TimeoutError:
-            raise RobotConnectionError(
-                f"The robot controller at {self.host} did not answer within "
-                f"{self.connect_timeout:g} s. Check that the robot is switched on and fully "
-                "booted, then try again.") from None
-        except OSError as err:
-            raise RobotConnectionError(
-                f"Cannot reach the robot controller at {self.host} ({err.strerror or err}). "
-                "Check that the controller is switched on, the network cable is plugged in and "
-                "the IP address is right.") from None
 
     def _wait_program_running(self) -> None:
         """Block until the receive interface shows the control program running, or raise.
