@@ -28,13 +28,14 @@ from calib.levmar import levenberg_marquardt, solve_scaled
 
 
 class BlockProblem(Protocol):
-    """What the solver needs of ``calib.joint._Problem``.
+    """What the solver needs of a problem (``calib.joint.JointProblem``,
+    ``calib.intrinsics.IntrinsicsProblem``).
 
     ``evaluate(x)`` returns the normalised residuals (2m + 6n,) — corner rows first, station
     by station, then 6 prior rows per station — and the corner Jacobian blocks (m, 2, g + 6):
     the free globals, then the corner's station parameters. Prior rows are ``δ / prior_sigma``;
-    a problem without them (the intrinsics, ``calib.intrinsics``: camera globals, a pose per
-    image) gives ``prior_sigma`` inf and the corner rows alone.
+    a problem without them (the intrinsics: camera globals, a pose per image) gives
+    ``prior_sigma`` inf and the corner rows alone.
     """
 
     n_free_global: int
