@@ -135,9 +135,10 @@ def test_large_textures_under_the_pixel_cap_cost_a_bounded_search(
     full size, every fallback search ran, 44 CPU-s and 4.8 GB (``tools/image-attack``), and the
     default budget refused it (422 image_too_complex) after 20 CPU-s. Searched on a reduced copy
     first, where no board is, each is a skipped station within a 6 CPU-s budget (2.4 and
-    1.8 CPU-s measured). Not every texture is that cheap: a regular grid larger than the board
-    costs the detector much even on the reduced copy (32-pixel checkers: 5 CPU-s at 0.4 MP,
-    12.5 at 1 MP): ``test_grid_bombs_are_skipped_stations`` below."""
+    1.8 CPU-s measured). Not every texture was that cheap: a regular grid larger than the
+    board cost the detector much even on the reduced copy (32-pixel checkers: 5 CPU-s at
+    0.4 MP, 12.5 at 1 MP) until it counted the grid's corners (``calib.boards.lattice``):
+    ``test_grid_bombs_are_skipped_stations`` below."""
     with limited(tmp_path, image_cpu_s=6.0) as client:
         run_id, pose = external_run(client), robot_pose(client)
         r = post(client, run_id, pose=pose, image=make_png(6000, 4000))

@@ -16,10 +16,11 @@ An image a cell controller posts (``service.runs.external``) is untrusted: a str
   0.9-1.3 s for one that finds the board; on the reduced copy those textures cost 1.8-2.4 CPU-s
   (measured). A regular checker grid larger than the board made every fallback search run
   slowly at any size (32-pixel checkers: 12.8 CPU-s at 1 MP, 8-pixel ones 26.9); the detector
-  now counts the grid's corners first and stops there (``calib.boards.lattice``: 0.7-0.8
-  CPU-s for those). What stays costly is left to the CPU budget: an image whose reduced copy
-  shows the board but whose full size does not, and any image the fallback searches run on,
-  as on a real image without its board (about 2-5 CPU-s per searched megapixel);
+  now counts the grid's corners when its default searches fail, and skips the fallbacks when
+  the count is beyond the board's (``calib.boards.lattice``: 0.7-0.8 CPU-s for those). What
+  stays costly is left to the CPU budget: an image whose reduced copy shows the board but
+  whose full size does not, and any image the fallback searches run on, as on a real image
+  without its board (about 2-5 CPU-s per searched megapixel);
 * each search has a CPU budget, ``Settings.image_cpu_s``: the kernel ends a worker that
   passes it (``RLIMIT_CPU``), and the post is answered 422 ``image_too_complex``; the pool
   starts a fresh worker for the next image.
