@@ -23,9 +23,10 @@ import numpy as np
 
 #: Neighbours within this many rows and columns predict a corner.
 _REACH = 3
-#: Reweighting steps, and the misfit (in spacings) at which a neighbour's weight falls to 1/4.
+#: Reweighting steps, and the Cauchy scale (in spacings): the misfit at which the Cauchy weight
+#: is 1/2, so a neighbour's squared weight 1/4.
 _STEPS = 3
-_HALF_WEIGHT = 0.05
+_CAUCHY_SCALE = 0.05
 #: A refinement that moved a corner by more than this fraction of the spacing is checked.
 MOVE_CHECKED = 0.05
 
@@ -55,7 +56,7 @@ def neighbour_prediction(grid: np.ndarray) -> np.ndarray:
     rhs = np.concatenate([u, v], axis=1)  # (N, 2M)
     misfit = np.zeros(len(flat))
     for _ in range(_STEPS):
-        weight = np.where(inside, 1.0 / (1.0 + (misfit[near] / _HALF_WEIGHT) ** 2) ** 2, 0.0)
+        weight = np.where(inside, 1.0 / (1.0 + (misfit[near] / _CAUCHY_SCALE) ** 2) ** 2, 0.0)
         weighted = rows_uv.transpose(0, 2, 1) * np.concatenate([weight, weight], axis=1)[:, None]
         h = np.linalg.solve(weighted @ rows_uv, (weighted @ rhs[..., None]))[..., 0]
         at_corner = h[:, [2, 5]]
