@@ -46,7 +46,7 @@ from calib.boards.detection import (
     sub_pixel,
 )
 from calib.boards.grid_check import keep_consistent
-from calib.boards.lattice import larger_than_board
+from calib.boards.grid_survey import GridSurvey, diagnose_missing_board, even_square_darkness
 from calib.boards.markers import markers_seen_reason
 
 #: Images at least this large (smaller side, px) are searched at half size first: SB's cost
@@ -181,7 +181,7 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
         return Detection(ok=False, reason=reason)
     lo, hi = grey_range(grey)
     faint = hi - lo < min_contrast  # a blank frame, or a board in a few grey levels
-    survey = _GridSurvey(grey)
+    survey = GridSurvey(grey)
     found, raw = ((False, None) if hi == lo
                   else _find_grid(grey, (cols, rows), survey, quick=faint))
     if not found:
@@ -193,7 +193,7 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
         else:
             reason = ((survey.lattice((cols, rows)) is None  # a dense grid is slow to scan
                        and markers_seen_reason(grey, f"{cols}x{rows}-corner checkerboard"))
-                      or _diagnose_missing_board(survey, (cols, rows)))
+                      or diagnose_missing_board(survey, (cols, rows)))
         return Detection(ok=False, reason=reason, sharpness=sharp)
 
     corners, ambiguous, contrast = order_corners(grey, raw.reshape(-1, 2), (cols, rows))
@@ -208,7 +208,7 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
     return Detection(ok=True, corners=corners, **metrics)
 
 
-def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], survey: _GridSurvey, *,
+def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], survey: GridSurvey, *,
                quick: bool = False) -> tuple[bool, np.ndarray | None]:
     """OpenCV's SB detector with its default flags, on a half-size copy of a large image first
     (about 4x faster; a quarter-size copy before it, 4x faster again, from
@@ -221,10 +221,11 @@ def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], survey: _GridSu
     default call fails is the full image searched with each of ``_FALLBACK_FLAGS`` in turn,
     and last the exhaustive search on a locally equalised copy (CLAHE) for boards in shadow or
     glare; except when ``survey`` sees a board larger than ``inner_corners``, or more grid
-    corners than 1.5 such boards (``calib.boards.lattice``): SB reads a board of exactly the
-    size asked for, so the searches could not succeed (a wrong ``inner_corners`` is told in a
-    fraction of a second instead of several; a checker texture costs no fallback). ``quick``
-    (faint images, usually blank frames) tries the normalised searches alone.
+    corners than ``LATTICE_FACTOR`` such boards (``calib.boards.grid_survey``): SB reads a
+    board of exactly the size asked for, so the searches could not succeed (a wrong
+    ``inner_corners`` is told in a fraction of a second instead of several; a checker
+    texture costs no fallback). ``quick`` (faint images, usually blank frames) tries the
+    normalised searches alone.
     """
     in_view = survey
     if min(grey.shape) >= _COARSE_MIN_SIZE:
@@ -239,7 +240,7 @@ def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], survey: _GridSu
         found, raw = find_board_sb(half, inner_corners)
         if found:
             return True, raw * 2.0 + 0.5
-        in_view = _GridSurvey(half)  # a grid has the same size at half size, 4x cheaper
+        in_view = GridSurvey(half)  # a grid has the same size at half size, 4x cheaper
     found, raw = find_board_sb(grey, inner_corners)
     if found:
         return True, raw
@@ -251,8 +252,7 @@ def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], survey: _GridSu
             return True, raw
     if quick:
         return False, None
-    found, raw = find_board_sb(_CLAHE.apply(grey), inner_corners,
-                               _FALLBACK_FLAGS[1])
+    found, raw = find_board_sb(_CLAHE.apply(grey), inner_corners, _FALLBACK_FLAGS[1])
     return (True, raw) if found else (False, None)
 
 
@@ -299,11 +299,11 @@ def order_corners(grey: np.ndarray, corners: np.ndarray,
     if cols == rows:
         candidates += [np.rot90(grid, 1), np.rot90(grid, -1)]
     if (cols + rows) % 2:
-        dark = _even_square_darkness(grey, grid)
+        dark = even_square_darkness(grey, grid)
         return (grid if dark > 0 else candidates[1]).reshape(-1, 2), False, abs(dark)
     rightness = [g[:, -1].mean(axis=0)[0] - g[:, 0].mean(axis=0)[0] for g in candidates]
     best = candidates[int(np.argmax(rightness))]
-    return best.reshape(-1, 2), True, abs(_even_square_darkness(grey, best))
+    return best.reshape(-1, 2), True, abs(even_square_darkness(grey, best))
 
 
 def _check_inner_corners(inner_corners: tuple[int, int]) -> tuple[int, int]:
@@ -314,123 +314,6 @@ def _check_inner_corners(inner_corners: tuple[int, int]) -> tuple[int, int]:
     if cols < 2 or rows < 2 or (cols, rows) != tuple(inner_corners):
         raise ValueError(f"inner_corners must be two integers >= 2, got {inner_corners!r}")
     return cols, rows
-
-
-class _GridSurvey:
-    """The checkerboard grid in view, whatever its size (at least 3x3 inner corners, its
-    squares really alternating black and white; ``CALIB_CB_LARGER``): found once, on first
-    use, for the search and the diagnosis of a missing board.
-
-    ``CALIB_CB_LARGER`` may extend a board by a row of points on its outer edge, where the
-    outer squares meet a dark plate, a frame or a white margin: those are no corners, and the
-    board no larger grid. Such rows are trimmed (:func:`_without_edge_rows`).
-    """
-
-    def __init__(self, grey: np.ndarray) -> None:
-        self.grey = grey
-        self._grid: np.ndarray | None = None  # (rows, cols, 2) px
-        self._done = False
-        self._lattice: dict[tuple[int, int], int | None] = {}
-
-    def lattice(self, inner_corners: tuple[int, int]) -> int | None:
-        """The regular grid corners in view when more than 1.5 boards of ``inner_corners``
-        have (``calib.boards.lattice``), else None."""
-        if inner_corners not in self._lattice:
-            self._lattice[inner_corners] = larger_than_board(self.grey, inner_corners)
-        return self._lattice[inner_corners]
-
-    @property
-    def grid(self) -> np.ndarray | None:
-        if not self._done:
-            self._done = True
-            found, pts, meta = find_board_sb(
-                self.grey, (3, 3), cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_LARGER,
-                with_meta=True)
-            if found and pts is not None:
-                grid = pts.reshape(*meta.shape[:2], 2).astype(float)
-                lo, hi = grey_range(self.grey)
-                if abs(_even_square_darkness(self.grey, grid)) >= 0.25 * (hi - lo):
-                    self._grid = _without_edge_rows(self.grey, grid, 0.25 * (hi - lo))
-        return self._grid
-
-    def larger_than(self, inner_corners: tuple[int, int]) -> bool:
-        """True when the grid in view is larger than ``inner_corners`` (either way round)."""
-        if self.grid is None:
-            return False
-        seen, wanted = sorted(self.grid.shape[1::-1]), sorted(inner_corners)
-        return seen != wanted and seen[0] >= wanted[0] and seen[1] >= wanted[1]
-
-
-def _without_edge_rows(grey: np.ndarray, grid: np.ndarray, contrast: float
-                       ) -> np.ndarray | None:
-    """``grid`` (rows, cols, 2) without its outer rows or columns of points that are no
-    corners: a true corner row has alternating squares on both sides, so the ring of squares
-    just beyond the outermost row (extrapolated by one spacing) must alternate by at least
-    ``contrast`` grey levels too. Beyond a row found on the board's edge lies the plate, the
-    frame or the margin: one colour. A ring that leaves the image proves nothing and is kept.
-    None when fewer than 3x3 corners remain."""
-    trimmed = True
-    while trimmed and min(grid.shape[:2]) >= 3:
-        trimmed = False
-        for turn in range(4):  # each side in turn as row 0
-            turned = np.rot90(grid, turn)
-            alternation = _ring_alternation(grey, turned)
-            if alternation is not None and alternation < contrast:
-                grid = np.rot90(turned[1:], -turn)
-                trimmed = True
-                break
-    return grid if min(grid.shape[:2]) >= 3 else None
-
-
-def _ring_alternation(grey: np.ndarray, grid: np.ndarray) -> float | None:
-    """Mean grey of the even minus the odd squares (absolute) in the ring of squares beyond
-    row 0 of ``grid`` (rows, cols, 2), each sampled at its centre and halfway to its corners;
-    None when a sample falls outside the image."""
-    edge, beyond = grid[0], 2 * grid[0] - grid[1]
-    corners = (edge[:-1], edge[1:], beyond[:-1], beyond[1:])
-    centre = sum(corners) / 4
-    samples = np.stack([centre] + [(centre + c) / 2 for c in corners])  # (5, cols - 1, 2)
-    h, w = grey.shape
-    if (samples < 0).any() or (samples[..., 0] > w - 1).any() or (samples[..., 1] > h - 1).any():
-        return None
-    m = samples.reshape(-1, 1, 2).astype(np.float32)
-    vals = cv2.remap(grey, m[..., 0], m[..., 1], cv2.INTER_LINEAR).reshape(samples.shape[:2])
-    vals = vals.astype(float).mean(axis=0)
-    return float(abs(vals[::2].mean() - vals[1::2].mean()))
-
-
-def _diagnose_missing_board(survey: _GridSurvey, inner_corners: tuple[int, int]) -> str:
-    """Reason for a failed detection: off-image, wrong size, or simply not found, from the
-    grid ``survey`` sees compared with what was asked for."""
-    cols, rows = inner_corners
-    grid, lattice = survey.grid, survey.lattice(inner_corners)
-    if lattice is not None and not survey.larger_than(inner_corners):
-        return (f"board not found: a regular grid of about {lattice} corners is in view, more "
-                f"than a {cols}x{rows}-corner board has (check inner_corners)")
-    if grid is None:
-        return f"board not found ({cols}x{rows} inner corners expected)"
-    grey = survey.grey
-    grid_rows, grid_cols = grid.shape[:2]
-    pts = grid.reshape(-1, 2)
-    h, w = grey.shape
-    spacing = np.median(np.linalg.norm(np.diff(grid, axis=1), axis=-1))
-    near_edge = ((pts < 1.5 * spacing) | (pts > np.array([w, h]) - 1.5 * spacing)).any()
-    if near_edge and len(pts) < cols * rows:
-        return (f"only part of the board is visible: {grid_cols}x{grid_rows} of {cols}x{rows} "
-                "inner corners found, the board runs off the image")
-    seen, wanted = sorted((grid_cols, grid_rows)), sorted((cols, rows))
-    if seen == wanted:
-        return (f"board seen ({grid_cols}x{grid_rows} inner corners) but not read reliably "
-                "(glare, shadow or strong perspective?)")
-    if seen[0] >= wanted[0] and seen[1] >= wanted[1]:
-        return (f"board not found with {cols}x{rows} inner corners; a larger "
-                f"{grid_cols}x{grid_rows} grid is visible: check inner_corners")
-    if seen[0] <= wanted[0] and seen[1] <= wanted[1] and len(pts) < cols * rows // 2:
-        return (f"board not read: only a {grid_cols}x{grid_rows} patch of the {cols}x{rows} "
-                "inner corners could be followed (part of the board hidden, in glare or "
-                "shadow, or too blurred?)")
-    return (f"board not found with {cols}x{rows} inner corners; a {grid_cols}x{grid_rows} "
-            "grid is visible: check inner_corners, or whether part of the board is hidden")
 
 
 def _bending(grid: np.ndarray) -> float:
@@ -444,26 +327,6 @@ def _signed_area(grid: np.ndarray) -> float:
     clockwise on screen, i.e. the board is seen from its front."""
     q = np.array([grid[0, 0], grid[0, -1], grid[-1, -1], grid[-1, 0]])
     return float(np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1]))
-
-
-def _even_square_darkness(grey: np.ndarray, grid: np.ndarray) -> float:
-    """Mean grey of inner squares with a + b odd minus those with a + b even.
-
-    Inner square (a, b), 1 <= a < cols, 1 <= b < rows, is bounded by corners (a-1..a,
-    b-1..b); it is sampled at its centre and halfway to each of its corners. Positive when
-    the even squares (the colour of square (0, 0)) are the dark ones.
-    """
-    c00, c10 = grid[:-1, :-1], grid[:-1, 1:]
-    c01, c11 = grid[1:, :-1], grid[1:, 1:]
-    centre = (c00 + c10 + c01 + c11) / 4
-    samples = np.stack([centre] + [(centre + c) / 2 for c in (c00, c10, c01, c11)])
-    m = samples.reshape(-1, 1, 2).astype(np.float32)
-    vals = cv2.remap(grey, m[..., 0], m[..., 1], cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REPLICATE).reshape(samples.shape[:-1])
-    vals = vals.astype(float).mean(axis=0)
-    b, a = np.mgrid[1:grid.shape[0], 1:grid.shape[1]]
-    even = (a + b) % 2 == 0
-    return float(vals[~even].mean() - vals[even].mean())
 
 
 def grid_mismatch(image: np.ndarray, inner_corners: tuple[int, int]) -> str | None:
@@ -481,7 +344,7 @@ def grid_mismatch(image: np.ndarray, inner_corners: tuple[int, int]) -> str | No
     grey, _ = as_grey(image)
     if grey is None:
         return None
-    survey = _GridSurvey(grey if min(grey.shape) < _COARSE_MIN_SIZE else cv2.pyrDown(grey))
+    survey = GridSurvey(grey if min(grey.shape) < _COARSE_MIN_SIZE else cv2.pyrDown(grey))
     grid = survey.grid
     if grid is None:
         return None

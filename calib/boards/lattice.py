@@ -89,10 +89,3 @@ def _regular(points: np.ndarray) -> int:
                 & (np.linalg.norm(steps[:, 1] + steps[:, 3], axis=1) < _TOLERANCE * spacing))
     return int((even & opposite).sum())
 
-
-def larger_than_board(grey: np.ndarray, inner_corners: tuple[int, int]) -> int | None:
-    """The regular corners ``grey`` shows when they are more than ``LATTICE_FACTOR`` boards of
-    ``inner_corners`` (cols, rows) have; else None."""
-    count = regular_corners(grey)
-    cols, rows = inner_corners
-    return count if count > LATTICE_FACTOR * cols * rows else None
