@@ -95,15 +95,11 @@ def _ring_alternation(grey: np.ndarray, grid: np.ndarray) -> float | None:
     row 0 of ``grid`` (rows, cols, 2), each sampled at its centre and halfway to its corners;
     None when a sample falls outside the image."""
     edge, beyond = grid[0], 2 * grid[0] - grid[1]
-    corners = (edge[:-1], edge[1:], beyond[:-1], beyond[1:])
-    centre = sum(corners) / 4
-    samples = np.stack([centre] + [(centre + c) / 2 for c in corners])  # (5, cols - 1, 2)
+    samples = _square_samples(edge[:-1], edge[1:], beyond[:-1], beyond[1:])  # (5, cols - 1, 2)
     h, w = grey.shape
     if (samples < 0).any() or (samples[..., 0] > w - 1).any() or (samples[..., 1] > h - 1).any():
         return None
-    m = samples.reshape(-1, 1, 2).astype(np.float32)
-    vals = cv2.remap(grey, m[..., 0], m[..., 1], cv2.INTER_LINEAR).reshape(samples.shape[:2])
-    vals = vals.astype(float).mean(axis=0)
+    vals = _mean_grey(grey, samples)
     return float(abs(vals[::2].mean() - vals[1::2].mean()))
 
 
@@ -149,14 +145,24 @@ def even_square_darkness(grey: np.ndarray, grid: np.ndarray) -> float:
     the even squares (the colour of square (0, 0), ``calib.boards.checkerboard``) are
     the dark ones.
     """
-    c00, c10 = grid[:-1, :-1], grid[:-1, 1:]
-    c01, c11 = grid[1:, :-1], grid[1:, 1:]
-    centre = (c00 + c10 + c01 + c11) / 4
-    samples = np.stack([centre] + [(centre + c) / 2 for c in (c00, c10, c01, c11)])
-    m = samples.reshape(-1, 1, 2).astype(np.float32)
-    vals = cv2.remap(grey, m[..., 0], m[..., 1], cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REPLICATE).reshape(samples.shape[:-1])
-    vals = vals.astype(float).mean(axis=0)
+    vals = _mean_grey(grey, _square_samples(grid[:-1, :-1], grid[:-1, 1:], grid[1:, :-1],
+                                            grid[1:, 1:]))
     b, a = np.mgrid[1:grid.shape[0], 1:grid.shape[1]]
     even = (a + b) % 2 == 0
     return float(vals[~even].mean() - vals[even].mean())
+
+
+def _square_samples(*corners: np.ndarray) -> np.ndarray:
+    """Where squares are sampled, shape (5, ..., 2) px: each square's centre and the points
+    halfway to its four corners, from the four arrays (..., 2) px of those corners."""
+    centre = sum(corners) / 4
+    return np.stack([centre] + [(centre + c) / 2 for c in corners])
+
+
+def _mean_grey(grey: np.ndarray, samples: np.ndarray) -> np.ndarray:
+    """Each square's mean grey over its ``samples`` (5, ..., 2) px (:func:`_square_samples`),
+    bilinear, a sample off the image taking the nearest edge pixel; shape (...)."""
+    m = samples.reshape(-1, 1, 2).astype(np.float32)
+    vals = cv2.remap(grey, m[..., 0], m[..., 1], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE).reshape(samples.shape[:-1])
+    return vals.astype(float).mean(axis=0)
