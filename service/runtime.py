@@ -16,6 +16,7 @@ from service.runs import RunManager
 from service.settings import Settings
 from service.store.db import Database
 from service.store.instances import InstanceLease
+from service.store.storage import Storage
 
 log = logging.getLogger("cellcal.service")
 
@@ -45,11 +46,12 @@ class Runtime:
         instance = InstanceLease(settings, db)
         devices = Devices(open_devices or settings_opener(settings))
         events = EventBus(db, instance.id)
-        outcomes = Outcomes(settings, db, events)
+        storage = Storage(settings)
+        outcomes = Outcomes(settings, db, events, storage)
         if spooled := outcomes.recover():  # before dead services' jobs are marked failed
             log.warning("stored %d outcome(s) spooled during a database outage", spooled)
         instance.start()  # recovers the work of this cell's dead services first
-        motion = Motion(settings, db, devices, instance.id)
+        motion = Motion(settings, db, devices, instance.id, storage)
         return cls(settings=settings, db=db, instance=instance, devices=devices, events=events,
                    motion=motion, outcomes=outcomes, runs=RunManager(motion, events),
                    calibrations=Calibrations(settings, db, events, instance.id, outcomes),

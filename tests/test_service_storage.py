@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import errno
 import shutil
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -21,6 +22,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
+from service.jobs.calibrations import Calibrations
+from service.jobs.validations import Validations
 from service.runs import capture
 from service.store import storage
 from tests.support.service import (
@@ -32,6 +35,7 @@ from tests.support.service import (
     robot_pose,
     settings,
     start_run,
+    wait_calibration,
     wait_run,
 )
 
@@ -129,3 +133,54 @@ def test_a_read_only_data_directory_is_503_not_500(tmp_path: Path,
         refused(client.get(f"/runs/{run_id}/stationset"), "storage_unavailable")
         refused(client.post("/runs", json={"poses": poses(3)}), "storage_unavailable")
         assert client.get(f"/runs/{run_id}").json()["state"] == "done"  # reads still answer
+
+
+@pytest.mark.timeout(300)
+def test_a_job_that_ends_without_its_data_directory_is_not_done(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A calibration solving, or a re-check moving, when the data directory goes ended
+    ``done`` (issue 22, a variant of row 5): it is moved away at the last moment before each
+    job's outcome is stored (nothing raced), and moved back between the two."""
+    data, away = tmp_path / "data", tmp_path / "away"
+    with service(tmp_path) as client:
+        run_id = start_run(client, 8)
+        assert wait_run(client, run_id, finished)["state"] == "done"
+        cal_id = client.post(f"/runs/{run_id}/calibrations").json()["id"]
+        assert wait_calibration(client, cal_id)["state"] == "done"
+
+        check = Validations._check
+
+        def check_then_move(self: Validations, *args: Any) -> Any:
+            result = check(self, *args)
+            data.rename(away)
+            return result
+
+        monkeypatch.setattr(Validations, "_check", check_then_move)
+        r = client.post(f"/calibrations/{cal_id}/checks", json={"stations": 3})
+        assert r.status_code == 202, r.text
+        val = wait_for_state(client, f"/validations/{r.json()['id']}")
+        assert val["state"] == "failed" and val["result"] is None
+        assert val["error"].startswith("storage_unavailable: ")
+        away.rename(data)
+        monkeypatch.undo()
+        assert client.get("/health").json()["status"] == "ok"
+
+        done = Calibrations._done
+
+        def move_then_done(self: Calibrations, *args: Any) -> None:
+            data.rename(away)
+            done(self, *args)
+
+        monkeypatch.setattr(Calibrations, "_done", move_then_done)
+        cal_id = client.post(f"/runs/{run_id}/calibrations").json()["id"]
+        cal = wait_calibration(client, cal_id)
+        assert cal["state"] == "failed" and cal["result"] is None
+        assert cal["error"].startswith("storage_unavailable: ")
+        assert "deleted or replaced" in cal["error"]
+
+
+def wait_for_state(client: TestClient, path: str) -> dict[str, Any]:
+    """The job at ``path`` once it has left ``running``."""
+    while (job := client.get(path).json())["state"] == "running":
+        time.sleep(0.05)
+    return job

@@ -37,14 +37,14 @@ class Motion:
     """The robot's motion jobs: their threads, the locks that serialise them, the box."""
 
     def __init__(self, settings: Settings, db: Database, devices: Devices,
-                 instance_id: str) -> None:
+                 instance_id: str, storage: Storage) -> None:
         self.settings = settings
         self.db = db
         self.devices = devices
         #: This service's instance (``service.store.instances``): its jobs' rows name it.
         self.instance_id = instance_id
         #: The data directory's health, checked before each station and each new job.
-        self.storage = Storage(settings)
+        self.storage = storage
         #: Held by the one thread that drives the robot.
         self.robot_lock = threading.Lock()
         #: Set at shutdown: motion threads take no new step.

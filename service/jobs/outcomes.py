@@ -14,6 +14,12 @@ run), the result was lost and listeners hung (issue 22). Now :meth:`Outcomes.fin
 * from the moment the job's worker ends until its outcome is stored, every row of the job
   read from the database shows that outcome (a SQLAlchemy ``load`` listener), so a job whose
   worker has ended is never shown ``running`` and its validation does not hold the robot.
+
+A job that computed its result while the data directory was deleted (or the database file
+went) used to end ``done``, stored in a database file without a name, and a restart lost it
+without a word (issue 22, row 5). A ``done`` outcome is therefore stored only while
+``Storage.gone`` finds the directory and the database file where they were; otherwise the
+job ends ``failed`` with the ``storage_unavailable`` reason.
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ from service.settings import Settings
 from service.store import writes
 from service.store.db import Database, DatabaseUnavailableError, retry_transient
 from service.store.records import CalibrationRecord, Topic, ValidationRecord, utcnow
+from service.store.storage import Storage
 
 log = logging.getLogger("cellcal.service")
 
@@ -48,10 +55,12 @@ _ROWS: dict[str, type[CalibrationRecord] | type[ValidationRecord]] = {
 class Outcomes:
     """Stores jobs' final outcomes, through database outages (see the module doc)."""
 
-    def __init__(self, settings: Settings, db: Database, events: EventBus) -> None:
+    def __init__(self, settings: Settings, db: Database, events: EventBus,
+                 storage: Storage) -> None:
         self.settings = settings
         self.db = db
         self.events = events
+        self.storage = storage
         self.dir = Path(settings.data_dir) / "spool"
         self._pending: dict[Topic, dict[str, Any]] = {}
         self._lock = threading.Lock()
@@ -65,7 +74,11 @@ class Outcomes:
 
     def finish(self, topic: Topic, values: dict[str, Any]) -> None:
         """Store the outcome ``values`` (``state`` and ``result`` or ``error``) of the job
-        ``topic`` and publish its final state; spooled if the database does not answer."""
+        ``topic`` and publish its final state; spooled if the database does not answer.
+        ``done`` becomes ``failed`` when the data directory or the database file is gone."""
+        if values.get("state") == "done" and (gone := self.storage.gone()) is not None:
+            log.error("%s %s: %s", topic.kind, topic.id, gone)
+            values = {"state": "failed", "error": f"{gone.code}: {gone}"}
         values = {**values, "finished_at": utcnow()}
         with self._lock:  # shown from now on, while the write is tried
             self._pending[topic] = values

@@ -73,13 +73,8 @@ class Storage:
     def problem(self) -> StorageError | None:
         """Why the data directory cannot take the service's writes now, or None."""
         with self._lock:
-            if _identity(self.dir) != self._identity or not self._marker.is_file():
-                return StorageError(f"The data directory {self.dir} was deleted or replaced "
-                                    "while the service ran; restore it and restart the "
-                                    "service.")
-            if self.database is not None and not self.database.is_file():
-                return StorageError(f"The database file {self.database} is gone; restore it "
-                                    "and restart the service.")
+            if (error := self.gone()) is not None:
+                return error
             try:
                 with tempfile.TemporaryFile(dir=self.dir):
                     pass
@@ -96,6 +91,18 @@ class Storage:
                                     code="disk_full")
             self._keep_reserve()
             return None
+
+    def gone(self) -> StorageError | None:
+        """Why what the service wrote is no longer where it was (the data directory deleted
+        or replaced, the database file gone), or None: a job's ``done`` is stored only
+        without it (``service.jobs.outcomes``)."""
+        if _identity(self.dir) != self._identity or not self._marker.is_file():
+            return StorageError(f"The data directory {self.dir} was deleted or replaced "
+                                "while the service ran; restore it and restart the service.")
+        if self.database is not None and not self.database.is_file():
+            return StorageError(f"The database file {self.database} is gone; restore it and "
+                                "restart the service.")
+        return None
 
     def check(self) -> None:
         """Raise the ``StorageError`` of :meth:`problem`, if any."""
