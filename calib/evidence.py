@@ -13,7 +13,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -27,12 +27,12 @@ from calib.crossval import (
 )
 from calib.handeye import HandEyeResult, calibrate_hand_eye
 from calib.joint import CellParameters, JointResult
-from calib.jointfit import JointData, JointModel
+from calib.jointfit import JointData, JointFit, JointModel, fit_joint
 from calib.quality import QualityInputs, assess, irreconcilable
 from calib.refine import RefineOptions, scale_translations
 from calib.result import QualityBlock
 from calib.selection import ModelCandidate, Modes, Selection, select_joint_model
-from calib.uncertainty import UncertaintyEstimate, honest
+from calib.uncertainty import UncertaintyEstimate, honest, with_held_shift
 
 #: Leading names of the pose-only candidates (``calib.handeye`` methods).
 POSE_CANDIDATES = ("sm", "refine")
@@ -86,9 +86,35 @@ def choose_joint(data: JointData, station_ids: Sequence[str], base: JointModel,
     folds = fold_indices(len(data))
     expected = fit.expected_jackknife(folds, noise=noise) \
         if len(folds) == selection.chosen.cv.folds else {}
-    return JointChoice(result=result, selection=selection,
-                       uncertainty=honest(result.sigmas, selection.chosen.cv.estimates,
-                                          FoldEstimate.of(result), expected))
+    uncertainty = honest(result.sigmas, selection.chosen.cv.estimates, FoldEstimate.of(result),
+                         expected)
+    # κ, ν held at 1 by the selection (not by the user): the poses' σ include the bias the
+    # shift to the same model estimating them shows (calib.uncertainty)
+    held = [p for p in ("kappa", "nu") if chosen is not None and p in chosen.fix
+            and p not in base.fix and not (p == "kappa" and kappa == "fixed")]
+    if held and chosen is not None:
+        freed = _freed(selection, data, fit, replace(chosen, fix=tuple(
+            p for p in chosen.fix if p not in held)))
+        uncertainty = with_held_shift(
+            uncertainty, held, (FoldEstimate.of(fit.cell), result.sigmas),
+            (FoldEstimate.of(freed.cell),
+             freed.result(first.stations, first.rejected, noise=noise).sigmas))
+    return JointChoice(result=result, selection=selection, uncertainty=uncertainty)
+
+
+def _freed(selection: Selection, data: JointData, fit: JointFit, model: JointModel
+           ) -> JointFit:
+    """The fit of ``model`` (the chosen one with κ and/or ν freed) on all stations: its
+    candidate's when the selection tried it, else fitted from the chosen ``fit`` at the noise
+    levels that fit ended with."""
+    for c in selection.candidates:
+        if c.model is not None and c.fit is not None and set(c.model.fix) == set(model.fix) \
+                and c.model.estimate_noise == model.estimate_noise \
+                and c.model.robot_map == model.robot_map:
+            return c.fit
+    return fit_joint(replace(data, sigma_px=fit.sigma_px),
+                     replace(model, noise=fit.noise, estimate_noise=False), fit.cell,
+                     corrections=fit.corrections)
 
 
 def method_cross_validation(data: JointData, station_ids: Sequence[str],

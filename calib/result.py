@@ -86,6 +86,13 @@ class Uncertainty(_Block):
     jackknife_expected: dict[str, Sigma] | None = Field(
         None, description="the spread over the folds the noise model predicts (the "
                           "jackknife scales the formal sigma by its excess over this)")
+    held_at_one: list[str] | None = Field(
+        None, description="parameters the model selection held at 1 (kappa, nu)")
+    held_shift: dict[str, Sigma] | None = Field(
+        None, description="per pose σ, the shift when those are estimated instead")
+    held_bias: dict[str, Sigma] | None = Field(
+        None, description="per pose σ, the bias that shift shows beyond its own noise, "
+                          "added to the σ in quadrature")
 
 
 class StationFit(_Block):

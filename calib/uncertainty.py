@@ -27,12 +27,27 @@ components; when the jackknife wins, the formal components are scaled up to its 
 formal shape, far less noisy, at the level the data show. So the reported σ is never below
 the formal one, and never below the jackknife debiased for its design (``σ_jk · σ / σ_m``)
 by more than that factor.
+
+A parameter the model selection held at 1 (κ or ν: estimating it did not predict clearly
+better, ``calib.selection``) is not known to be 1, only not shown to differ. Both σ's above
+take it as exact, so the pose estimates lose the bias a board off its entered size gives them:
+a board 0.1 % larger than entered moves a camera 1.2 m away by 1.2 mm, far beyond their σ.
+That bias is estimated from the shift ``d`` of the pose estimates between the chosen model
+(σ_h, formal) and the same model with the held parameters estimated (σ_f): with the held
+value right, ``d`` is noise of variance ``σ_f² - σ_h²`` (the held fit is the efficient one;
+Hausman, *Econometrica* 46, 1978, lemma 2.1), so ``max(0, d² - (σ_f² - σ_h²))`` per axis is
+the positive part of an unbiased estimate of the bias's square, and the reported σ becomes
+``sqrt(σ² + that)``: the chosen estimate's mean square error. It is added on the axes where
+Hausman's test rejects the held value, ``|d|`` beyond 1.96 times its noise (95 %, two-sided;
+``HELD_TEST_Z``): where the shift is within its noise it is no evidence of a bias, and adding
+it anyway makes a board that is right over-cover. A parameter the user holds fixed
+(``kappa='fixed'``) adds nothing.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -54,7 +69,10 @@ class UncertaintyEstimate:
     these folds (empty: the formal σ stands for it); ``source`` maps each name to ``formal``
     or ``jackknife`` (the jackknife beyond its noise of that expectation; a jackknife vector
     is reported as the formal one scaled to its size). ``folds`` is the number of jackknife
-    groups (0: none).
+    groups (0: none). ``held`` names the parameters the model selection held at 1, ``shift``
+    the pose estimates' shift (3,) per name when they are estimated instead, ``bias`` the bias
+    (3,) that shift shows beyond its noise, added to ``sigmas`` in quadrature (module
+    docstring).
     """
 
     sigmas: dict[str, float | np.ndarray]
@@ -63,6 +81,9 @@ class UncertaintyEstimate:
     source: dict[str, str]
     folds: int
     expected: dict[str, float | np.ndarray] = field(default_factory=dict)
+    held: tuple[str, ...] = ()
+    shift: dict[str, np.ndarray] = field(default_factory=dict)
+    bias: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def note(self) -> str:
@@ -78,11 +99,17 @@ class UncertaintyEstimate:
                 f"cross-validation folds where that exceeds {against} by more than its own "
                 f"noise ({JACKKNIFE_NOISE:g}x); ")
         if not wider:
-            return text + ("the formal value is reported everywhere (the jackknife is within its "
-                           "noise of that or smaller)")
-        return text + ("the data scatter more than the noise model says for "
-                       + ", ".join(wider) + " (jackknife reported, as the formal components "
-                       "scaled to its size: the robot likely has systematic errors)")
+            text += ("the formal value is reported everywhere (the jackknife is within its "
+                     "noise of that or smaller)")
+        else:
+            text += ("the data scatter more than the noise model says for "
+                     + ", ".join(wider) + " (jackknife reported, as the formal components "
+                     "scaled to its size: the robot likely has systematic errors)")
+        if self.held:
+            text += ("; the poses' σ include the bias shown by how far they move when "
+                     + " and ".join(self.held) + ", held at 1 by the model selection, "
+                     "is estimated instead, beyond the noise of that move")
+        return text
 
 
 def fold_deviations(estimates: Sequence[FoldEstimate], reference: FoldEstimate
@@ -140,6 +167,41 @@ def honest(formal: dict[str, float | np.ndarray], estimates: Sequence[FoldEstima
     return UncertaintyEstimate(sigmas=sigmas, formal=dict(formal), jackknife=jk, source=source,
                                folds=len(estimates) if jk else 0,
                                expected={k: v for k, v in expected.items() if k in source})
+
+
+#: A held parameter's shift counts as bias when it exceeds its noise by this factor (the
+#: two-sided 95 % level of Hausman's test, module docstring).
+HELD_TEST_Z = 1.96
+
+#: The pose estimates of ``fold_deviations`` that :func:`with_held_shift` widens.
+POSE_SIGMAS = ("hand_eye_rot_rad", "hand_eye_trans_m", "target_pose_rot_rad",
+               "target_pose_trans_m")
+
+
+def with_held_shift(estimate: UncertaintyEstimate, held: Sequence[str],
+                    chosen: tuple[FoldEstimate, dict[str, float | np.ndarray]],
+                    freed: tuple[FoldEstimate, dict[str, float | np.ndarray]]
+                    ) -> UncertaintyEstimate:
+    """``estimate`` with the pose σ widened by the bias the parameters ``held`` at 1 show:
+    ``chosen`` is the held fit's estimate and formal σ, ``freed`` the same model's with them
+    estimated; per axis ``sqrt(σ² + max(0, d² - (σ_f² - σ_h²)))`` where ``|d|`` exceeds
+    ``HELD_TEST_Z`` times ``sqrt(σ_f² - σ_h²)``, else σ (module docstring).
+    ``shift`` keeps ``d``, ``bias`` the square root of what was added."""
+    if not held:
+        return estimate
+    (est_h, formal_h), (est_f, formal_f) = chosen, freed
+    shift = {name: np.abs(dev[0]) for name, dev in fold_deviations([est_f], est_h).items()
+             if name in POSE_SIGMAS}
+    sigmas, bias = dict(estimate.sigmas), {}
+    for name, d in shift.items():
+        if name not in sigmas or name not in formal_h or name not in formal_f:
+            continue
+        noise = np.maximum(np.asarray(formal_f[name]) ** 2 - np.asarray(formal_h[name]) ** 2,
+                           0.0)
+        bias[name] = np.where(d ** 2 > HELD_TEST_Z ** 2 * noise,
+                              np.sqrt(np.maximum(d ** 2 - noise, 0.0)), 0.0)
+        sigmas[name] = np.hypot(np.asarray(sigmas[name], dtype=float), bias[name])
+    return replace(estimate, sigmas=sigmas, held=tuple(held), shift=shift, bias=bias)
 
 
 #: The 90 % bound on the norm of a 3-vector error (a pose's rotation or translation) as a

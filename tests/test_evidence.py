@@ -19,21 +19,16 @@ from calib import (
     solve_joint,
     ur_pose_from_matrix,
 )
-from calib.crossval import fold_indices
+from calib.crossval import FoldEstimate, fold_indices
 from calib.jointfit import JointData, JointModel, fit_joint
 from calib.pipeline import calibrate_stations
-from calib.uncertainty import JACKKNIFE_NOISE
+from calib.uncertainty import JACKKNIFE_NOISE, UncertaintyEstimate, with_held_shift
 from service.cli.main import main
+from service.results.document import calibration_result
 from tests.support.helpers import SHARED
 from tests.support.projected import BOARD, calibrate, scene, stations
 
 UR_SETS = [SHARED / "data" / name for name in ("ur-kinect-highR_highT", "ur-kinect-lowR_highT")]
-
-
-
-
-
-
 
 
 def test_folds_are_interleaved_and_leave_one_out_below_ten():
@@ -58,8 +53,14 @@ def test_block_solver_reaches_the_minimum_of_solve_joint():
     assert np.abs(fast.cell.hand_eye - ref.hand_eye).max() < 1e-7
 
 
-def test_nominal_board_passes_with_kappa_held_and_cross_validation_in_the_result():
-    res = calibrate(true_kappa=1.0)
+@pytest.fixture(scope="module")
+def nominal():
+    """The projected scene's calibration with its exact board (one for the module's tests)."""
+    return calibrate(true_kappa=1.0)
+
+
+def test_nominal_board_passes_with_kappa_held_and_cross_validation_in_the_result(nominal):
+    res = nominal
     trust = res.trust
     cv = trust.cross_validation
     assert cv.kind == "k-fold" and cv.folds == 5 and len(cv.stations) == 16
@@ -84,7 +85,7 @@ def test_oversized_board_warns_with_the_measured_square_size():
     assert fixed.trust.cross_validation.rms_px > 3 * res.trust.cross_validation.rms_px
 
 
-def test_a_skewed_robot_gets_its_translation_map_and_a_plain_one_does_not():
+def test_a_skewed_robot_gets_its_translation_map_and_a_plain_one_does_not(nominal):
     """Readings whose translations are skewed by 0.3-0.4 % (an industrial arm's positions
     through a linear distortion): the map predicts held-out stations clearly better, is
     chosen and found; on the plain robot (the nominal-board test above) it is not chosen."""
@@ -102,7 +103,7 @@ def test_a_skewed_robot_gets_its_translation_map_and_a_plain_one_does_not():
     assert res.trust.cross_validation.rms_px < 0.5 * plain.cv.rms_px
     (found,) = [f for f in res.trust.quality.findings if f.code == "robot_translation_map"]
     assert found.severity == "info" and 1e-3 < found.values["largest_shift_m"] < 10e-3
-    assert not calibrate(true_kappa=1.0).trust.model_selection.chosen.model.robot_map
+    assert not nominal.trust.model_selection.chosen.model.robot_map
 
 
 def test_wrong_setup_fails_with_setup_mismatch():
@@ -111,15 +112,17 @@ def test_wrong_setup_fails_with_setup_mismatch():
     assert [f.code for f in res.trust.quality.findings] == ["setup_mismatch"]
 
 
-def test_reported_sigma_is_never_below_the_fold_jackknife_beyond_its_noise():
+def test_reported_sigma_is_never_below_the_fold_jackknife_beyond_its_noise(nominal):
     """Vectors compare as a block (root-sum-square of their components), scalars directly;
     the jackknife debiased for its fold design by what the noise model expects of it."""
-    u = calibrate(true_kappa=1.0).trust.uncertainty
+    u = nominal.trust.uncertainty
     assert u.folds == 5 and set(u.source) >= {"hand_eye_rot_rad", "hand_eye_trans_m"}
     assert set(u.expected) == set(u.source)
     for name, jk in u.jackknife.items():
         if name in u.source:
-            reported, formal = np.asarray(u.sigmas[name]), np.asarray(u.formal[name])
+            # without the bias of a parameter held at 1 (tests below)
+            reported = np.sqrt(np.asarray(u.sigmas[name]) ** 2 - u.bias.get(name, 0.0) ** 2)
+            formal = np.asarray(u.formal[name])
             debiased = np.linalg.norm(jk) * np.linalg.norm(formal) / np.linalg.norm(
                 u.expected[name])
             assert np.linalg.norm(reported) * JACKKNIFE_NOISE >= debiased * (1 - 1e-12)
@@ -128,6 +131,45 @@ def test_reported_sigma_is_never_below_the_fold_jackknife_beyond_its_noise():
                 assert np.allclose(reported / np.linalg.norm(reported),
                                    formal / np.linalg.norm(formal))
     assert "jackknife" in u.note
+
+
+def test_poses_held_kappa_would_move_are_in_their_sigma(nominal):
+    """κ (and ν) held at 1 by the selection are not known to be 1: the poses' σ include the
+    bias the shift to the same model estimating them (the 'all estimated' candidate) shows
+    beyond its noise, in quadrature."""
+    res = nominal
+    u, selection = res.trust.uncertainty, res.trust.model_selection
+    assert "kappa" in u.held and set(u.held) <= set(selection.chosen.model.fix)
+    freed = next(c.fit.cell for c in selection.candidates if c.model.name == "all estimated")
+    shift_t = np.abs(freed.hand_eye[:3, 3] - res.hand_eye[:3, 3])
+    assert np.allclose(u.shift["hand_eye_trans_m"], shift_t) and shift_t.max() > 1e-6
+    bias = u.bias["hand_eye_trans_m"]
+    assert np.all(bias <= shift_t)
+    before = np.sqrt(u.sigmas["hand_eye_trans_m"] ** 2 - bias ** 2)
+    assert np.all(before >= u.formal["hand_eye_trans_m"] * (1 - 1e-9))
+    assert "held at 1 by the model selection" in u.note
+    document = calibration_result(res).uncertainty
+    assert document.held_at_one == list(u.held)
+    assert np.allclose(document.held_shift["hand_eye_trans_m"], shift_t)
+    assert np.allclose(document.held_bias["hand_eye_trans_m"], bias)
+
+
+def test_a_held_shift_within_its_noise_adds_nothing_and_beyond_it_its_excess():
+    """``with_held_shift``: per axis ``sqrt(σ² + d² - (σ_f² - σ_h²))`` where the shift d is
+    beyond 1.96 times its noise ``sqrt(σ_f² - σ_h²)`` (0.3 mm here), else σ."""
+    X, X_f = np.eye(4), np.eye(4)
+    X_f[:3, 3] = [1e-3, 0.1e-3, 0.5e-3]
+    sigma_h, sigma_f = np.full(3, 0.2e-3), np.full(3, np.hypot(0.2e-3, 0.3e-3))
+    est = UncertaintyEstimate(sigmas={"hand_eye_trans_m": sigma_h}, formal={}, jackknife={},
+                              source={}, folds=0)
+    out = with_held_shift(est, ["kappa"],
+                          (FoldEstimate(X, X, 1.0), {"hand_eye_trans_m": sigma_h}),
+                          (FoldEstimate(X_f, X, 1.001), {"hand_eye_trans_m": sigma_f}))
+    expected_bias = np.array([np.sqrt(1e-6 - 0.09e-6), 0.0, 0.0])
+    assert np.allclose(out.bias["hand_eye_trans_m"], expected_bias)
+    assert np.allclose(out.sigmas["hand_eye_trans_m"], np.hypot(sigma_h, expected_bias))
+    assert np.allclose(out.shift["hand_eye_trans_m"], [1e-3, 0.1e-3, 0.5e-3])
+    assert with_held_shift(est, [], (None, {}), (None, {})) is est
 
 
 @pytest.mark.parametrize("directory", UR_SETS, ids=lambda p: p.name)

@@ -180,7 +180,9 @@ def _uncertainty_extras(trust: Trust | None) -> dict[str, Any]:
     u = trust.uncertainty
     return {"note": u.note, "jackknife_folds": u.folds, "source": u.source,
             "formal": u.formal, "jackknife": u.jackknife,
-            **({"jackknife_expected": u.expected} if u.expected else {})}
+            **({"jackknife_expected": u.expected} if u.expected else {}),
+            **({"held_at_one": list(u.held), "held_shift": u.shift, "held_bias": u.bias}
+               if u.held else {})}
 
 
 def _mm(v: float | None) -> float | None:
