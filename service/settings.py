@@ -122,6 +122,9 @@ class Settings(BaseSettings):
         10.0, description="a new connection must send its request's headers within this")
     keep_alive_s: Annotated[float, Field(gt=0.0, le=3600.0)] = Field(
         5.0, description="an idle connection between requests is closed after this")
+    send_timeout_s: Annotated[float, Field(gt=0.0, le=3600.0)] = Field(
+        30.0, description="a client that reads nothing of its answer for this long is "
+                          "disconnected")
 
     @field_validator("robot")
     @classmethod

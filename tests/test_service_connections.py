@@ -7,6 +7,7 @@ bounded only against a hang."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import json
 import os
@@ -15,9 +16,12 @@ import socket
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
+import uvicorn
+from uvicorn.server import ServerState
 
 from service.serving.connections import MAX_HEADER_BYTES, ConnectionLimits, guarded_protocol
 from service.serving.local import LocalService, ServeOptions, local_service
@@ -161,6 +165,84 @@ def test_a_client_trickling_its_next_request_is_closed(
             except (BrokenPipeError, ConnectionResetError):
                 closed = True
         assert closed
+
+
+class _FullTransport(asyncio.Transport):
+    """A client's connection whose send buffer fills with the first body bytes and is never
+    read (what a slow-read client makes of a large answer, whatever the kernel buffers)."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        super().__init__()
+        self.loop, self.protocol, self.aborted, self.closing = loop, None, False, False
+
+    def get_extra_info(self, name: str, default: Any = None) -> Any:
+        return {"peername": ("127.0.0.1", 40000), "sockname": ("127.0.0.1", 8000)}.get(
+            name, default)
+
+    def write(self, data: Any) -> None:
+        if not self.closing and b"HTTP/1.1" not in bytes(data)[:9]:  # body: the buffer is full
+            self.protocol.pause_writing()
+
+    def is_closing(self) -> bool:
+        return self.closing
+
+    def close(self) -> None:
+        self.abort()
+
+    def abort(self) -> None:
+        if not self.closing:
+            self.closing = self.aborted = True
+            self.loop.call_soon(self.protocol.connection_lost, None)
+
+    def can_write_eof(self) -> bool:
+        return False
+
+    def pause_reading(self) -> None: ...
+
+    def resume_reading(self) -> None: ...
+
+
+async def _big_answer(scope: Any, receive: Any, send: Any) -> None:
+    """An ASGI app answering every request with a body sent in two chunks."""
+    await send({"type": "http.response.start", "status": 200, "headers": []})
+    await send({"type": "http.response.body", "body": b"x" * 65536, "more_body": True})
+    await send({"type": "http.response.body", "body": b"x" * 65536})
+
+
+@pytest.mark.parametrize("parser", ["httptools", "h11"])
+def test_a_client_reading_none_of_its_answer_is_closed_and_makes_room(parser: str) -> None:
+    """A slow-read client (issue 22, a variant of row 2): 1,100 clients that read none of a
+    1.5 MB answer kept every connection busy, and /health was refused 503 for ~15 s. Such a
+    connection counts as idle for the cap, and the send timeout closes it."""
+    async def scenario() -> None:
+        loop = asyncio.get_running_loop()
+        limits = ConnectionLimits(cap=1, header_timeout_s=60.0, send_timeout_s=3600.0)
+        config = uvicorn.Config(_big_answer, log_level="critical", lifespan="off")
+        config.load()
+
+        def connect() -> tuple[Any, _FullTransport]:
+            protocol = guarded_protocol(limits, parser=parser)(
+                config=config, server_state=ServerState(), app_state={})
+            transport = _FullTransport(loop)
+            transport.protocol = protocol
+            protocol.connection_made(transport)
+            return protocol, transport
+
+        stalled, first = connect()
+        stalled.data_received(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n")
+        while not stalled.stalled():  # the app's first body chunk fills the buffer
+            await asyncio.sleep(0)
+        assert not stalled.idle()  # its answer never completes
+        second, other = connect()  # beyond the cap: the stalled one makes room
+        assert first.aborted and not other.aborted
+        assert list(limits.opened) == [second]
+        limits.send_timeout_s = 0.01  # and on its own, the send timeout closes it
+        second.data_received(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n")
+        while not other.aborted:
+            await asyncio.sleep(0.01)
+        assert not limits.opened
+
+    asyncio.run(asyncio.wait_for(scenario(), HANG_S))
 
 
 def _open_stream(service: LocalService, run_id: str) -> socket.socket:

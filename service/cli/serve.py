@@ -79,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
     _check_database(settings)
     app = create_app(settings)
     limits = ConnectionLimits(cap=settings.max_connections,
-                              header_timeout_s=settings.header_timeout_s)
+                              header_timeout_s=settings.header_timeout_s,
+                              send_timeout_s=settings.send_timeout_s)
     # asyncio's loop even where uvloop is installed: the accept errors limit_connection_logs
     # rate-limits are asyncio's, and uvloop used more CPU per GET here (3.4 against 3.0 ms)
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level="info",

@@ -8,6 +8,11 @@ a running capture with ``Errno 24``, and each refused ``accept`` logged a traceb
 * at start the soft open-files limit is raised to the hard one (``raise_fd_limit``);
 * a connection must send each request's headers within ``header_timeout_s`` of its opening
   or of the previous answer (idle keep-alive connections are closed sooner by uvicorn);
+* a client that stops reading its answer (the server's send buffer full: a slow-read client
+  asking for the 1 MB API documentation bundle on a tiny receive window) is closed after
+  ``send_timeout_s`` without progress, and meanwhile counts as idle for the cap: such
+  answers never complete, so 1,100 of them kept every connection busy and ``/health`` was
+  refused 503;
 * at most ``cap`` connections are open, ``fd_reserve`` descriptors below the limit. A
   connection beyond the cap takes the place of the oldest one with no request in progress (an
   idle client is worth least), or, when every connection is busy, is answered 503 and closed
@@ -98,10 +103,11 @@ def connection_cap(fd_limit: int, wanted: int) -> int:
 @dataclass
 class ConnectionLimits:
     """What a connection may take: ``cap`` connections open at once, ``header_timeout_s``
-    until the first request's headers are in."""
+    until the first request's headers are in, ``send_timeout_s`` with its answer unread."""
 
     cap: int
     header_timeout_s: float
+    send_timeout_s: float = 30.0
     #: The open connections in the order they came (a dict as an ordered set): oldest first.
     opened: dict[ConnectionGuard, None] = field(default_factory=dict)
 
@@ -110,7 +116,7 @@ class ConnectionLimits:
         if len(self.opened) < self.cap:
             self.opened[new] = None
             return True
-        victim = next((c for c in self.opened if c.idle()), None)
+        victim = next((c for c in self.opened if c.idle() or c.stalled()), None)
         if victim is None:
             log.warning("%d connections, all busy: a new connection was answered 503",
                         self.cap)
@@ -139,6 +145,7 @@ class ConnectionGuard:
         self._header_bytes = 0  # received since the last answer, no request's headers yet
         self._timer: asyncio.TimerHandle | None = None
         self._answered: Any = None  # the request cycle before the headers awaited now
+        self._stall: asyncio.TimerHandle | None = None  # running while the client reads nothing
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)  # type: ignore[misc]
@@ -186,15 +193,33 @@ class ConnectionGuard:
             self.transport.close()
         return super().eof_received()  # type: ignore[misc]
 
+    def pause_writing(self) -> None:
+        """The client reads nothing of the answer (the send buffer is full): closed unless it
+        reads again within ``send_timeout_s``."""
+        super().pause_writing()  # type: ignore[misc]
+        if self._stall is None:
+            self._stall = self.loop.call_later(self.limits.send_timeout_s, self._send_timeout)
+
+    def resume_writing(self) -> None:
+        if self._stall is not None:
+            self._stall.cancel()
+            self._stall = None
+        super().resume_writing()  # type: ignore[misc]
+
     def connection_lost(self, exc: Exception | None) -> None:
         self.limits.opened.pop(self, None)
-        if self._timer is not None:
-            self._timer.cancel()
+        for timer in (self._timer, self._stall):
+            if timer is not None:
+                timer.cancel()
         super().connection_lost(exc)  # type: ignore[misc]
 
     def idle(self) -> bool:
         """True while no request is in progress (none yet, or between requests)."""
         return self.cycle is None or self.cycle.response_complete
+
+    def stalled(self) -> bool:
+        """True while the client reads none of its answer."""
+        return self._stall is not None
 
     def drop(self) -> None:
         """Close the connection now, without waiting to write anything."""
@@ -207,6 +232,12 @@ class ConnectionGuard:
             log.warning("a connection sent no complete request in %g s: closed",
                         self.limits.header_timeout_s)
             self.drop()
+
+    def _send_timeout(self) -> None:
+        self._stall = None
+        log.warning("a client read none of its answer in %g s: closed",
+                    self.limits.send_timeout_s)
+        self.drop()
 
 
 class GuardedH11(ConnectionGuard, H11Protocol):
