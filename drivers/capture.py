@@ -14,6 +14,7 @@ import numpy as np
 from calib import Station, check_ur_pose, check_ur_vector, matrix_from_ur_pose, pose_error
 from drivers.base import Camera, ReportsFreshness, Robot
 from drivers.errors import RobotError
+from drivers.frozen import FrameWatch
 
 
 @dataclass(frozen=True)
@@ -53,7 +54,8 @@ class CaptureOptions:
 
 
 def capture_station(robot: Robot, camera: Camera, tcp_target: np.ndarray,
-                    options: CaptureOptions = CaptureOptions()) -> CapturedStation:
+                    options: CaptureOptions = CaptureOptions(),
+                    watch: FrameWatch | None = None) -> CapturedStation:
     """Move to ``tcp_target`` (UR pose, shape (6,)), settle, grab a fresh frame, read the pose.
 
     The pose is read *after* the grab, and compared with a reading taken just before it. The
@@ -61,7 +63,8 @@ def capture_station(robot: Robot, camera: Camera, tcp_target: np.ndarray,
     state no earlier than the exposure; if the two readings differ by more than
     ``options.max_drift`` the robot moved while the image was taken (it had not really
     settled, or was bumped) and the station is refused with ``RobotError`` (code
-    ``moved_during_grab``) rather than pairing an image with the wrong pose.
+    ``moved_during_grab``) rather than pairing an image with the wrong pose. ``watch``, kept
+    over a capture's stations, refuses a frozen camera (``drivers.frozen``).
     """
     check_ur_pose(tcp_target, "tcp_target")
     target = np.asarray(tcp_target, dtype=float)
@@ -70,7 +73,7 @@ def capture_station(robot: Robot, camera: Camera, tcp_target: np.ndarray,
     robot.wait_settled(timeout=options.settle_timeout)
     settled_at = time.time()
     still = grab_at_rest(robot, camera, grab_timeout=options.grab_timeout,
-                         max_drift=options.max_drift)
+                         max_drift=options.max_drift, watch=watch)
     return CapturedStation(image=still.image, tcp_pose=still.tcp_pose, target_tcp_pose=target,
                            moved_at=moved_at, settled_at=settled_at,
                            grabbed_at=still.grabbed_at, pose_read_at=still.pose_read_at,
@@ -101,13 +104,15 @@ class Still:
 
 
 def grab_at_rest(robot: Robot, camera: Camera, *, grab_timeout: float = 2.0,
-                 max_drift: tuple[float, float] = (1e-4, 1e-3)) -> Still:
+                 max_drift: tuple[float, float] = (1e-4, 1e-3),
+                 watch: FrameWatch | None = None) -> Still:
     """Grab a frame where the robot stands and read its pose, refusing a robot in motion.
 
     The pose is read after the grab and compared with a reading taken just before it; if they
     differ by more than ``max_drift`` (metres, radians) the robot moved while the image was
     taken and ``RobotError`` (code ``moved_during_grab``) is raised rather than pairing an
-    image with the wrong pose.
+    image with the wrong pose. ``watch`` (the capture's earlier frames) raises
+    ``CameraFrozenError`` for a frame that an earlier grab got although the robot moved since.
     """
     before = read_tcp_pose(robot)
     image = camera.grab(timeout=grab_timeout)
@@ -120,6 +125,8 @@ def grab_at_rest(robot: Robot, camera: Camera, *, grab_timeout: float = 2.0,
             f"The robot moved by {dist * 1e3:.2f} mm / {np.rad2deg(angle):.3f} deg while the "
             "image was taken; it had not settled. Increase the settle time and retry.",
             code="moved_during_grab")
+    if watch is not None:
+        watch.check(image, after)
     return Still(image=image, tcp_pose=np.asarray(after, dtype=float), grabbed_at=grabbed_at,
                  pose_read_at=pose_read_at,
                  freshness=camera.freshness if isinstance(camera, ReportsFreshness) else None)

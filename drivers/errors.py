@@ -62,3 +62,9 @@ class CameraStalledError(CameraError, code="camera_stalled"):
     """Several grabs in a row got no frame (``drivers.stall``): the camera stopped delivering
     and was closed; ``open()`` it again once it is fixed. Not a ``CameraTimeoutError``: retrying
     the grab does not help."""
+
+
+class CameraFrozenError(CameraError, code="camera_frozen"):
+    """The camera handed out the frame of an earlier station again although the robot moved
+    (``drivers.frozen``): its stream or driver hangs on one frame. Retrying the grab does not
+    help; restart the camera or its stream."""

@@ -18,7 +18,7 @@ from mocks.render import RenderParams, render_board
 from mocks.scene import MockScene, camera_pose_for_tcp, read_scene
 
 #: Camera faults, see ``MockCamera.inject_fault``.
-CAMERA_FAULTS = ("timeout", "corrupt", "disconnect", "unplug", "stall")
+CAMERA_FAULTS = ("timeout", "corrupt", "disconnect", "unplug", "stall", "freeze")
 
 
 class MockCamera(CameraSession):
@@ -48,6 +48,7 @@ class MockCamera(CameraSession):
         self._T_mount_cam = np.eye(4)  # how far the camera moved on its mount (shift_mount)
         #: How the last frame was made fresh (``drivers.base.ReportsFreshness``).
         self.freshness: str | None = None
+        self._last: np.ndarray | None = None  # the last frame delivered (``freeze``)
 
     companion_robot: ClassVar[str | None] = "mock://"
 
@@ -79,7 +80,8 @@ class MockCamera(CameraSession):
         next grab raises ``camera_disconnected`` and closes it, and :meth:`open` fails
         (``camera_not_found``) until :meth:`replug`. ``stall``: no grab gets a frame until
         :meth:`clear_faults`; the ``stall.limit``-th timeout in a row raises
-        ``CameraStalledError`` and closes the camera.
+        ``CameraStalledError`` and closes the camera. ``freeze``: every grab returns the last
+        frame delivered again (a hung stream or driver) until :meth:`clear_faults`.
         """
         parse_fault(name, CAMERA_FAULTS)
         if count < 1:
@@ -143,15 +145,18 @@ class MockCamera(CameraSession):
         T_cam_target = camera_pose_for_tcp(self.scene, self.robot.true_pose)
         self.freshness = "mock: rendered at the grab from the robot's pose then"
         with self._lock:
+            if fault == "freeze" and self._last is not None:
+                return self._last.copy()
             T_cam_target = np.linalg.inv(self._T_mount_cam) @ T_cam_target
             image = render_board(self._params, T_cam_target, rng=self._rng)
             if fault == "corrupt":
                 image[int(self._rng.integers(image.shape[0] // 4, image.shape[0])):] = 0
+            self._last = image.copy()
         return image
 
     def _take_fault(self) -> str | None:
-        """The fault this grab suffers (``timeout``, ``stall``, ``corrupt``) or None; raises
-        for a closed, disconnected or unplugged camera."""
+        """The fault this grab suffers (``timeout``, ``stall``, ``corrupt``, ``freeze``) or
+        None; raises for a closed, disconnected or unplugged camera."""
         with self._lock:
             if "unplug" in self._faults and self._opened:
                 self._opened = False
@@ -161,8 +166,8 @@ class MockCamera(CameraSession):
                 self._opened = False
                 raise CameraError("The mock camera is not open (unplugged?). Open it first.",
                                   code="camera_not_open")
-            fault = next((f for f in ("stall", "timeout", "corrupt") if f in self._faults),
-                         None)
+            fault = next((f for f in ("stall", "timeout", "corrupt", "freeze")
+                          if f in self._faults), None)
             if fault in ("timeout", "corrupt"):
                 self._faults[fault] -= 1
                 if not self._faults[fault]:

@@ -16,7 +16,8 @@ from calib.handeye import calibrate_hand_eye
 from calib.refine import RefineOptions
 from calib.stations import Stations
 from drivers.capture import CapturedStation, capture_station
-from drivers.errors import RobotError
+from drivers.errors import CameraFrozenError, RobotError
+from drivers.frozen import FrameWatch
 from drivers.registry import open_camera, open_robot
 from mocks.camera import MockCamera
 from mocks.devices import MockRobot
@@ -102,6 +103,43 @@ def test_capture_refuses_a_robot_reading_that_is_no_pose(rig, misread, why) -> N
     with pytest.raises(RobotError, match=why) as err:
         capture_station(MisreadRobot(robot, misread), camera, station_targets(1, 2)[0])
     assert err.value.code == "invalid_reading"
+
+
+@pytest.mark.timeout(30)
+def test_a_camera_that_repeats_one_frame_is_refused_once_the_robot_moved(rig) -> None:
+    """A frozen camera (the mock's ``freeze``: its last frame again at every grab) passed
+    every check: each station paired a new pose with the old image. The capture's watch
+    refuses the repeat once the robot moved, not at a retry from the same pose."""
+    robot, camera = rig
+    targets, watch = station_targets(3, 3), FrameWatch()
+    first = capture_station(robot, camera, targets[0], watch=watch)
+    camera.inject_fault("freeze")
+    again = capture_station(robot, camera, targets[0], watch=watch)  # no motion: no evidence
+    assert np.array_equal(again.image, first.image) and watch.identical == 2
+    with pytest.raises(CameraFrozenError, match="frozen: 3 identical frames") as err:
+        capture_station(robot, camera, targets[1], watch=watch)
+    assert err.value.code == "camera_frozen"
+    camera.clear_faults()
+    capture_station(robot, camera, targets[2], watch=watch)  # live again
+    assert watch.identical == 1
+
+
+def test_blank_or_unmoved_repeats_are_no_frozen_camera() -> None:
+    """Identical frames count only with content and motion: a blank frame (a lens cap) is the
+    board detection's to report, and a robot that stands gives no evidence."""
+    watch = FrameWatch()
+    pose = np.array([0.4, 0.0, 0.5, 3.1, 0.0, 0.0])
+    still, moved = pose + np.array([0, 0, 0, 0, 0, 1e-4]), pose + np.array([0.05, 0, 0, 0, 0, 0])
+    blank = np.zeros((48, 64), np.uint8)
+    for p in (pose, moved, pose):
+        watch.check(blank, p)
+    scene = np.tile(np.arange(64, dtype=np.uint8), (48, 1))
+    watch.check(scene, pose)
+    watch.check(scene.copy(), still)  # below MIN_MOTION
+    with pytest.raises(CameraFrozenError, match=r"3 identical frames.*moved 50\.0 mm"):
+        watch.check(scene, moved)
+    watch.check(scene[:, ::-1], moved)  # a new frame starts afresh
+    assert watch.identical == 1
 
 
 def test_capture_validates_the_target(rig) -> None:

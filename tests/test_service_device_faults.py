@@ -170,17 +170,18 @@ def uvicorn_thread(app: FastAPI) -> Iterator[str]:
     assert not thread.is_alive()
 
 
-class StallingCamera:
-    """A mock camera that stops delivering after its first ``free`` frames: grab ``free + 1``
-    sets off the mock's ``stall`` fault (no frame until ``clear_faults``)."""
+class FaultAfter:
+    """A mock camera that fails after its first ``free`` frames: grab ``free + 1`` sets off
+    the mock's ``fault`` (``stall``: no frame, ``freeze``: the last frame again, until
+    ``clear_faults``)."""
 
-    def __init__(self, camera: MockCamera, free: int) -> None:
-        self.camera, self.free = camera, free
+    def __init__(self, camera: MockCamera, free: int, fault: str = "stall") -> None:
+        self.camera, self.free, self.fault = camera, free, fault
 
     def grab(self, *, timeout: float = 2.0) -> np.ndarray:
         self.free -= 1
         if self.free == -1:
-            self.camera.inject_fault("stall")
+            self.camera.inject_fault(self.fault)
         return self.camera.grab(timeout=timeout)
 
     def __getattr__(self, name: str) -> Any:
@@ -194,11 +195,11 @@ def test_stalled_camera_ends_the_run_and_resume_captures_every_station_once(tmp_
     stalled the next one); after ``resume`` every planned station is captured exactly once."""
     settings = Settings(data_dir=tmp_path, api_key=KEY, grab_timeout_s=0.05)
     devices = settings_opener(settings)
-    cameras: list[StallingCamera] = []
+    cameras: list[FaultAfter] = []
 
     def stalling() -> tuple[Robot, Camera]:
         robot, camera = devices()
-        cameras.append(StallingCamera(camera, 3 if not cameras else 100))
+        cameras.append(FaultAfter(camera, 3 if not cameras else 100))
         return robot, cameras[-1]  # type: ignore[return-value]
 
     with (uvicorn_thread(create_app(settings, open_devices=stalling)) as url,
@@ -214,6 +215,38 @@ def test_stalled_camera_ends_the_run_and_resume_captures_every_station_once(tmp_
     assert run["state"] == "done", run
     assert (run["stations_captured"], run["stations_skipped"]) == (6, 0)
     assert [(s["index"], s["state"]) for s in stations] == [(k, "captured") for k in range(6)]
+
+
+@pytest.mark.timeout(120)
+def test_a_frozen_camera_stops_the_run_and_resume_captures_every_station_once(tmp_path):
+    """The camera hands out its second frame again and again (a hung stream): every station
+    was stored as captured with that one image, the run ended ``done``, and its calibration
+    failed asking for more tilted stations. Now the third station's repeat stops the run
+    ``camera_frozen`` with both stations before it kept, and ``resume`` on a live camera
+    captures the rest."""
+    settings = Settings(data_dir=tmp_path, api_key=KEY)
+    devices = settings_opener(settings)
+    cameras: list[FaultAfter] = []
+
+    def freezing() -> tuple[Robot, Camera]:
+        robot, camera = devices()
+        cameras.append(FaultAfter(camera, 2 if not cameras else 100, "freeze"))
+        return robot, cameras[-1]  # type: ignore[return-value]
+
+    with TestClient(create_app(settings, open_devices=freezing)) as client:
+        client.headers.update(AUTH)
+        run_id = client.post("/runs", json={"poses": _poses(5)}).json()["id"]
+        run = _settled(client, run_id)
+        assert run["state"] == "failed", run
+        assert run["error"]["code"] == "camera_frozen", run["error"]
+        assert "frozen: 2 identical frames" in run["error"]["detail"]
+        assert (run["stations_captured"], run["stations_skipped"]) == (2, 0)
+        assert client.post(f"/runs/{run_id}/resume").json()["state"] == "capturing"
+        run = _settled(client, run_id)
+        stations = client.get(f"/runs/{run_id}/stations").json()
+    assert len(cameras) == 2  # the frozen camera was closed and opened anew
+    assert run["state"] == "done", run
+    assert [(s["index"], s["state"]) for s in stations] == [(k, "captured") for k in range(5)]
 
 
 @pytest.mark.timeout(60)

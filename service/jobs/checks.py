@@ -26,6 +26,7 @@ from calib import (
 )
 from drivers.base import Camera, Robot
 from drivers.capture import CaptureOptions, capture_station
+from drivers.frozen import FrameWatch
 from service.errors import UnprocessableError
 from service.results.document import stored_cell
 from service.schemas import CheckCreate
@@ -81,8 +82,9 @@ def run_check(robot: Robot, camera: Camera, plan: CheckPlan, options: CaptureOpt
     the verdict; if none is left, the check fails (ValueError)."""
     stations: list[dict[str, Any]] = []
     seen: list[StationCheck] = []
+    frames = FrameWatch()  # a frozen camera would look like a moved mount
     for pose, station_id in zip(plan.poses, plan.station_ids, strict=True):
-        taken = capture_station(robot, camera, np.asarray(pose), options)
+        taken = capture_station(robot, camera, np.asarray(pose), options, frames)
         det = plan.cell.board.detect(taken.image)
         entry: dict[str, Any] = {"station": station_id, "pose": list(pose),
                                  "tcp_pose": [float(v) for v in taken.tcp_pose]}

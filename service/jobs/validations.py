@@ -26,7 +26,7 @@ from calib import (
 )
 from drivers.base import GroundTruthSource, Robot
 from drivers.capture import CaptureOptions, read_tcp_pose
-from drivers.errors import DeviceError, RobotConnectionError
+from drivers.errors import CameraFrozenError, DeviceError, RobotConnectionError
 from service.cell.motion import Motion, MotionJobs
 from service.errors import ConflictError, ServiceError, UnprocessableError
 from service.events import EventBus
@@ -121,8 +121,8 @@ class Validations(MotionJobs):
             with self.motion.robot_lock:
                 values.update(state="done", result=work(report))
         except (DeviceError, ServiceError, ValueError) as exc:
-            if isinstance(exc, RobotConnectionError):
-                self.motion.devices.reset()
+            if isinstance(exc, RobotConnectionError | CameraFrozenError):
+                self.motion.devices.reset()  # opened afresh by the next job
             values["error"] = ("The service stopped during the validation; start it again."
                                if self.motion.stopping.is_set() else str(exc))
         except Exception as exc:

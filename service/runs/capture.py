@@ -49,6 +49,7 @@ from drivers.errors import (
     ProtectiveStopError,
     RobotConnectionError,
 )
+from drivers.frozen import FrameWatch
 from drivers.stall import STALL_AFTER
 from service.cell.motion import Motion
 from service.events import EventBus
@@ -61,9 +62,10 @@ from service.store.storage import StorageError, storage_error
 log = logging.getLogger("cellcal.service")
 T = TypeVar("T")
 
-#: Camera error codes that mean the camera is gone (stop the run, do not skip stations).
+#: Camera error codes that mean the camera is gone or hangs (stop the run, do not skip
+#: stations).
 _CAMERA_GONE = ("camera_not_open", "camera_not_found", "camera_open_failed",
-                "camera_disconnected", "camera_stalled")
+                "camera_disconnected", "camera_stalled", "camera_frozen")
 #: A failed station is tried this many times in all before it is skipped.
 ATTEMPTS = 2
 
@@ -151,6 +153,8 @@ class Capture:
         self.developed: Station | None = None
         #: Whether the first station was checked against the board (``_first_view_mismatch``).
         self._board_checked = False
+        #: This thread's frames so far: a frozen camera stops the run (``drivers.frozen``).
+        self._frames = FrameWatch()
 
     # ---- the thread body: every way a capture ends -----------------------------------------
 
@@ -329,7 +333,7 @@ class Capture:
         while attempt <= ATTEMPTS:
             try:
                 taken = capture_station(self.robot, self.camera, np.asarray(pose),
-                                        self.options)
+                                        self.options, self._frames)
             except DeviceError as exc:
                 if not self._wanted():
                     return None
