@@ -27,6 +27,9 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
+from service.jobs.outcomes import Outcomes
+from service.store.db import DatabaseUnavailableError
+from service.store.records import Topic
 from tests.support.helpers import wait_for
 from tests.support.service import (
     AUTH,
@@ -145,3 +148,76 @@ def test_jobs_ending_in_a_database_lock_end_done(tmp_path: Path) -> None:
         assert steps(events, "station") > 0
         # the robot is free: a new run starts
         assert client.post("/runs", json={"poses": poses(3)}).status_code == 201
+
+
+JOBS = ("first", "second")
+
+
+class _Database:
+    """A database stand-in that fails while ``down`` is set and stores nothing otherwise."""
+
+    def __init__(self) -> None:
+        self.down = threading.Event()
+        self.stored: list[str] = []
+
+    @contextmanager
+    def session(self) -> Iterator[Any]:
+        if self.down.is_set():
+            raise DatabaseUnavailableError("the database is down")
+        yield _Session(self.stored)
+
+
+class _Session:
+    """Records the job ids of the updates it is given."""
+
+    def __init__(self, stored: list[str]) -> None:
+        self.stored = stored
+
+    def execute(self, statement: Any) -> None:
+        self.stored += [v for v in statement.compile().params.values() if v in JOBS]
+
+    def commit(self) -> None:
+        pass
+
+
+class _Events:
+    """An event bus stand-in: the final state is the outcome's write, nothing published."""
+
+    def finish(self, topic: Topic, save: Any, retry: Any = None) -> bool:
+        return save()
+
+
+class _Storage:
+    def gone(self) -> None:
+        return None
+
+
+@pytest.mark.timeout(60)
+def test_a_spool_file_that_cannot_be_removed_does_not_stop_the_drain(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An outcome spooled in a database outage is stored when the database returns, and its
+    spool file removed; a data directory that refused that removal (read-only by then) ended
+    the drain thread with an uncaught OSError, so every outcome spooled later stayed unstored
+    (the job ``running`` in the database) until a restart."""
+    db = _Database()
+    outcomes = Outcomes(settings(tmp_path, database_retry_s=0.0), db,  # type: ignore[arg-type]
+                        _Events(), _Storage())  # type: ignore[arg-type]
+    unlink = Path.unlink
+
+    def refused(path: Path, missing_ok: bool = False) -> None:
+        if path.parent == outcomes.dir:
+            raise PermissionError(13, "Read-only file system", str(path))
+        unlink(path, missing_ok=missing_ok)
+
+    try:
+        for job in JOBS:
+            db.down.set()
+            outcomes.finish(Topic("calibration", job), {"state": "done", "result": {}})
+            assert (outcomes.dir / f"calibration-{job}.json").is_file()
+            monkeypatch.setattr(Path, "unlink", refused)
+            db.down.clear()
+            wait_for(f"the {job} outcome stored", lambda: not outcomes._pending, timeout=20)
+        assert db.stored == list(JOBS)
+    finally:
+        monkeypatch.undo()
+        outcomes.close()

@@ -124,7 +124,7 @@ class Outcomes:
         has stored them, in memory and in a file that the next start reads."""
         with self._lock:
             self._pending[topic] = values or {}
-            if self._drainer is None:
+            if self._drainer is None or not self._drainer.is_alive():
                 self._drainer = threading.Thread(target=self._drain, name="outcome-spool",
                                                  daemon=True)
                 self._drainer.start()
@@ -156,7 +156,7 @@ class Outcomes:
                     continue
                 with self._lock:
                     self._pending.pop(topic, None)
-                self._file(topic).unlink(missing_ok=True)
+                _forget(self._file(topic))
                 log.warning("%s %s: the spooled outcome is stored", topic.kind, topic.id)
 
     def _overlay(self, row: CalibrationRecord | ValidationRecord, _context: Any) -> None:
@@ -179,7 +179,7 @@ class Outcomes:
                 log.error("spooled outcome %s cannot be read (%s); left in place", path, exc)
                 continue
             self.events.finish(topic, partial(self._store, topic, values))
-            path.unlink()
+            _forget(path)
             stored += 1
         return stored
 
@@ -201,6 +201,17 @@ def _from_json(values: dict[str, Any]) -> dict[str, Any]:
     finished = values.get("finished_at")
     return {**values, "finished_at": None if finished is None
             else datetime.fromisoformat(finished)}
+
+
+def _forget(path: Path) -> None:
+    """Remove the spool file of an outcome now stored. A directory that takes no change
+    (read-only) keeps it; the next start stores it again, where a job no longer running is
+    left as it is. The drain thread must not die of it and leave later outcomes unstored."""
+    try:
+        path.unlink(missing_ok=True)
+    except OSError as exc:
+        log.error("the stored outcome's spool file %s cannot be removed (%s); the next start "
+                  "finds it stored already", path, exc.strerror or exc)
 
 
 def _write_atomically(path: Path, text: str) -> None:
