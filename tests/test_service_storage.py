@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import errno
 import shutil
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -184,3 +185,33 @@ def wait_for_state(client: TestClient, path: str) -> dict[str, Any]:
     while (job := client.get(path).json())["state"] == "running":
         time.sleep(0.05)
     return job
+
+
+@pytest.mark.timeout(60)
+def test_a_hanging_data_directory_holds_the_new_job_not_the_service(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A new job's storage check (a file made in the data directory, its free space) ran on
+    the event loop: a directory that hangs (a network mount, a failing disk) held every
+    request there, ``/health`` too, which should answer ``degraded`` just then. Now only the
+    job's own request waits."""
+    entered, release = threading.Event(), threading.Event()
+
+    def hanging(self: storage.Storage) -> None:
+        entered.set()
+        release.wait(30)
+
+    with service(tmp_path) as client:
+        monkeypatch.setattr(storage.Storage, "check", hanging)
+        job = threading.Thread(target=client.post, args=("/calibrations/x/activate",))
+        job.start()
+        answers: list[int] = []
+        try:
+            assert entered.wait(10)
+            health = threading.Thread(
+                target=lambda: answers.append(client.get("/health").status_code))
+            health.start()
+            health.join(10)
+        finally:
+            release.set()
+            job.join(30)
+        assert answers == [200], "/health waited for the hanging storage check"

@@ -2,7 +2,8 @@
 ``app.dependency_overrides``; the app keeps the shared objects in ``app.state``.
 
 They are coroutines that do no I/O, so FastAPI runs them on the event loop instead of handing
-each to a worker thread (``service.api.routing`` says why that matters).
+each to a worker thread (``service.api.routing`` says why that matters); ``writable_storage``,
+which does, is the exception.
 """
 
 from __future__ import annotations
@@ -59,10 +60,15 @@ async def get_devices(request: Request) -> Devices:
     return request.app.state.devices
 
 
-async def writable_storage(request: Request) -> None:
+def writable_storage(request: Request) -> None:
     """503 ``storage_unavailable`` or ``disk_full`` while the data directory takes no writes:
     a calibration, validation or activation started then was stored in a database file that
-    no longer had a name and lost at the next start (issue 22, row 5), as new runs are."""
+    no longer had a name and lost at the next start (issue 22, row 5), as new runs are.
+
+    The one dependency that does I/O (a file made in the directory, its free space, maybe the
+    space reserve written): a plain function, so FastAPI runs it in a worker thread and a
+    data directory that hangs (a network mount, a failing disk) holds this request, not the
+    event loop and with it every other request and ``/health``."""
     request.app.state.runtime.motion.storage.check()
 
 
