@@ -291,13 +291,13 @@ def ends_stream(event: dict[str, Any]) -> bool:
 
 def state_event(s: Session, topic: Topic) -> dict[str, Any]:
     """The topic's state as a ``state`` event (404 for an unknown id): a run's with its
-    station counts, a calibration's or a validation's with its error if it failed."""
+    station counts, a calibration's or a validation's with its error and code if it failed."""
     if topic.kind == "run":
         return run_state_event(s, run_id=topic.id)
     row = (queries.get_calibration(s, cal_id=topic.id) if topic.kind == "calibration"
            else queries.get_validation(s, val_id=topic.id))
     return {"type": "state", f"{topic.kind}_id": topic.id, "state": row.state,
-            "error": row.error}
+            "error": row.error, "error_code": row.error_code}
 
 
 def run_state_event(s: Session, *, run_id: str) -> dict[str, Any]:

@@ -187,6 +187,13 @@ class Created(BaseModel):
     id: str
 
 
+#: A failed job's ``error_code``: what a program tells failures apart by.
+_ERROR_CODE = ("why it failed, for programs (None unless failed): storage_unavailable or "
+               "disk_full (the data directory), interrupted (the service stopped), a device "
+               "fault's code (e.g. camera_frozen, protective_stop), calibration_failed or "
+               "validation_failed (the data do not allow it), worker_died, internal_error")
+
+
 class ErrorInfo(BaseModel):
     code: str
     detail: str
@@ -330,6 +337,7 @@ class CalibrationPublic(BaseModel):
     options: dict[str, Any]
     result: Result | None = Field(None, description="the cellcal/result@1 document once done")
     error: str | None
+    error_code: str | None = Field(None, description=_ERROR_CODE)
     created_at: dt.datetime
     finished_at: dt.datetime | None
 
@@ -390,6 +398,7 @@ class ValidationPublic(BaseModel):
                           "check: state ok | degraded, the mean camera pose offset and its "
                           "limits, per station rms_px, offset and ok | degraded")
     error: str | None
+    error_code: str | None = Field(None, description=_ERROR_CODE)
     created_at: dt.datetime
     finished_at: dt.datetime | None
 
@@ -438,6 +447,7 @@ class CalibrationSummary(BaseModel):
         None, description="the result's quality verdict; None while running or failed")
     active: bool = Field(description="its cell's current calibration for its setup")
     error: str | None
+    error_code: str | None = Field(None, description=_ERROR_CODE)
     created_at: dt.datetime
     finished_at: dt.datetime | None
 

@@ -237,7 +237,7 @@ def test_calibration_stream_resumes_without_loss_and_ends_with_the_outcome(
     assert ids == sorted(set(ids))
     *progress, final = everything
     assert final[1:] == ("state", {"type": "state", "calibration_id": cal_id, "state": "done",
-                                   "error": None})
+                                   "error": None, "error_code": None})
     assert {kind for _, kind, _ in progress} == {"progress"}
     assert client.get(f"/calibrations/{cal_id}").json()["state"] == "done"
     detecting = [data for _, _, data in progress if data["stage"] == "detecting"]

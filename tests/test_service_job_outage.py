@@ -135,7 +135,8 @@ def test_jobs_ending_in_a_database_lock_end_done(tmp_path: Path) -> None:
             cal = end_in_a_lock(client, tmp_path, "calibration", cal_id)
         assert cal["state"] == "done" and cal["result"]["format"] == "cellcal/result@1"
         assert events[-1][1:] == ("state", {"type": "state", "calibration_id": cal_id,
-                                            "state": "done", "error": None})
+                                            "state": "done", "error": None,
+                                            "error_code": None})
         assert steps(events, "detecting") == 12  # each station's, in order
 
         r = client.post(f"/calibrations/{cal_id}/checks", json={})

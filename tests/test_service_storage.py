@@ -161,7 +161,8 @@ def test_a_job_that_ends_without_its_data_directory_is_not_done(
         assert r.status_code == 202, r.text
         val = wait_for_state(client, f"/validations/{r.json()['id']}")
         assert val["state"] == "failed" and val["result"] is None
-        assert val["error"].startswith("storage_unavailable: ")
+        assert val["error_code"] == "storage_unavailable", val
+        assert "deleted or replaced" in val["error"]
         away.rename(data)
         monkeypatch.undo()
         assert client.get("/health").json()["status"] == "ok"
@@ -176,8 +177,10 @@ def test_a_job_that_ends_without_its_data_directory_is_not_done(
         cal_id = client.post(f"/runs/{run_id}/calibrations").json()["id"]
         cal = wait_calibration(client, cal_id)
         assert cal["state"] == "failed" and cal["result"] is None
-        assert cal["error"].startswith("storage_unavailable: ")
+        assert cal["error_code"] == "storage_unavailable", cal
         assert "deleted or replaced" in cal["error"]
+        listed = client.get("/calibrations", params={"run_id": run_id}).json()["items"]
+        assert [c["error_code"] for c in listed if c["id"] == cal_id] == ["storage_unavailable"]
 
 
 def wait_for_state(client: TestClient, path: str) -> dict[str, Any]:

@@ -154,6 +154,7 @@ def test_outside_the_workspace_is_refused_before_moving(
     val = validate(client, calibrated[2])
     assert val["state"] == "failed" and val["result"] is None
     assert "outside the workspace limits" in val["error"]
+    assert val["error_code"] == "outside_workspace"
     assert val["error"].endswith("the robot was not moved.")
     np.testing.assert_array_equal(true_pose(client), start)
 
@@ -166,6 +167,7 @@ def test_board_out_of_view_fails_the_validation(app_on: Client,
     val = validate(client, calibrated[2])
     assert val["state"] == "failed"
     assert val["error"].startswith("The board is not in view at the robot's current pose")
+    assert val["error_code"] == "board_not_visible"
 
 
 @pytest.mark.timeout(30)
@@ -310,6 +312,7 @@ def test_a_validation_cut_by_a_restart_is_failed(app_on: Client,
     after = app_on().get(f"/validations/{val.id}").json()
     assert after["state"] == "failed"
     assert "stopped during the validation" in after["error"]
+    assert after["error_code"] == "interrupted"
 
 
 def add_calibration(client: TestClient, run_id: str, state: str = "done",
@@ -333,7 +336,8 @@ def recheck(client: TestClient, cal_id: str, body: dict[str, Any] | None = None
     check = client.get(f"/validations/{val_id}").json()
     assert (check["kind"], check["state"]) == ("check", "done"), check
     assert events[-1][1:] == ("state", {"type": "state", "validation_id": val_id,
-                                        "state": "done", "error": None})
+                                        "state": "done", "error": None,
+                                        "error_code": None})
     return check["result"], events
 
 

@@ -134,23 +134,24 @@ class Calibrations:
         try:
             values = {"state": "done", "result": future.result().document()}
         except ValueError as exc:
-            values = {"state": "failed", "error": str(exc)}
+            values = {"state": "failed", "error": str(exc), "error_code": "calibration_failed"}
         except cf.CancelledError:
             solved = False
-            values = {"state": "failed", "error": "The service stopped during the "
-                                                  "computation; start it again."}
+            values = {"state": "failed", "error_code": "interrupted",
+                      "error": "The service stopped during the computation; start it again."}
         except cf.process.BrokenProcessPool:
             solved = False
             with self._pool_lock:
                 if self._pool is not None:
                     self._pool.shutdown()
                 self._pool = None
-            values = {"state": "failed", "error": "The calibration worker process died (out "
-                                                  "of memory?); start it again."}
+            values = {"state": "failed", "error_code": "worker_died",
+                      "error": "The calibration worker process died (out of memory?); start "
+                               "it again."}
         except Exception as exc:
             solved = False  # maybe raised before the worker had the call
             log.error("calibration %s: %s: %s", cal_id, type(exc).__name__, exc)
-            values = {"state": "failed",
+            values = {"state": "failed", "error_code": "internal_error",
                       "error": f"Internal error ({type(exc).__name__}: {exc})."}
         try:
             self._settle(cal_id, outcome=values, progress_ended=not solved)

@@ -19,7 +19,7 @@ A job that computed its result while the data directory was deleted (or the data
 went) used to end ``done``, stored in a database file without a name, and a restart lost it
 without a word (issue 22, row 5). A ``done`` outcome is therefore stored only while
 ``Storage.gone`` finds the directory and the database file where they were; otherwise the
-job ends ``failed`` with the ``storage_unavailable`` reason.
+job ends ``failed`` with the ``storage_unavailable`` reason (``error_code``).
 """
 
 from __future__ import annotations
@@ -73,12 +73,13 @@ class Outcomes:
     # ---- a job ends ------------------------------------------------------------------------
 
     def finish(self, topic: Topic, values: dict[str, Any]) -> None:
-        """Store the outcome ``values`` (``state`` and ``result`` or ``error``) of the job
-        ``topic`` and publish its final state; spooled if the database does not answer.
-        ``done`` becomes ``failed`` when the data directory or the database file is gone."""
+        """Store the outcome ``values`` (``state``, and ``result`` or ``error`` and
+        ``error_code``) of the job ``topic`` and publish its final state; spooled if the
+        database does not answer. ``done`` becomes ``failed`` when the data directory or the
+        database file is gone."""
         if values.get("state") == "done" and (gone := self.storage.gone()) is not None:
             log.error("%s %s: %s", topic.kind, topic.id, gone)
-            values = {"state": "failed", "error": f"{gone.code}: {gone}"}
+            values = {"state": "failed", "error": str(gone), "error_code": gone.code}
         values = {**values, "finished_at": utcnow()}
         with self._lock:  # shown from now on, while the write is tried
             self._pending[topic] = values

@@ -123,11 +123,16 @@ class Validations(MotionJobs):
         except (DeviceError, ServiceError, ValueError) as exc:
             if isinstance(exc, RobotConnectionError | CameraFrozenError):
                 self.motion.devices.reset()  # opened afresh by the next job
-            values["error"] = ("The service stopped during the validation; start it again."
-                               if self.motion.stopping.is_set() else str(exc))
+            if self.motion.stopping.is_set():
+                values.update(error="The service stopped during the validation; start it "
+                                    "again.", error_code="interrupted")
+            else:
+                values.update(error=str(exc), error_code=exc.code if isinstance(
+                    exc, DeviceError | ServiceError) else "validation_failed")
         except Exception as exc:
             log.exception("validation %s", val_id)
-            values["error"] = f"Internal error ({type(exc).__name__}: {exc})."
+            values.update(error=f"Internal error ({type(exc).__name__}: {exc}).",
+                          error_code="internal_error")
         self.outcomes.finish(topic, values)
 
     def _check(self, plan: CheckPlan, report: Report) -> dict[str, Any]:

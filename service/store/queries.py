@@ -160,8 +160,8 @@ SUMMARY_COLUMNS = (CalibrationRecord.id, CalibrationRecord.run_id, CalibrationRe
                    CalibrationRecord.result[("quality", "verdict")].as_string().label("verdict"),
                    CalibrationRecord.id.in_(select(ActiveCalibrationRecord.calibration_id))
                    .label("active"),
-                   CalibrationRecord.error, CalibrationRecord.created_at,
-                   CalibrationRecord.finished_at)
+                   CalibrationRecord.error, CalibrationRecord.error_code,
+                   CalibrationRecord.created_at, CalibrationRecord.finished_at)
 
 
 def page_calibrations(s: Session, *, where: CalibrationFilter, limit: int, offset: int,

@@ -166,6 +166,8 @@ class CalibrationRecord(Base):
     options: Mapped[dict[str, Any]]
     result: Mapped[dict[str, Any] | None]
     error: Mapped[str | None] = mapped_column(Text)
+    #: Why it failed, for programs (``storage_unavailable``, a device fault's code, ...).
+    error_code: Mapped[str | None] = mapped_column(String(64))
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
     finished_at: Mapped[dt.datetime | None]
 
@@ -246,6 +248,8 @@ class ValidationRecord(Base):
     state: Mapped[str] = mapped_column(String(16))
     result: Mapped[dict[str, Any] | None]
     error: Mapped[str | None] = mapped_column(Text)
+    #: Why it failed, for programs (``storage_unavailable``, a device fault's code, ...).
+    error_code: Mapped[str | None] = mapped_column(String(64))
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
     finished_at: Mapped[dt.datetime | None]
 

@@ -135,8 +135,9 @@ def finish_run(s: Session, *, run_id: str, token: str, **values: Any) -> bool:
 
 
 def finish_calibration(s: Session, *, cal_id: str, **values: Any) -> None:
-    """Store a calibration's outcome (``state``, ``result`` or ``error``; ``finished_at``
-    defaults to now) if it is still running: one that a restart found failed stays failed."""
+    """Store a calibration's outcome (``state``, ``result`` or ``error`` and ``error_code``;
+    ``finished_at`` defaults to now) if it is still running: one that a restart found failed
+    stays failed."""
     s.execute(update(CalibrationRecord).where(CalibrationRecord.id == cal_id,
                                         CalibrationRecord.state == "running")
               .values(**{"finished_at": utcnow(), **values}))
@@ -144,8 +145,8 @@ def finish_calibration(s: Session, *, cal_id: str, **values: Any) -> None:
 
 
 def finish_validation(s: Session, *, val_id: str, **values: Any) -> None:
-    """Store a validation's outcome (``state``, ``result`` or ``error``; ``finished_at``
-    defaults to now) if it is still running."""
+    """Store a validation's outcome (``state``, ``result`` or ``error`` and ``error_code``;
+    ``finished_at`` defaults to now) if it is still running."""
     s.execute(update(ValidationRecord)
               .where(ValidationRecord.id == val_id, ValidationRecord.state == "running")
               .values(**{"finished_at": utcnow(), **values}))
@@ -167,12 +168,12 @@ def recover(s: Session, *, cell: str, live: set[str]) -> tuple[int, int, int]:
     cals = s.execute(
         update(CalibrationRecord)
         .where(CalibrationRecord.state == "running", orphaned(CalibrationRecord))
-        .values(state="failed", finished_at=utcnow(),
+        .values(state="failed", finished_at=utcnow(), error_code="interrupted",
                 error="The service stopped during the computation; start it again.")).rowcount
     vals = s.execute(
         update(ValidationRecord)
         .where(ValidationRecord.state == "running", orphaned(ValidationRecord))
-        .values(state="failed", finished_at=utcnow(),
+        .values(state="failed", finished_at=utcnow(), error_code="interrupted",
                 error="The service stopped during the validation; start it again.")).rowcount
     s.commit()
     return runs, cals, vals
