@@ -66,7 +66,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "CellGuess", "Plan", "PlanOptions", "cuts_board_at_corner", "look_at_view",
         "plan_stations", "rough_target_from_image",
     ),
-    "quality": ("COVERAGE_GRID", "OUTLIER_FACTOR", "image_coverage"),
+    "quality": ("COVERAGE_GRID", "image_coverage", "outlier_limit"),
     "recheck": ("CheckVerdict", "Expected", "StationCheck", "StoredCell", "check_verdict"),
     "refine": ("RefineOptions",),
     "result": (

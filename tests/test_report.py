@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calib import image_coverage
+from calib import image_coverage, outlier_limit
 from calib.result import parse_result
 from service.cli import report as report_cli
 from service.cli.main import main
@@ -150,7 +150,7 @@ def test_stations_against_their_thresholds_and_outliers_marked(ur_result) -> Non
                                        "message": "m", "stations": [first["id"]]})
     html = render_report(doc)
     table = html[html.index("<h2>Stations"):html.index("<h2>Provenance")]
-    limit = 4 * np.median([first["loo_rot_rad"], *held_out]) * 180 / np.pi
+    limit = np.degrees(outlier_limit(np.array([first["loo_rot_rad"], *held_out])))
     assert f"held-out rot. (°, ≤ {limit:.3f})" in table and "held-out trans. (mm, ≤ " in table
     (row,) = [r for r in table.split("<tr")
               if f"<td class=\"l\">{first['id']}</td>" in r]

@@ -23,13 +23,13 @@ from typing import Any
 import numpy as np
 
 from calib import (
-    OUTLIER_FACTOR,
     CrossValidationBlock,
     ModelSelection,
     QualityBlock,
     Result,
     StationFit,
     Transform,
+    outlier_limit,
     parse_result,
     ur_pose_from_matrix,
 )
@@ -285,11 +285,12 @@ def outlier_ids(result: Result) -> set[str]:
 
 def _limits(stations: list[StationFit], keys: tuple[str, str]) -> list[float | None]:
     """Each per-station residual's threshold: the outlier rule of the verdict
-    (``OUTLIER_FACTOR`` times the median over the stations); None without values."""
+    (``calib.outlier_limit`` over the stations); None without values (or too few)."""
     limits: list[float | None] = []
     for key in keys:
         values = [v for v in (getattr(s, key) for s in stations) if v is not None]
-        limits.append(OUTLIER_FACTOR * float(np.median(values)) if values else None)
+        limit = outlier_limit(np.array(values)) if values else np.inf
+        limits.append(limit if np.isfinite(limit) else None)
     return limits
 
 
