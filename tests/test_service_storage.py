@@ -218,3 +218,19 @@ def test_a_hanging_data_directory_holds_the_new_job_not_the_service(
             release.set()
             job.join(30)
         assert answers == [200], "/health waited for the hanging storage check"
+
+
+@pytest.mark.parametrize("scheme", ["sqlite", "sqlite+pysqlite"])
+def test_the_database_file_is_watched_in_any_sqlite_spelling(tmp_path: Path,
+                                                             scheme: str) -> None:
+    """``sqlite+pysqlite:///`` names the same database to SQLAlchemy (and the service opens
+    it), but the storage check read only ``sqlite:///``: a database file deleted under such a
+    URL went unnoticed, and jobs ended ``done`` in it."""
+    data, db = tmp_path / "data", tmp_path / "cellcal.db"
+    data.mkdir()
+    db.touch()
+    watch = storage.Storage(settings(data, database_url=f"{scheme}:///{db}"))
+    assert watch.gone() is None
+    db.unlink()
+    assert "The database file" in str(watch.gone())
+    assert storage.sqlite_file("postgresql://cellcal@db.plant/cellcal") is None

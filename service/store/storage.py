@@ -24,6 +24,8 @@ import tempfile
 import threading
 from pathlib import Path
 
+from sqlalchemy.engine import make_url
+
 from service.errors import ServiceError
 from service.settings import Settings
 
@@ -58,9 +60,7 @@ class Storage:
     def __init__(self, settings: Settings) -> None:
         self.dir = Path(settings.data_dir).resolve()
         self.min_free = settings.min_free_mb * 2**20
-        url = settings.database
-        self.database = (Path(url.removeprefix("sqlite:///")).resolve()
-                         if url.startswith("sqlite:///") else None)
+        self.database = sqlite_file(settings.database)
         self._identity = _identity(self.dir)
         self._lock = threading.Lock()
         # A directory deleted and made again may get the same inode number: the marker,
@@ -126,6 +126,15 @@ class Storage:
             log.error("data directory %s: disk full; the %d MB reserve is given back so runs "
                       "can end and be cancelled", self.dir, RESERVE_BYTES // 2**20)
             path.unlink(missing_ok=True)
+
+
+def sqlite_file(url: str) -> Path | None:
+    """The database file of a SQLite ``url`` in any spelling SQLAlchemy takes
+    (``sqlite:///``, ``sqlite+pysqlite:///``), absolute; None for another database."""
+    parsed = make_url(url)
+    if parsed.get_backend_name() != "sqlite" or parsed.database in (None, "", ":memory:"):
+        return None
+    return Path(parsed.database).resolve()
 
 
 def _identity(path: Path) -> tuple[int, int] | None:
