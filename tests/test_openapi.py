@@ -228,3 +228,13 @@ def test_numbers_beyond_any_row_are_422_not_500(client: TestClient, url: str) ->
 def test_json_types_are_as_documented(client: TestClient, body: dict[str, Any]) -> None:
     r = client.post("/runs", json=body, headers=AUTH)
     assert r.status_code == 422 and r.json()["code"] == "invalid_request"
+
+
+def test_a_refusal_for_storage_is_documented(doc: dict[str, Any]) -> None:
+    """The requests that start work answer 503 ``storage_unavailable`` or ``disk_full`` while
+    the data directory takes no writes (issue 22, row 5); the document said of every 503
+    only that the database was not answering."""
+    for path in ("/runs", "/runs/{run_id}/calibrations", "/calibrations/{cal_id}/activate",
+                 "/calibrations/{cal_id}/checks", "/calibrations/{cal_id}/validations"):
+        text = doc["paths"][path]["post"]["responses"]["503"]["description"]
+        assert "storage_unavailable" in text and "disk_full" in text, (path, text)

@@ -31,7 +31,9 @@ _DESCRIPTIONS = {
     "409": "a conflict: the detail says with what",
     "422": "malformed parameters or body; errors says where",
     "500": "an internal error (a bug: the detail names it)",
-    "503": "the database is not answering; retry in a moment",
+    "503": "the database is not answering (retry in a moment), or, for a request that "
+           "writes, the data directory takes none (storage_unavailable, disk_full: see "
+           "/health)",
 }
 
 
