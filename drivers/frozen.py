@@ -21,6 +21,7 @@ board detection reports a blank frame).
 from __future__ import annotations
 
 import hashlib
+import threading
 
 import numpy as np
 
@@ -36,7 +37,8 @@ class FrameWatch:
     """The frames of one capture (a run, a re-check), to tell a frozen camera (module doc).
 
     ``identical`` counts the frames in a row that were bit-identical, the current one
-    included (1: the last frame differed from the one before it, or was blank).
+    included (1: the last frame differed from the one before it, or was blank). Safe to share
+    between threads (posts to several external runs grab from one camera).
     """
 
     def __init__(self, min_motion: tuple[float, float] = MIN_MOTION) -> None:
@@ -44,6 +46,7 @@ class FrameWatch:
         self.identical = 1
         self._digest: bytes | None = None
         self._T_base_tcp_first: np.ndarray | None = None  # (4, 4), where the frame first came
+        self._lock = threading.Lock()
 
     def check(self, image: np.ndarray, tcp_pose: np.ndarray) -> None:
         """Take ``image`` (uint8 (H, W) or (H, W, 3)), the frame of the robot at ``tcp_pose``
@@ -51,20 +54,22 @@ class FrameWatch:
         frame of an earlier grab although the robot has moved since that grab."""
         T_base_tcp = matrix_from_ur_pose(np.asarray(tcp_pose, dtype=float))
         digest = _digest(image)
-        if digest is None or digest != self._digest:
-            self.identical, self._digest, self._T_base_tcp_first = 1, digest, T_base_tcp
-            return
-        self.identical += 1
-        assert self._T_base_tcp_first is not None
-        angle, dist = pose_error(self._T_base_tcp_first, T_base_tcp)
+        with self._lock:
+            if digest is None or digest != self._digest:
+                self.identical, self._digest, self._T_base_tcp_first = 1, digest, T_base_tcp
+                return
+            self.identical += 1
+            identical, T_first = self.identical, self._T_base_tcp_first
+        assert T_first is not None
+        angle, dist = pose_error(T_first, T_base_tcp)
         if dist <= self.min_motion[0] and angle <= self.min_motion[1]:
             return  # the same view again: no evidence
         raise CameraFrozenError(
-            f"The camera is frozen: {self.identical} identical frames in a row, the last "
+            f"The camera is frozen: {identical} identical frames in a row, the last "
             f"after the robot moved {dist * 1e3:.1f} mm / {np.rad2deg(angle):.2f} deg (a live "
             "camera's frames always differ, so the first of them may be old too). Its stream "
             "or driver keeps handing out one frame: restart the camera (or its stream "
-            "server), then resume.")
+            "server), then resume the run (or post the station again).")
 
 
 def _digest(image: np.ndarray) -> bytes | None:

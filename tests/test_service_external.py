@@ -145,6 +145,28 @@ def test_bare_post_reads_the_robot_and_grabs(client: TestClient) -> None:
     assert (run["stations_captured"], run["stations_planned"]) == (2, 0)
 
 
+@pytest.mark.timeout(60)
+def test_a_frozen_camera_gives_no_station_the_service_grabs(client: TestClient) -> None:
+    """The cell controller moves the robot and posts its pose, the service grabs: a camera
+    frozen on one frame gave every such station that frame (stored as captured). Now a grab
+    that repeats the last frame although the robot moved is 503 ``camera_frozen`` and nothing
+    is stored; the camera is opened afresh for the next post."""
+    robot, camera = client.app.state.devices.get()
+    run_id = external_run(client)
+    assert post(client, run_id).status_code == 201  # the service reads the robot and grabs
+    camera.inject_fault("freeze")
+    pose = np.array(robot_pose(client))
+    pose[0] += 0.02
+    robot.move_linear(pose)  # the controller's program moves the arm
+    robot.wait_settled()
+    r = post(client, run_id, pose=pose.tolist())
+    assert r.status_code == 503, r.text
+    assert r.json()["code"] == "camera_frozen" and "frozen: 2 identical" in r.text
+    assert client.get(f"/runs/{run_id}").json()["stations_captured"] == 1
+    assert client.app.state.devices.get()[1] is not camera  # opened afresh: live again
+    assert post(client, run_id).status_code == 201
+
+
 @pytest.mark.timeout(90)
 def test_bare_post_right_after_a_planned_run(client: TestClient) -> None:
     """Issue 19 item 5: a planned run leaves the mock beyond the reach of the UR5e model it

@@ -61,7 +61,9 @@ def list_stations(run_id: str, session: SessionDep) -> list[StationPublic]:
                          "needs more memory than CELLCAL_IMAGE_WORKER_MEMORY_MB"},
     422: {"description": "malformed pose or joints, an image without its pose, or an image "
                          "whose board search passed CELLCAL_IMAGE_CPU_S"},
-    503: {"description": "the camera or robot the service had to read failed"}})
+    503: {"description": "the camera or robot the service had to read failed (e.g. "
+                         "camera_frozen), or the data directory takes no writes "
+                         "(storage_unavailable, disk_full)"}})
 def post_station(
         run_id: str, runs: RunsDep,
         pose: Annotated[str | None, Form(

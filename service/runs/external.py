@@ -30,7 +30,8 @@ from calib import Station as CalibStation
 from calib import Target, check_joint_positions, check_ur_pose
 from drivers.base import ReportsFreshness, Robot
 from drivers.capture import grab_at_rest
-from drivers.errors import RobotError
+from drivers.errors import CameraFrozenError, RobotError
+from drivers.frozen import FrameWatch
 from service.cell.motion import Motion
 from service.errors import ConflictError, UnprocessableError
 from service.events import EventBus
@@ -67,6 +68,9 @@ class ExternalStations:
         self.images = ImageWorkers(motion.settings)
         self._locks: dict[str, threading.Lock] = {}  # run id -> its posts' lock
         self._locks_lock = threading.Lock()
+        #: The frames the service grabbed for posts: a frozen camera is refused (503
+        #: ``camera_frozen``) instead of giving every station its one frame.
+        self._frames = FrameWatch()
 
     def add(self, run_id: str, posted: PostedStation) -> StationRecord:
         """Store one posted station of an external run that accepts stations; the row."""
@@ -87,6 +91,23 @@ class ExternalStations:
         with self._locks_lock:
             return self._locks.setdefault(run_id, threading.Lock())
 
+    def _grab(self, pose: list[float] | None, joints: list[float] | None
+              ) -> tuple[np.ndarray, list[float], list[float] | None, str | None]:
+        """The service's own grab for a post without an image: the image, the pose (posted,
+        or read from the robot at rest), the joints and how the frame was made fresh."""
+        if pose is not None:
+            _, camera = self.motion.devices.get()
+            image = camera.grab(timeout=self.motion.settings.grab_timeout_s)
+            self._frames.check(image, np.asarray(pose, dtype=float))
+            return image, pose, joints, (camera.freshness if isinstance(camera, ReportsFreshness)
+                                         else None)
+        robot, camera = self.motion.devices.get()
+        with self.motion.robot_lock:
+            still = grab_at_rest(robot, camera, grab_timeout=self.motion.settings.grab_timeout_s,
+                                 watch=self._frames)
+        return (still.image, [float(v) for v in still.tcp_pose],
+                _joints(robot) if joints is None else joints, still.freshness)
+
     def _add(self, run_id: str, token: str | None, target: Target,
              posted: PostedStation) -> StationRecord:
         """Develop and store one station of ``run_id`` (``posted``: pose and joints checked;
@@ -98,19 +119,12 @@ class ExternalStations:
             image, detection, seen = developed.image, developed.detection, developed.seen
             if developed.problem is not None:
                 problem = (developed.problem, "image_unreadable")
-        elif pose is not None:
-            _, camera = self.motion.devices.get()
-            image = camera.grab(timeout=self.motion.settings.grab_timeout_s)
-            freshness = camera.freshness if isinstance(camera, ReportsFreshness) else None
         else:
-            robot, camera = self.motion.devices.get()
-            with self.motion.robot_lock:
-                still = grab_at_rest(robot, camera,
-                                     grab_timeout=self.motion.settings.grab_timeout_s)
-            image, pose = still.image, [float(v) for v in still.tcp_pose]
-            freshness = still.freshness
-            if joints is None:
-                joints = _joints(robot)
+            try:
+                image, pose, joints, freshness = self._grab(pose, joints)
+            except CameraFrozenError:
+                self.motion.devices.reset()  # opened afresh for the next post
+                raise
         assert pose is not None and token is not None
         capture = Capture(self.motion, self.events, run_id=run_id, token=token)
         with self.motion.db.session() as s:
