@@ -27,6 +27,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
+from service.jobs import outcomes as outcomes_module
 from service.jobs.outcomes import Outcomes
 from service.store.db import DatabaseUnavailableError
 from service.store.records import Topic
@@ -200,6 +201,7 @@ def test_a_spool_file_that_cannot_be_removed_does_not_stop_the_drain(
     spool file removed; a data directory that refused that removal (read-only by then) ended
     the drain thread with an uncaught OSError, so every outcome spooled later stayed unstored
     (the job ``running`` in the database) until a restart."""
+    monkeypatch.setattr(outcomes_module, "DRAIN_INTERVAL_S", 0.05)  # retried sooner
     db = _Database()
     outcomes = Outcomes(settings(tmp_path, database_retry_s=0.0), db,  # type: ignore[arg-type]
                         _Events(), _Storage())  # type: ignore[arg-type]
