@@ -365,13 +365,17 @@ def main() -> int:
     parser.add_argument("--client", choices=("threads", "light", "both"), default="both",
                         help="--history: the load generator: httpx threads in this process, "
                              "a separate asyncio process, or each in turn (default)")
+    parser.add_argument("--backend", choices=("sqlite", "postgresql", "both"), default="both",
+                        help="--history: the database(s) measured (default both, in turn)")
     args = parser.parse_args()
     if args.history:
         from benchmarks.service_history import run_history
 
         return run_history(quick=args.quick, seconds=args.seconds, rounds=args.rounds,
                            clients=("threads", "light") if args.client == "both"
-                           else (args.client,))
+                           else (args.client,),
+                           backends=("sqlite", "postgresql") if args.backend == "both"
+                           else (args.backend,))
     n = args.stations or (20 if args.quick else 80)
 
     def on_term(signum: int, frame: Any) -> None:

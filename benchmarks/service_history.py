@@ -410,14 +410,20 @@ def _env() -> dict[str, str]:
     return clean_env()
 
 
+#: The two databases (``--backend``).
+BACKENDS = ("sqlite", "postgresql")
+
+
 def run_history(*, quick: bool, seconds: float | None, rounds: int | None = None,
-                clients: tuple[str, ...] = CLIENT_KINDS) -> int:
-    """Both databases, then the report; 0 if every target is met, else 1."""
+                clients: tuple[str, ...] = CLIENT_KINDS,
+                backends: tuple[str, ...] = BACKENDS) -> int:
+    """The ``backends`` (default both databases), then the report; 0 if every target is met,
+    else 1."""
     from benchmarks.history_report import report
 
     plan = (Plan((200, 2000), 5, seconds or 4.0, rounds or 2, 1.0) if quick else
             Plan((1000, 10000), 20, seconds or 40.0, rounds or 4, 5.0))
     found: list[Level] = []
-    for kind in ("sqlite", "postgresql"):
+    for kind in backends:
         found += measure(kind, plan, clients)
     return 0 if report(found) else 1
