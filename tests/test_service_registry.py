@@ -254,6 +254,25 @@ def test_a_finished_calibration_is_read_once_a_running_one_every_time(
 
 
 @pytest.mark.pg_fast
+def test_a_page_and_its_total_are_one_statement(client: TestClient) -> None:
+    """A page of calibrations brings its total along in the same statement (one round trip
+    to the database, not two); a page past the end still says how many there are."""
+    hand, fixed = add_run(client), add_run(client, setup="eye_to_hand")
+    for minute in range(5):
+        add_calibration(client, hand if minute % 2 else fixed, minute=minute)
+    seen = statements(client)
+    page = client.get("/calibrations", params={"limit": 2, "setup": "eye_to_hand"}).json()
+    assert (len(page["items"]), page["total"]) == (2, 3)
+    assert len([sql for sql in seen if "FROM calibrations" in sql]) == 1
+    later = client.get("/calibrations", params={"limit": 2, "cursor": page["next_cursor"],
+                                                "setup": "eye_to_hand"}).json()
+    assert (len(later["items"]), later["total"]) == (1, 3)
+    assert len([sql for sql in seen if "FROM calibrations" in sql]) == 2
+    past = client.get("/calibrations", params={"offset": 9}).json()
+    assert (past["items"], past["total"]) == ([], 5)
+
+
+@pytest.mark.pg_fast
 def test_a_cursor_page_is_read_from_its_index_range(client: TestClient) -> None:
     """The page after a cursor starts in the ``(created_at, id)`` index at the cursor
     instead of filtering every newer row (a deep page cost what the newer rows cost)."""
