@@ -13,6 +13,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import event, text
 
 from service.store import db
+from service.store.records import StationRecord
 from tests.support.service import external_run, service
 
 pytestmark = [pytest.mark.usefixtures("database"), pytest.mark.pg_fast]
@@ -90,3 +91,26 @@ def test_a_connection_dropped_while_idle_is_replaced(client: TestClient, pings: 
     r = client.get(f"/runs/{run_id}")
     assert r.status_code == 200, r.text
     assert pings  # found dead by the ping, not by the request's statement
+
+
+def test_a_run_reads_its_station_errors_only_when_it_has_some(client: TestClient) -> None:
+    """``GET /runs/{id}`` and ``GET /runs`` are one statement for runs none of whose stations
+    failed (the run's row counts them); a run with a failed station gets its errors from one
+    more statement."""
+    run_id = external_run(client)
+    seen: list[str] = []
+    event.listen(client.app.state.db.engine, "before_cursor_execute",
+                 lambda conn, cursor, sql, *rest: seen.append(sql))
+    assert client.get(f"/runs/{run_id}").json()["station_errors"] == []
+    assert client.get("/runs").json()[0]["station_errors"] == []
+    assert len(seen) == 2
+    with client.app.state.db.session() as s:
+        s.add(StationRecord(run_id=run_id, index=0, state="skipped", error="no board",
+                            error_code="not_detected", attempts=1,
+                            commanded_tcp_pose=[0.3, 0.0, 0.4, 3.14, 0.0, 0.0]))
+        s.commit()
+    seen.clear()
+    errors = [{"index": 0, "code": "not_detected", "detail": "no board"}]
+    assert client.get(f"/runs/{run_id}").json()["station_errors"] == errors
+    assert client.get("/runs").json()[0]["station_errors"] == errors
+    assert len(seen) == 4

@@ -33,15 +33,18 @@ from service.store.stations import captured_station_set, run_target
 router = APIRouter(prefix="/runs", tags=["runs"], route_class=OneThreadRoute)
 
 def run_public(session: SessionDep, run_id: str) -> RunPublic:
-    """The public view of a run (404 for an unknown id): two small statements, never loading
-    its stations (with their corners), so polling stays fast on long runs."""
+    """The public view of a run (404 for an unknown id): one small statement (two if a station
+    has an error), never loading its stations (with their corners), so polling stays fast on
+    long runs."""
     return runs_public(session, [queries.get_run_view(session, run_id=run_id)])[0]
 
 
 def runs_public(session: SessionDep, runs: list[Row[Any]]) -> list[RunPublic]:
     """The public views of runs read as ``queries.RUN_VIEW_COLUMNS`` rows, with one more
-    statement for their stations' errors, whatever their number."""
-    errors = queries.runs_station_errors(session, run_ids=[run.id for run in runs])
+    statement for their stations' errors if any has some, whatever their number (on
+    PostgreSQL each statement is a wait for the database server and then for the GIL)."""
+    with_errors = [run.id for run in runs if run.errors]
+    errors = queries.runs_station_errors(session, run_ids=with_errors) if with_errors else {}
     return [RunPublic(
         id=run.id, state=run.state, mode=run.mode, cell=run.cell, robot=run.robot,
         setup=run.setup, target=run_target(run),
@@ -50,7 +53,7 @@ def runs_public(session: SessionDep, runs: list[Row[Any]]) -> list[RunPublic]:
         error=None if run.error is None else ErrorInfo(code=run.error_code or "error",
                                                        detail=run.error),
         station_errors=[StationError(index=i, code=code, detail=detail)
-                        for i, code, detail in errors[run.id]],
+                        for i, code, detail in errors.get(run.id, ())],
         cold_start=None if run.cold_start is None else ColdStartPublic.model_validate(
             run.cold_start),
         created_at=run.created_at, updated_at=run.updated_at) for run in runs]

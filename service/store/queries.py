@@ -77,14 +77,17 @@ def _stations_counted(*where: Any) -> Any:
 #: The columns of a run's public view, by name: the row without its owner, identity and poses
 #: (only how many there are) and its stations counted in the same statement, so a page of 50
 #: runs is one statement of plain rows, no ORM objects and no stations loaded. The target is
-#: its JSON text (``stations.target_of_text`` parses each distinct one once).
+#: its JSON text (``stations.target_of_text`` parses each distinct one once). ``errors`` counts
+#: the stations with an error (from their partial index), so their errors are read only for
+#: the runs that have some.
 RUN_VIEW_COLUMNS = (RunRecord.id, RunRecord.state, RunRecord.mode, RunRecord.cell,
                     RunRecord.robot, RunRecord.setup, cast(RunRecord.target, Text).label("target"),
                     RunRecord.cold_start,
                     RunRecord.error, RunRecord.error_code, RunRecord.created_at,
                     RunRecord.updated_at, func.json_array_length(RunRecord.poses).label("poses"),
                     _stations_counted(StationRecord.state == "captured").label("captured"),
-                    _stations_counted().label("stored"))
+                    _stations_counted().label("stored"),
+                    _stations_counted(StationRecord.error.is_not(None)).label("errors"))
 
 
 def list_run_views(s: Session, *, limit: int, cursor: Cursor | None = None) -> list[Row[Any]]:
