@@ -31,6 +31,7 @@ with the server's and the client's CPU per request.
 
     python -m benchmarks.service --history           # 1,000 and 10,000 calibrations
     python -m benchmarks.service --history --quick   # 200 and 2,000, 5 stations per run
+    python -m benchmarks.service --history --backend postgresql --client threads --rounds 1
 
 Prints a table and writes benchmarks/results/service_history.png. Requests go only to
 127.0.0.1, bounded in time; servers and temporary directories are removed on every exit.
