@@ -8,7 +8,9 @@ PostgreSQL history at the same time, and each request of each of the seven GET k
 ``benchmarks.history_client.get_mix`` goes to every server in turn (A B C A B C ..., reversed
 every other round), so all of them meet the same machine state. A server's CPU per request
 is its threads' run time (``/proc/<pid>/task/*/schedstat``) over ``--n`` requests of one kind;
-the answers of the servers must be byte-identical (checked on the warm-up requests).
+on PostgreSQL also its database backends' (told apart by ``application_name``, set through
+``PGAPPNAME``), which run on the same cores. The answers of the servers must be
+byte-identical (checked on the warm-up requests).
 
     python -m benchmarks.history_cpu origin/main HEAD                 # SQLite, 1,000 calibrations
     python -m benchmarks.history_cpu --backend postgresql 2e8b576 HEAD
@@ -29,9 +31,11 @@ import sys
 import tempfile
 from collections import defaultdict
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
+from sqlalchemy import create_engine, text
 
 from benchmarks.history_client import get_mix
 from benchmarks.service_history import _deep_cursor, _env, databases, seed
@@ -58,25 +62,43 @@ def cpu_s(pid: int) -> float:
     return total / 1e9
 
 
-#: Server CPU per request, ms: by revision, by GET kind, one figure per round.
+#: CPU per request, ms: by revision, by GET kind, one figure per round.
 Figures = dict[str, dict[str, list[float]]]
 
 
-def measure(revs: list[str], backend: str, calibrations: int, rounds: int, n: int) -> Figures:
+def backends_cpu_s(engine: Any, app: str) -> float:
+    """Run time so far of the PostgreSQL backends serving connections named ``app``."""
+    with engine.connect() as conn:
+        pids = conn.execute(text("SELECT pid FROM pg_stat_activity WHERE application_name = "
+                                 ":app"), {"app": app}).scalars().all()
+    return sum(cpu_s(pid) for pid in pids)
+
+
+def measure(revs: list[str], backend: str, calibrations: int, rounds: int,
+            n: int) -> tuple[Figures, Figures]:
     """Serve one seeded history with each revision at once and send them the GET mix by
-    turns; the server CPU per request."""
+    turns; the server's CPU per request and its database backends' (PostgreSQL; else
+    empty)."""
     key = secrets.token_urlsafe(24)
     auth = {"Authorization": f"Bearer {key}"}
     names = labels(revs)
     per: Figures = defaultdict(lambda: defaultdict(list))
+    per_db: Figures = defaultdict(lambda: defaultdict(list))
     with tempfile.TemporaryDirectory(prefix="cellcal-history-cpu-") as tmp_dir, \
             databases(backend, Path(tmp_dir), 1) as (url,), contextlib.ExitStack() as stack:
         tmp = Path(tmp_dir)
         cal_ids = seed(url, first=0, count=calibrations, stations=20)
         env = {**_env(), "CELLCAL_DATABASE_URL": url, "CELLCAL_CELL": "cell-00"}
+        apps = {name: f"history-cpu-{k}" for k, name in enumerate(names)}
         servers = {name: stack.enter_context(local_service(
-            tmp / f"data-{k}", key, ServeOptions(env=env, cwd=checkout(rev, tmp / f"src-{k}"))))
+            tmp / f"data-{k}", key, ServeOptions(env={**env, "PGAPPNAME": apps[name]},
+                                                 cwd=checkout(rev, tmp / f"src-{k}"))))
             for k, (name, rev) in enumerate(zip(names, revs, strict=True))}
+        engine = create_engine(url) if backend == "postgresql" else None
+        stack.callback(lambda: engine is not None and engine.dispose())
+
+        def db_cpu_s(name: str) -> float:
+            return 0.0 if engine is None else backends_cpu_s(engine, apps[name])
         run_ids = [run["id"] for run in httpx.get(f"{servers[names[0]].url}/runs?limit=500",
                                                   headers=auth, timeout=60).json()]
         mix = get_mix(cal_ids, run_ids, _deep_cursor(url, cal_ids))
@@ -99,13 +121,16 @@ def measure(revs: list[str], backend: str, calibrations: int, rounds: int, n: in
         for r in range(rounds):
             for kind, path_of in mix:
                 before = {name: cpu_s(svc.proc.pid) for name, svc in servers.items()}
+                db_before = {name: db_cpu_s(name) for name in names}
                 for path in [path_of(rng) for _ in range(n)]:
                     for name in names[::-1 if r % 2 else 1]:
                         get(name, path)
                 for name, svc in servers.items():
                     per[name][kind].append(1e3 * (cpu_s(svc.proc.pid) - before[name]) / n)
+                    if engine is not None:
+                        per_db[name][kind].append(1e3 * (db_cpu_s(name) - db_before[name]) / n)
             print(f"round {r + 1} done (load average {os.getloadavg()[0]:.1f})", flush=True)
-    return per
+    return per, per_db
 
 
 def labels(revs: list[str]) -> list[str]:
@@ -139,10 +164,13 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--n", type=int, default=100, help="requests per kind and round")
     args = parser.parse_args()
-    per = measure(args.revs, args.backend, args.calibrations, args.rounds, args.n)
+    per, per_db = measure(args.revs, args.backend, args.calibrations, args.rounds, args.n)
     print(f"\nserver CPU per request, ms (mean of {args.rounds} rounds of {args.n}), "
           f"{args.backend}, {args.calibrations:,} calibrations; ratio to {args.revs[0]}")
     report(per, labels(args.revs))
+    if per_db:
+        print("\nits PostgreSQL backends' CPU per request, ms")
+        report(per_db, labels(args.revs))
     return 0
 
 
