@@ -48,6 +48,8 @@ class Outcome:
     rf_mm: float = np.nan
     rigid_deg: float = np.nan
     rigid_mm: float = np.nan
+    own_deg: float = np.nan
+    own_mm: float = np.nan
     cell: int = -1
     stations_at: list[int] = field(default_factory=list)
     explore_at: list[int] = field(default_factory=list)
@@ -152,9 +154,21 @@ def _cold_start_lines(results: dict[str, list[Outcome]]) -> list[str]:
         f"error median {np.nanmedian([o.rigid_mm for o in cs]):.2f} mm (with the scale "
         f"{np.nanmedian([o.rf_mm for o in cs]):.2f} mm), smaller with the scale in "
         f"{np.mean([o.rf_mm < o.rigid_mm for o in cs]):.0%} of the cells",
+        f"cold start against the readings frame over each result's own stations "
+        f"(readings_hand_eye(poses=...): what its images can tell at best): success "
+        f"{np.mean([_success(o.own_deg, o.own_mm, o) for o in cs]):.0%}, error > 2x σ: "
+        f"{sum(o.own_deg > 2 * o.sigma_deg or o.own_mm > 2 * o.sigma_mm for o in cs)}; the "
+        f"box's frame differs from it by median {np.nanmedian(_frame_gap(cs, 0)):.3f}° / "
+        f"{np.nanmedian(_frame_gap(cs, 1)):.2f} mm of error",
         f"cold start planning CPU per step (a proposal plus the refit after its image): median "
         f"{np.median(steps):.3f} s, p99 {np.percentile(steps, 99):.2f} s, max "
         f"{steps.max():.2f} s"]
+
+
+def _frame_gap(outs: list[Outcome], part: int) -> np.ndarray:
+    """How much more error (deg for ``part`` 0, mm for 1) each result has against the box's
+    readings frame than against its own stations' (negative: less)."""
+    return np.array([(o.rf_deg - o.own_deg, o.rf_mm - o.own_mm)[part] for o in outs])
 
 
 def plot(results: dict[str, list[Outcome]], path: Path) -> None:

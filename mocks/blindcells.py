@@ -11,6 +11,7 @@ and the board from it.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -133,9 +134,12 @@ def random_blind_scene(seed: int, setup: str) -> MockScene:
 _READINGS_POSES, _READINGS_LEVER_M = 30, 0.5
 
 
-def readings_hand_eye(scene: MockScene, *, scale: bool = False) -> np.ndarray:
+def readings_hand_eye(scene: MockScene, *, scale: bool = False,
+                      poses: np.ndarray | None = None) -> np.ndarray:
     """The hand-eye (4, 4) as the arm's own readings see it over the safety box: the truth the
     best possible calibration can reach, which the benchmark measures errors against too.
+    ``poses`` (n, 4, 4): as they see it over these readings instead (a calibration's own
+    stations: what its images can tell at best).
 
     The true flange ``F`` of a reading ``P`` is ``P`` moved by the kinematic error of its
     configuration. Its part that is the same at every pose of the box, ``F ≈ A P B`` (A on
@@ -154,18 +158,8 @@ def readings_hand_eye(scene: MockScene, *, scale: bool = False) -> np.ndarray:
     X = scene.hand_eye_matrix
     if scene.kinematics is None or scene.workspace is None:
         return X.copy()
-    rng = np.random.default_rng([scene.seed, 29])
-    lo, hi, P0 = np.array(scene.workspace.lo), np.array(scene.workspace.hi), scene.start_pose()
-    readings, flanges = [], []
-    while len(readings) < _READINGS_POSES:
-        P = make_transform(P0[:3, :3] @ Rotation.from_rotvec(
-            rng.normal(size=3) * np.deg2rad(30.0) / np.sqrt(3)).as_matrix(), rng.uniform(lo, hi))
-        try:
-            flanges.append(true_tcp_pose(scene, P))
-        except ValueError:
-            continue
-        readings.append(P)
-    P, F_inv = np.stack(readings), invert(np.stack(flanges))
+    P, F = _box_readings(scene) if poses is None else _with_flanges(scene, poses)
+    F_inv = invert(F)
 
     def transform(v: np.ndarray) -> np.ndarray:
         return make_transform(Rotation.from_rotvec(v[:3]).as_matrix(), v[3:])
@@ -189,6 +183,42 @@ def readings_hand_eye(scene: MockScene, *, scale: bool = False) -> np.ndarray:
     X_r = B @ X if scene.setup == "eye_in_hand" else invert(A) @ X
     X_r[:3, 3] /= factor(v)
     return X_r
+
+
+def box_poses(scene: MockScene) -> np.ndarray:
+    """The readings (n, 4, 4) over which :func:`readings_hand_eye` sees the box."""
+    return _box_readings(scene)[0]
+
+
+def _box_readings(scene: MockScene) -> tuple[np.ndarray, np.ndarray]:
+    """``_READINGS_POSES`` random readings in the safety box that the arm reaches, the tool
+    turned up to 30° from the start, and their true flanges (n, 4, 4) each."""
+    rng = np.random.default_rng([scene.seed, 29])
+    lo, hi, P0 = np.array(scene.workspace.lo), np.array(scene.workspace.hi), scene.start_pose()
+    pairs: list[tuple[np.ndarray, np.ndarray]] = []
+    while len(pairs) < _READINGS_POSES:
+        P = make_transform(P0[:3, :3] @ Rotation.from_rotvec(
+            rng.normal(size=3) * np.deg2rad(30.0) / np.sqrt(3)).as_matrix(), rng.uniform(lo, hi))
+        pairs += _reached(scene, [P])
+    return np.stack([P for P, _ in pairs]), np.stack([F for _, F in pairs])
+
+
+def _with_flanges(scene: MockScene, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The readings of ``poses`` (n, 4, 4) that the arm model reaches and their true flanges
+    (k, 4, 4) each (a reading's noise can carry a pose at the edge of the reach beyond it)."""
+    pairs = _reached(scene, np.asarray(poses, dtype=float))
+    return np.stack([P for P, _ in pairs]), np.stack([F for _, F in pairs])
+
+
+def _reached(scene: MockScene, poses: Sequence[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(reading, true flange) of each of ``poses`` (4, 4) the arm model reaches."""
+    pairs = []
+    for P in poses:
+        try:
+            pairs.append((P, true_tcp_pose(scene, P)))
+        except ValueError:
+            continue
+    return pairs
 
 
 def _ur_pose(T: np.ndarray) -> list[float]:
