@@ -130,8 +130,14 @@ def random_blind_scene(seed: int, setup: str) -> MockScene:
 
 
 #: Poses drawn in the box to find the hand-eye the readings see, and the metres one radian of
-#: rotation error counts as there (the size of the box).
-_READINGS_POSES, _READINGS_LEVER_M = 30, 0.5
+#: rotation error counts as there (the size of the box). The hand-eye over 30 draws was off
+#: the box's (the same fit over 300 other draws) by up to 0.027° / 0.24 mm on cold-start
+#: cells 6, 13, 14, 20, 27 and 28, as much as the σ it judges; over 1,000 by about a sixth
+#: of that (1/sqrt of the draws; 300 and 1,000 draws differ by up to 0.011° / 0.13 mm).
+_READINGS_POSES, _READINGS_LEVER_M = 1000, 0.5
+#: The box's readings and flanges per scene (its JSON): the inverse kinematics of 1,000 poses
+#: takes 20-40 s, and a benchmark asks for the same box several times.
+_BOX_READINGS: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
 
 def readings_hand_eye(scene: MockScene, *, scale: bool = False,
@@ -193,14 +199,19 @@ def box_poses(scene: MockScene) -> np.ndarray:
 def _box_readings(scene: MockScene) -> tuple[np.ndarray, np.ndarray]:
     """``_READINGS_POSES`` random readings in the safety box that the arm reaches, the tool
     turned up to 30° from the start, and their true flanges (n, 4, 4) each."""
-    rng = np.random.default_rng([scene.seed, 29])
-    lo, hi, P0 = np.array(scene.workspace.lo), np.array(scene.workspace.hi), scene.start_pose()
-    pairs: list[tuple[np.ndarray, np.ndarray]] = []
-    while len(pairs) < _READINGS_POSES:
-        P = make_transform(P0[:3, :3] @ Rotation.from_rotvec(
-            rng.normal(size=3) * np.deg2rad(30.0) / np.sqrt(3)).as_matrix(), rng.uniform(lo, hi))
-        pairs += _reached(scene, [P])
-    return np.stack([P for P, _ in pairs]), np.stack([F for _, F in pairs])
+    key = scene.model_dump_json()
+    if key not in _BOX_READINGS:
+        rng = np.random.default_rng([scene.seed, 29])
+        lo, hi = np.array(scene.workspace.lo), np.array(scene.workspace.hi)
+        P0 = scene.start_pose()
+        pairs: list[tuple[np.ndarray, np.ndarray]] = []
+        while len(pairs) < _READINGS_POSES:
+            P = make_transform(P0[:3, :3] @ Rotation.from_rotvec(
+                rng.normal(size=3) * np.deg2rad(30.0) / np.sqrt(3)).as_matrix(),
+                rng.uniform(lo, hi))
+            pairs += _reached(scene, [P])
+        _BOX_READINGS[key] = (np.stack([P for P, _ in pairs]), np.stack([F for _, F in pairs]))
+    return _BOX_READINGS[key]
 
 
 def _with_flanges(scene: MockScene, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
