@@ -155,7 +155,8 @@ def _cold_start_lines(results: dict[str, list[Outcome]]) -> list[str]:
         f"{np.nanmedian([o.rf_mm for o in cs]):.2f} mm), smaller with the scale in "
         f"{np.mean([o.rf_mm < o.rigid_mm for o in cs]):.0%} of the cells",
         f"cold start against the readings frame over each result's own stations "
-        f"(readings_hand_eye(poses=...): what its images can tell at best): success "
+        f"(readings_hand_eye(poses=...); its scale is ill-determined where they cluster): "
+        f"success "
         f"{np.mean([_success(o.own_deg, o.own_mm, o) for o in cs]):.0%}, error > 2x σ: "
         f"{sum(o.own_deg > 2 * o.sigma_deg or o.own_mm > 2 * o.sigma_mm for o in cs)}; the "
         f"box's frame differs from it by median {np.nanmedian(_frame_gap(cs, 0)):.3f}° / "
