@@ -457,7 +457,11 @@ class CalibrationPage(BaseModel):
     the last page."""
 
     items: list[CalibrationSummary]
-    total: int = Field(description="how many match the filters in all")
+    total: int = Field(description="how many match the filters, counted up to a limit "
+                                   "(1,000)")
+    total_exact: bool = Field(description="false when more than `total` match: the count "
+                                          "stops at its limit, so a listing costs the same "
+                                          "however long the plant's history")
     limit: int
     offset: int
     next_offset: int | None

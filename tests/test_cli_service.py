@@ -81,9 +81,14 @@ def test_run_calibrate_activate_export(served: LocalService, tmp_path: Path) -> 
     assert rms == f"{cal['result']['camera']['rms_px']:.3f}", listed
 
     activated = cellcal("calibrations", "activate", cal_id[:8], url=url)
-    assert activated.stdout == f"calibration {cal_id} is the active calibration of mock://\n"
     active = json.loads(cellcal("calibrations", "active", url=url).stdout)
     assert active["calibration"]["id"] == cal_id and active["robot"] == "mock://"
+    assert activated.stdout == (f"calibration {cal_id} is the active {active['setup']} "
+                                f"calibration of cell {active['cell']} (robot mock://)\n")
+    elsewhere = cellcal("calibrations", "active", "--cell", "press-7", url=url)
+    assert elsewhere.returncode != 0 and "press-7" in elsewhere.stderr  # 404: not this cell's
+    assert len(json.loads(cellcal("calibrations", "active", "--history", "1",
+                                  url=url).stdout)["history"]) == 1
 
     out = tmp_path / "camera.urdf"
     exported = cellcal("calibrations", "export", cal_id, "--format", "urdf", "--camera-name",

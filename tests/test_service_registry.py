@@ -14,7 +14,8 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import event, select, text
 
-from service.store import writes
+from service.api.active import HISTORY
+from service.store import queries, writes
 from service.store.pages import Cursor, newest_first
 from service.store.records import CalibrationRecord, RunRecord
 from tests.support.results import full_result, pose_only_result
@@ -177,6 +178,20 @@ def test_activation_history_says_what_was_active_when(client: TestClient) -> Non
     assert [h["calibration_id"] for h in history] == [first, second]
 
 
+def test_the_active_calibration_brings_a_page_of_its_history(client: TestClient) -> None:
+    """By default the last ``HISTORY`` periods (a controller polling for its calibration
+    reads them every time, however many re-checks the cell has had); ``history`` asks for
+    more."""
+    run_id = add_run(client)
+    made = [add_calibration(client, run_id, minute=m) for m in range(HISTORY + 3)]
+    for cal_id in made:
+        client.post(f"/calibrations/{cal_id}/activate")
+    newest = [h["calibration_id"] for h in client.get("/calibrations/active").json()["history"]]
+    assert newest == made[::-1][:HISTORY]
+    more = client.get("/calibrations/active", params={"history": 500}).json()["history"]
+    assert [h["calibration_id"] for h in more] == made[::-1]
+
+
 @pytest.mark.parametrize("state", ["running", "failed"])
 def test_only_a_finished_calibration_can_be_activated(client: TestClient, state: str) -> None:
     cal_id = add_calibration(client, add_run(client), minute=1, state=state)
@@ -270,6 +285,34 @@ def test_a_page_and_its_total_are_one_statement(client: TestClient) -> None:
     assert len([sql for sql in seen if "FROM calibrations" in sql]) == 2
     past = client.get("/calibrations", params={"offset": 9}).json()
     assert (past["items"], past["total"]) == ([], 5)
+
+
+@pytest.mark.pg_fast
+def test_a_listing_counts_no_further_than_its_limit(client: TestClient,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """Past ``COUNT_LIMIT`` matches a page says "at least that many" (the count stops, so a
+    listing's cost does not grow with the history), and the pages still reach every row;
+    at or under the limit the total is exact."""
+    monkeypatch.setattr(queries, "COUNT_LIMIT", 4)
+    run_id = add_run(client)
+    made = [add_calibration(client, run_id, minute=m) for m in range(7)]
+    seen, offset = [], 0
+    while offset is not None:
+        page = client.get("/calibrations", params={"limit": 3, "offset": offset}).json()
+        assert (page["total"], page["total_exact"]) == (4, False)
+        seen += ids(page)
+        offset = page["next_offset"]
+    assert seen == made[::-1]
+    some = client.get("/calibrations", params={"state": "done", "limit": 2,
+                                               "cursor": Cursor(T0 + dt.timedelta(minutes=4),
+                                                                 made[4]).encode()}).json()
+    assert (some["total"], some["total_exact"]) == (4, False)  # the filter, not the cursor
+    first = add_run(client)
+    few = [add_calibration(client, first, minute=10 + m) for m in range(4)]
+    mine = client.get("/calibrations", params={"run_id": first, "limit": 2}).json()
+    assert (mine["total"], mine["total_exact"], mine["next_offset"]) == (4, True, 2)
+    last = client.get("/calibrations", params={"run_id": first, "limit": 2, "offset": 2}).json()
+    assert ids(last) == few[1::-1] and last["next_offset"] is None
 
 
 @pytest.mark.pg_fast

@@ -19,6 +19,14 @@ from service.schemas import (
 from service.store import active, queries
 from service.store.pages import Cursor
 
+#: Periods of what was active when that ``GET /calibrations/active`` brings by default: a
+#: cell controller polling for its current calibration reads them every time, and a plant's
+#: year of re-checks would make that answer grow with the history (issue 21); ask for up to
+#: 500 with ``history``.
+HISTORY = 10
+History = Annotated[int, Query(ge=1, le=500, description="periods of what was active when, "
+                                                         "newest first")]
+
 router = APIRouter(prefix="/calibrations", tags=["calibrations"], route_class=OneThreadRoute)
 
 
@@ -33,10 +41,12 @@ def list_calibrations(session: SessionDep,
         limit=query.limit, offset=query.offset,
         cursor=None if query.cursor is None else Cursor.decode(query.cursor))
     items = [CalibrationSummary.model_validate(row._mapping) for row in rows]
-    end = query.offset + len(items)
+    end, exact = query.offset + len(items), total <= queries.COUNT_LIMIT
     more = len(items) == query.limit
-    return CalibrationPage(items=items, total=total, limit=query.limit, offset=query.offset,
-                           next_offset=end if end < total and query.cursor is None else None,
+    further = end < total if exact else more  # past the count's limit: while pages are full
+    return CalibrationPage(items=items, total=min(total, queries.COUNT_LIMIT), total_exact=exact,
+                           limit=query.limit, offset=query.offset,
+                           next_offset=end if further and query.cursor is None else None,
                            next_cursor=Cursor.of(rows[-1]).encode() if more else None)
 
 
@@ -46,7 +56,7 @@ def get_active(session: SessionDep, settings: SettingsDep,
                    max_length=255, description="default: this service's cell")] = None,
                setup: Annotated[Literal["eye_in_hand", "eye_to_hand"] | None, Query(
                    description="default: this service's setup")] = None,
-               history: Annotated[int, Query(ge=1, le=500)] = 50) -> ActiveCalibration:
+               history: History = HISTORY) -> ActiveCalibration:
     """The calibration a cell controller should use now, and what was active when."""
     return _active(session, cell=cell or settings.cell,
                    setup=setup or settings.calibration_setup(), history=history)
@@ -56,7 +66,7 @@ def get_active(session: SessionDep, settings: SettingsDep,
     404: {"description": "no such calibration"},
     409: {"description": "the calibration is running or failed"}})
 def activate(cal_id: str, session: SessionDep,
-             history: Annotated[int, Query(ge=1, le=500)] = 50) -> ActiveCalibration:
+             history: History = HISTORY) -> ActiveCalibration:
     """Make a finished calibration the current one of its cell and setup (idempotent)."""
     cell, setup = active.activate(session, cal_id=cal_id)
     return _active(session, cell=cell, setup=setup, history=history)

@@ -44,7 +44,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     activate.add_argument("cal_id", metavar="CAL_ID")
     active = actions.add_parser("active", help="the current calibration and what was active "
                                                "when, as JSON")
-    active.add_argument("--robot", metavar="URL", help="default: the service's robot")
+    active.add_argument("--cell", help="default: the service's cell")
+    active.add_argument("--setup", choices=["eye_in_hand", "eye_to_hand"],
+                        help="default: the service's setup")
+    active.add_argument("--history", type=int, metavar="N",
+                        help="periods of what was active when, newest first (default 10)")
     export = actions.add_parser("export", help="the result as a file for OpenCV, ROS, a URDF "
                                                "or a UR program")
     export.add_argument("cal_id", metavar="CAL_ID")
@@ -71,8 +75,8 @@ def _list(service: client.Service, args: argparse.Namespace) -> None:
 
 def _activate(service: client.Service, args: argparse.Namespace) -> None:
     active = service.post(f"/calibrations/{args.cal_id}/activate")
-    print(f"calibration {active['calibration']['id']} is the active calibration of "
-          f"{active['robot']}")
+    print(f"calibration {active['calibration']['id']} is the active {active['setup']} "
+          f"calibration of cell {active['cell']} (robot {active['robot']})")
 
 
 def _start(service: client.Service, args: argparse.Namespace) -> int:
@@ -125,6 +129,7 @@ _ACTIONS: dict[str, Callable[[client.Service, argparse.Namespace], int | None]] 
     "start": _start,
     "activate": _activate,
     "active": lambda service, args: client.print_json(
-        service.fetch("/calibrations/active", robot=args.robot)),
+        service.fetch("/calibrations/active", cell=args.cell, setup=args.setup,
+                      history=args.history)),
     "export": _export,
 }

@@ -167,13 +167,19 @@ SUMMARY_COLUMNS = (CalibrationRecord.id, CalibrationRecord.run_id, CalibrationRe
                    CalibrationRecord.created_at, CalibrationRecord.finished_at)
 
 
+#: How far a listing counts its matches: a page says "more than 1,000" rather than read a
+#: year of history to give the exact number.
+COUNT_LIMIT = 1000
+
+
 def page_calibrations(s: Session, *, where: CalibrationFilter, limit: int, offset: int,
                       cursor: Cursor | None = None) -> tuple[list[Row[Any]], int]:
     """One page of calibrations, newest first (after ``cursor``, the previous page's last,
-    or skipping ``offset``), as rows of ``SUMMARY_COLUMNS`` (by name), and how many match in
-    all (counted in the page's statement). Plain rows, no ORM objects, and no documents: the
-    options and results stay in the database (only the method, RMS error and verdict are
-    read), so pages stay small and cheap."""
+    or skipping ``offset``), as rows of ``SUMMARY_COLUMNS`` (by name), and how many match,
+    counted up to ``COUNT_LIMIT`` + 1 in the page's statement (more than ``COUNT_LIMIT``
+    means "more than that"). Plain rows, no ORM objects, and no documents: the options and
+    results stay in the database (only the method, RMS error and verdict are read), so pages
+    stay small and cheap."""
     filters = [column == value for column, value in ((CalibrationRecord.run_id, where.run_id),
                                                      (CalibrationRecord.cell, where.cell),
                                                      (CalibrationRecord.state, where.state),
@@ -183,11 +189,14 @@ def page_calibrations(s: Session, *, where: CalibrationFilter, limit: int, offse
         current = select(ActiveCalibrationRecord.calibration_id)
         filters.append(CalibrationRecord.id.in_(current) if where.active
                        else CalibrationRecord.id.not_in(current))
-    # counted from the calibrations alone unless the setup filter needs their runs
-    counted = select(func.count()).select_from(CalibrationRecord)
+    # counted from the calibrations alone unless the setup filter needs their runs, and no
+    # further than one past the limit: a full count read every matching row, which grew
+    # the listing's cost with the plant's history (issue 21, benchmarks/README.md)
+    matching = select(CalibrationRecord.id)
     if where.setup is not None:
-        counted = counted.join(RunRecord, RunRecord.id == CalibrationRecord.run_id)
-    counted = counted.where(*filters)
+        matching = matching.join(RunRecord, RunRecord.id == CalibrationRecord.run_id)
+    matching = matching.where(*filters).limit(COUNT_LIMIT + 1).subquery()
+    counted = select(func.count()).select_from(matching)
     # the total rides along as a column of the page's own statement (an uncorrelated
     # subquery, evaluated once): one round trip instead of two, and on PostgreSQL each is a
     # wait for the database server and then for the GIL (issue 21, benchmarks/README.md)
