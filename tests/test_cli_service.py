@@ -15,6 +15,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from service.cli.answers import StateEvent
 from service.cli.client import Event, parse_events
 from service.cli.exit_codes import EXIT_FAILED
 from service.serving.local import LocalService, listening_socket, local_service
@@ -149,6 +150,18 @@ def test_unknown_id_is_one_line(served: LocalService, args: tuple[str, ...]) -> 
     assert done.returncode == EXIT_FAILED and done.stdout == ""
     assert_one_line_error(done.stderr, "nope")
     assert "(HTTP 404 not_found)" in done.stderr
+
+
+def test_a_failed_state_says_its_error_code() -> None:
+    """A calibration's ``state`` event gives its error and code side by side, a run's as one
+    ``{"detail", "code"}``: the line ``--wait`` prints names the code either way."""
+    calibration = StateEvent.model_validate({"state": "failed", "error": "Disk full.",
+                                             "error_code": "storage_unavailable"})
+    run = StateEvent.model_validate({"state": "failed", "error": {
+        "detail": "The robot stopped.", "code": "robot_disconnected"}})
+    assert str(calibration.error) == "Disk full. (storage_unavailable)"
+    assert str(run.error) == "The robot stopped. (robot_disconnected)"
+    assert StateEvent.model_validate({"state": "done", "error": None}).error is None
 
 
 def test_event_stream_lines_are_parsed() -> None:

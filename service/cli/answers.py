@@ -4,7 +4,9 @@ read, so ``cellcal runs --help`` does not load pydantic."""
 
 from __future__ import annotations
 
-from pydantic import BaseModel
+from typing import Any
+
+from pydantic import BaseModel, model_validator
 
 
 class Problem(BaseModel):
@@ -14,13 +16,27 @@ class Problem(BaseModel):
     detail: str
     code: str = "error"
 
+    def __str__(self) -> str:
+        return f"{self.detail} ({self.code})"
+
 
 class StateEvent(BaseModel):
     """The data of a stream's ``state`` event (``service.events.state_event``): the state; a
     run's station counts, stop reason and error, a calibration's or validation's error."""
 
     state: str
-    error: Problem | str | None = None
+    error: Problem | None = None
     stations_captured: int = 0
     stations_skipped: int = 0
     stop_reason: str | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _error_with_its_code(cls, data: Any) -> Any:
+        """A calibration's or validation's event gives ``error`` (a sentence) and
+        ``error_code`` side by side, a run's one ``{"detail", "code"}``: one Problem either
+        way."""
+        if isinstance(data, dict) and isinstance(data.get("error"), str):
+            return {**data, "error": {"detail": data["error"],
+                                      "code": data.get("error_code") or "error"}}
+        return data

@@ -89,7 +89,7 @@ def _start(service: client.Service, args: argparse.Namespace) -> int:
     final = client.follow(service, f"/calibrations/{cal_id}/events", total=None, unit="station",
                    progress=_detected)
     if final.state != "done":
-        print(f"calibration {cal_id}: {final.state} ({final.error})", file=sys.stderr)
+        print(f"calibration {cal_id}: {final.state}: {final.error}", file=sys.stderr)
         return EXIT_FAILED
     from calib import Result
 

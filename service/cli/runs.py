@@ -102,13 +102,10 @@ def _start(service: client.Service, args: argparse.Namespace) -> int:
     planned = service.fetch(f"/runs/{run_id}")["stations_planned"]
     final = client.follow(service, f"/runs/{run_id}/events", total=planned, unit="station",
                           progress=StationCount())
-    from service.cli.answers import Problem
-
-    error = final.error.detail if isinstance(final.error, Problem) else final.error
     print(f"run {run_id}: {final.state}, {final.stations_captured} captured, "
           f"{final.stations_skipped} skipped"
           + (f", stopped: {final.stop_reason}" if final.stop_reason else "")
-          + (f" ({error})" if error else ""), file=sys.stderr)
+          + (f": {final.error}" if final.error else ""), file=sys.stderr)
     return 0 if final.state == "done" else EXIT_FAILED
 
 
