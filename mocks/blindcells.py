@@ -210,15 +210,14 @@ def _box_readings(scene: MockScene) -> tuple[np.ndarray, np.ndarray]:
                 rng.normal(size=3) * np.deg2rad(30.0) / np.sqrt(3)).as_matrix(),
                 rng.uniform(lo, hi))
             pairs += _reached(scene, [P])
-        _BOX_READINGS[key] = (np.stack([P for P, _ in pairs]), np.stack([F for _, F in pairs]))
+        _BOX_READINGS[key] = _stacked(pairs)
     return _BOX_READINGS[key]
 
 
 def _with_flanges(scene: MockScene, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The readings of ``poses`` (n, 4, 4) that the arm model reaches and their true flanges
     (k, 4, 4) each (a reading's noise can carry a pose at the edge of the reach beyond it)."""
-    pairs = _reached(scene, np.asarray(poses, dtype=float))
-    return np.stack([P for P, _ in pairs]), np.stack([F for _, F in pairs])
+    return _stacked(_reached(scene, np.asarray(poses, dtype=float)))
 
 
 def _reached(scene: MockScene, poses: Sequence[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -230,6 +229,11 @@ def _reached(scene: MockScene, poses: Sequence[np.ndarray]) -> list[tuple[np.nda
         except ValueError:
             continue
     return pairs
+
+
+def _stacked(pairs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """The readings and the true flanges of ``pairs``, stacked: (k, 4, 4) each."""
+    return np.stack([P for P, _ in pairs]), np.stack([F for _, F in pairs])
 
 
 def _ur_pose(T: np.ndarray) -> list[float]:
