@@ -310,6 +310,30 @@ def test_headers_beyond_the_bound_are_answered_431_and_closed(
     assert httpx.get(f"{service.url}/health", timeout=HANG_S).status_code == 200
 
 
+@pytest.mark.parametrize("request_bytes", [
+    b"GET /health HTTP/1.1\r\nHost: x\r\nX-Tag: a\x00b\r\n\r\n",  # a NUL in a header
+    b"GET /health HTTP/1.1\r\nHo st: x\r\n\r\n",  # a space in a header name
+    b"\x16\x03\x01\x02\x00\x01\x00\x01\xfc\x03\x03\r\n\r\n"])  # TLS spoken to plain HTTP
+def test_a_request_the_parser_rejects_gets_the_json_error_body(
+        header_timeout_service: LocalService, request_bytes: bytes) -> None:
+    """uvicorn answers an unparsable request in plain text; here it is the JSON error body
+    of every error, and the connection is closed."""
+    service = header_timeout_service
+    with _sockets() as held:
+        sock = socket.create_connection(_address(service), timeout=HANG_S)
+        held.append(sock)
+        sock.sendall(request_bytes)
+        answer = b""
+        with contextlib.suppress(ConnectionResetError):
+            while chunk := sock.recv(4096):
+                answer += chunk
+        head, _, body = answer.partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 400"), answer[:200]
+        assert b"content-type: application/json" in head.lower()
+        assert json.loads(body)["code"] == "invalid_http"
+    assert httpx.get(f"{service.url}/health", timeout=HANG_S).status_code == 200
+
+
 def test_the_service_parses_http_with_httptools() -> None:
     """httptools is a dependency: the guarded protocol is uvicorn's httptools one."""
     from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol

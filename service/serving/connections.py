@@ -66,20 +66,30 @@ MIN_CAP = 16
 LOG_INTERVAL_S = 10.0
 #: A refused connection is closed when its client closes, or after this many seconds.
 REFUSAL_LINGER_S = 1.0
-#: What a refused connection is told (the JSON error body of every error).
-_REFUSAL = json.dumps({"detail": "Too many connections are busy; retry in a few seconds.",
-                       "code": "too_many_connections"}).encode()
 #: A request's headers beyond this many bytes are refused (h11's own bound, which llhttp lacks).
 MAX_HEADER_BYTES = 16 * 1024
-_TOO_LARGE = json.dumps({"detail": f"The request's headers exceed {MAX_HEADER_BYTES} bytes.",
-                         "code": "headers_too_large"}).encode()
-HEADERS_TOO_LARGE_RESPONSE = (
-    b"HTTP/1.1 431 Request Header Fields Too Large\r\ncontent-type: application/json\r\n"
-    b"connection: close\r\ncontent-length: " + str(len(_TOO_LARGE)).encode() + b"\r\n\r\n"
-    + _TOO_LARGE)
-REFUSAL_RESPONSE = (b"HTTP/1.1 503 Service Unavailable\r\ncontent-type: application/json\r\n"
-                    b"retry-after: 5\r\nconnection: close\r\ncontent-length: "
-                    + str(len(_REFUSAL)).encode() + b"\r\n\r\n" + _REFUSAL)
+
+
+def _json_answer(status: str, detail: str, code: str, *headers: str) -> bytes:
+    """A whole HTTP/1.1 answer that closes the connection, with the JSON error body of every
+    error (``{"detail", "code"}``)."""
+    body = json.dumps({"detail": detail, "code": code}).encode()
+    head = [f"HTTP/1.1 {status}", "content-type: application/json", *headers,
+            "connection: close", f"content-length: {len(body)}"]
+    return ("\r\n".join(head) + "\r\n\r\n").encode() + body
+
+
+#: What a refused connection is told.
+REFUSAL_RESPONSE = _json_answer("503 Service Unavailable",
+                                "Too many connections are busy; retry in a few seconds.",
+                                "too_many_connections", "retry-after: 5")
+HEADERS_TOO_LARGE_RESPONSE = _json_answer(
+    "431 Request Header Fields Too Large",
+    f"The request's headers exceed {MAX_HEADER_BYTES} bytes.", "headers_too_large")
+#: What a request the HTTP parser cannot read is told (uvicorn's own answer is plain text).
+INVALID_REQUEST_RESPONSE = _json_answer(
+    "400 Bad Request", "Invalid HTTP request: its request line or a header cannot be parsed "
+    "(e.g. a NUL byte, a bare CR or a space in a header name).", "invalid_http")
 
 
 def raise_fd_limit() -> int:
@@ -193,6 +203,11 @@ class ConnectionGuard:
                         MAX_HEADER_BYTES)
             self.transport.write(HEADERS_TOO_LARGE_RESPONSE)
             self.transport.close()
+
+    def send_400_response(self, msg: str) -> None:
+        """A request the parser rejects gets the JSON error body (uvicorn logs ``msg``)."""
+        self.transport.write(INVALID_REQUEST_RESPONSE)
+        self.transport.close()
 
     def eof_received(self) -> bool | None:
         if self._refused:
