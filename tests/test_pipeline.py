@@ -18,6 +18,7 @@ from tests.support.stations import (
     calibrate,
     calibrate_set,
     detections,
+    halved,
     rendered_stations,
 )
 
@@ -76,7 +77,8 @@ def test_wrong_inner_corners_says_what_is_visible():
     images, poses = rendered_stations()
     with pytest.raises(ValueError, match=r"only 0 of 3 stations usable.*a larger 11x8 grid "
                                          r"is visible: check inner_corners"):
-        calibrate_set(StationInputs(images[:3], poses[:3]), Checkerboard((10, 8), SQUARE))
+        calibrate_set(StationInputs([halved(im) for im in images[:3]], poses[:3]),
+                      Checkerboard((10, 8), SQUARE))
 
 
 def test_corrupted_robot_pose_is_rejected_with_its_reason():

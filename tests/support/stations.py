@@ -62,14 +62,21 @@ def calibrate(observations, poses, *, intrinsics=None, **options):
 N_IMAGES = 12
 
 
-def write_image_set(path, *, intrinsics=None, inner_corners=BOARD, n=N_IMAGES):
-    """Station set of n rendered images (PNG, the first two JPEG) with noisy tcp poses."""
+def halved(image: np.ndarray) -> np.ndarray:
+    """``image`` at half its width and height: the board's grid still reads, and a search for
+    a board of another size (one that is not there) costs a quarter to a third."""
+    return cv2.resize(image, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
+
+
+def write_image_set(path, *, intrinsics=None, inner_corners=BOARD, n=N_IMAGES, half=False):
+    """Station set of n rendered images (PNG, the first two JPEG; ``half``: ``halved``) with
+    noisy tcp poses."""
     images, poses = rendered_stations()
     path.mkdir(parents=True, exist_ok=True)
     stations = []
     for k in range(n):
         name = f"{k:03d}.{'jpg' if k < 2 else 'png'}"
-        cv2.imwrite(str(path / name), images[k])
+        cv2.imwrite(str(path / name), halved(images[k]) if half else images[k])
         stations.append({"id": f"{k:03d}", "tcp_pose": poses[k], "image": name})
     doc = {"format": "cellcal/stations@1", "setup": "eye_in_hand",
            "target": {"type": "checkerboard", "inner_corners": list(inner_corners),
