@@ -14,6 +14,7 @@ they are skipped with one line; in CI (``CI=true``) a missing PostgreSQL fails t
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import shutil
@@ -119,21 +120,46 @@ def client(tmp_path: Path) -> Iterator[TestClient]:
         yield c
 
 
-#: A real UR eye-in-hand set (``../shared/data``), calibrated once per module by ``ur_result``.
+#: A real UR eye-in-hand set (``../shared/data``), calibrated once per test session by
+#: ``ur_result``.
 UR_SET = SHARED / "data" / "ur-kinect-lowR_highT"
+
+
+def _session_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A directory every process of this test session shares: the parent of the pytest-xdist
+    workers' base directories, or the base directory itself without workers."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+def _calibrated_ur_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The directory of ``ur_result``'s station set and result, calibrated by the first
+    process of the session that asks (3-4 CPU s) and read by the others: test_report and
+    test_report_escaping may run on different workers."""
+    shared = _session_dir(tmp_path_factory)
+    d = shared / "ur-calibrated"
+    with (shared / "ur-calibrated.lock").open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released as the file closes
+        if not (d / "result.json").is_file():
+            d.mkdir(exist_ok=True)
+            doc = json.loads((UR_SET / "stations.json").read_text())
+            for s in doc["stations"]:
+                shutil.copy(UR_SET / s["image"], d / s["image"])
+            blank = doc["stations"][4]["image"]
+            cv2.imwrite(str(d / blank), np.full((720, 1280), 128, np.uint8))
+            (d / "stations.json").write_text(json.dumps(doc))
+            out = d / "result.part.json"
+            assert main(["calibrate", str(d), "--out", str(out)]) in (0, 3)
+            out.rename(d / "result.json")
+    return d
 
 
 @pytest.fixture(scope="module")
 def ur_result(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, Any]]:
     """``cellcal calibrate`` on the real UR set, with one station's image replaced by a blank
-    frame (a station the pipeline must reject with its reason)."""
+    frame (a station the pipeline must reject with its reason): a copy of the session's one
+    calibration, in a directory of the module's own."""
     d = tmp_path_factory.mktemp("ur")
-    doc = json.loads((UR_SET / "stations.json").read_text())
-    for s in doc["stations"]:
-        shutil.copy(UR_SET / s["image"], d / s["image"])
-    blank = doc["stations"][4]["image"]
-    cv2.imwrite(str(d / blank), np.full((720, 1280), 128, np.uint8))
-    (d / "stations.json").write_text(json.dumps(doc))
+    shutil.copytree(_calibrated_ur_set(tmp_path_factory), d, dirs_exist_ok=True)
     out = d / "result.json"
-    assert main(["calibrate", str(d), "--out", str(out)]) in (0, 3)
     return out, json.loads(out.read_text())
