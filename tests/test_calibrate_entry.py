@@ -21,7 +21,7 @@ from calib import (
     ur_pose_from_matrix,
 )
 from mocks.posesim import default_cell, simulate
-from service.jobs.calibrations import SolveJob
+from service.jobs.solve import SolveJob
 from tests.support.stations import SIZE, TARGET, detections, rendered_stations
 
 

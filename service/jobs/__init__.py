@@ -1,3 +1,3 @@
 """The service's jobs: calibrations and their worker processes (``calibrations``,
-``workers``), validations (``validations``): the dot-hit run (``validation_run``) and
+``solve``, ``workers``), validations (``validations``): the dot-hit run (``validation_run``) and
 the re-check (``checks``)."""
