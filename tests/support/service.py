@@ -24,6 +24,7 @@ from mocks.scene import default_scene, sample_station_poses
 from service.app import create_app
 from service.cell.devices import DeviceOpener, settings_opener
 from service.settings import Settings
+from tests.support.helpers import poll_pauses
 
 KEY = "test-key-0123456789abcdef"
 #: The cell of the services here (the default CELLCAL_CELL).
@@ -60,12 +61,13 @@ def wait_run(client: TestClient, run_id: str, until: Callable[[dict[str, Any]], 
     """Poll ``GET /runs/{id}`` until ``until(run)``; ``timeout`` only catches a stuck run
     (generous: a loaded machine captures several times slower)."""
     deadline = time.monotonic() + timeout
+    pauses = poll_pauses(0.05)
     while True:
         run = client.get(f"/runs/{run_id}").json()
         if until(run):
             return run
         assert time.monotonic() < deadline, f"run stuck: {run}"
-        time.sleep(0.05)
+        time.sleep(next(pauses))
 
 
 def finished(run: dict[str, Any]) -> bool:
@@ -155,9 +157,10 @@ def robot_pose(client: TestClient) -> list[float]:
 
 def wait_calibration(client: TestClient, cal_id: str, timeout: float = 120.0) -> dict[str, Any]:
     deadline = time.monotonic() + timeout
+    pauses = poll_pauses(0.1)
     while (cal := client.get(f"/calibrations/{cal_id}").json())["state"] == "running":
         assert time.monotonic() < deadline, "calibration did not finish"
-        time.sleep(0.1)
+        time.sleep(next(pauses))
     return cal
 
 
