@@ -34,14 +34,20 @@ take it as exact, so the pose estimates lose the bias a board off its entered si
 a board 0.1 % larger than entered moves a camera 1.2 m away by 1.2 mm, far beyond their σ.
 That bias is estimated from the shift ``d`` of the pose estimates between the chosen model
 (σ_h, formal) and the same model with the held parameters estimated (σ_f): with the held
-value right, ``d`` is noise of variance ``σ_f² - σ_h²`` (the held fit is the efficient one;
-Hausman, *Econometrica* 46, 1978, lemma 2.1), so ``max(0, d² - (σ_f² - σ_h²))`` per axis is
-the positive part of an unbiased estimate of the bias's square, and the reported σ becomes
-``sqrt(σ² + that)``: the chosen estimate's mean square error. It is added on the axes where
-Hausman's test rejects the held value, ``|d|`` beyond 1.96 times its noise (95 %, two-sided;
-``HELD_TEST_Z``): where the shift is within its noise it is no evidence of a bias, and adding
-it anyway makes a board that is right over-cover. A parameter the user holds fixed
-(``kappa='fixed'``) adds nothing.
+value right, ``d`` is noise of variance ``v = σ_f² - σ_h²`` per axis (the held fit is the
+efficient one; Hausman, *Econometrica* 46, 1978, lemma 2.1), so ``max(0, d² - v)`` is the
+positive part of an unbiased estimate of the bias's square. Each 3-vector (a pose's rotation
+or translation) is tested as one: ``T = Σ d² / v`` over its axes against χ² with as many
+degrees of freedom at 95 % (``HELD_LEVEL``; twelve separate tests at 95 % would add a false
+bias somewhere in every other result). Where the shift is within its noise it is no evidence
+of a bias, and adding it anyway makes a board that is right over-cover. Beyond it, the bias's
+square is shrunk by ``(1 - c / T)`` (c the critical value; the positive-part shrinkage of
+Stein's estimator, Baranchik, *Ann. Math. Stat.* 41:642, 1970), so the added term grows from 0
+at the test's threshold instead of jumping there. An axis on which freeing the parameter
+costs no precision (``v <= 0``: the held parameter does not inform it) carries no test and no
+bias: its shift is no noise the model knows. The reported σ becomes ``sqrt(σ² + bias²)``: the
+chosen estimate's mean square error. A parameter the user holds fixed (``kappa='fixed'``)
+adds nothing.
 """
 
 from __future__ import annotations
@@ -50,6 +56,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.special import chdtri
 
 from calib import so3
 from calib.crossval import FoldEstimate
@@ -169,9 +176,9 @@ def honest(formal: dict[str, float | np.ndarray], estimates: Sequence[FoldEstima
                                expected={k: v for k, v in expected.items() if k in source})
 
 
-#: A held parameter's shift counts as bias when it exceeds its noise by this factor (the
-#: two-sided 95 % level of Hausman's test, module docstring).
-HELD_TEST_Z = 1.96
+#: A held parameter's shift of a pose's rotation or translation counts as bias when Hausman's
+#: statistic over its axes exceeds the χ² quantile at this level (module docstring).
+HELD_LEVEL = 0.95
 
 #: The pose estimates of ``fold_deviations`` that :func:`with_held_shift` widens.
 POSE_SIGMAS = ("hand_eye_rot_rad", "hand_eye_trans_m", "target_pose_rot_rad",
@@ -184,9 +191,10 @@ def with_held_shift(estimate: UncertaintyEstimate, held: Sequence[str],
                     ) -> UncertaintyEstimate:
     """``estimate`` with the pose σ widened by the bias the parameters ``held`` at 1 show:
     ``chosen`` is the held fit's estimate and formal σ, ``freed`` the same model's with them
-    estimated; per axis ``sqrt(σ² + max(0, d² - (σ_f² - σ_h²)))`` where ``|d|`` exceeds
-    ``HELD_TEST_Z`` times ``sqrt(σ_f² - σ_h²)``, else σ (module docstring).
-    ``shift`` keeps ``d``, ``bias`` the square root of what was added."""
+    estimated; per 3-vector the shift ``d`` is tested against its noise
+    ``v = σ_f² - σ_h²`` (axes with ``v > 0``) and, beyond it, ``(1 - c / T) max(0, d² - v)``
+    added to σ² per axis (module docstring). ``shift`` keeps ``|d|``, ``bias`` the square root
+    of what was added."""
     if not held:
         return estimate
     (est_h, formal_h), (est_f, formal_f) = chosen, freed
@@ -196,12 +204,24 @@ def with_held_shift(estimate: UncertaintyEstimate, held: Sequence[str],
     for name, d in shift.items():
         if name not in sigmas or name not in formal_h or name not in formal_f:
             continue
-        noise = np.maximum(np.asarray(formal_f[name]) ** 2 - np.asarray(formal_h[name]) ** 2,
-                           0.0)
-        bias[name] = np.where(d ** 2 > HELD_TEST_Z ** 2 * noise,
-                              np.sqrt(np.maximum(d ** 2 - noise, 0.0)), 0.0)
+        bias[name] = held_bias(d, np.asarray(formal_f[name]) ** 2
+                               - np.asarray(formal_h[name]) ** 2)
         sigmas[name] = np.hypot(np.asarray(sigmas[name], dtype=float), bias[name])
     return replace(estimate, sigmas=sigmas, held=tuple(held), shift=shift, bias=bias)
+
+
+def held_bias(d: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The bias (3,) a shift ``d`` (3,) of noise variance ``v`` (3,) shows: 0 unless Hausman's
+    statistic over the axes with ``v > 0`` exceeds its χ² quantile ``c`` at ``HELD_LEVEL``,
+    else ``sqrt((1 - c / T) max(0, d² - v))`` on those axes (module docstring)."""
+    tested = v > 0
+    if not np.any(tested):
+        return np.zeros_like(d, dtype=float)
+    T = float(np.sum(d[tested] ** 2 / v[tested]))
+    c = float(chdtri(int(tested.sum()), 1.0 - HELD_LEVEL))
+    keep = max(0.0, 1.0 - c / T) if T > 0 else 0.0
+    return np.where(tested, np.sqrt(keep * np.maximum(d ** 2 - np.where(tested, v, 0.0), 0.0)),
+                    0.0)
 
 
 #: The 90 % bound on the norm of a 3-vector error (a pose's rotation or translation) as a

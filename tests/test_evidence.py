@@ -154,22 +154,58 @@ def test_poses_held_kappa_would_move_are_in_their_sigma(nominal):
     assert np.allclose(document.held_bias["hand_eye_trans_m"], bias)
 
 
-def test_a_held_shift_within_its_noise_adds_nothing_and_beyond_it_its_excess():
-    """``with_held_shift``: per axis ``sqrt(σ² + d² - (σ_f² - σ_h²))`` where the shift d is
-    beyond 1.96 times its noise ``sqrt(σ_f² - σ_h²)`` (0.3 mm here), else σ."""
+def test_a_held_shift_within_its_noise_adds_nothing_and_beyond_it_its_shrunk_excess():
+    """``with_held_shift``: a pose's 3-vector shift d is tested as one, Hausman's statistic
+    ``T = Σ d² / v`` (v = σ_f² - σ_h², 0.09 mm² here) against χ²₃ at 95 % (7.81); beyond it
+    each axis adds ``(1 - 7.81 / T) max(0, d² - v)`` to σ², within it nothing."""
     X, X_f = np.eye(4), np.eye(4)
     X_f[:3, 3] = [1e-3, 0.1e-3, 0.5e-3]
     sigma_h, sigma_f = np.full(3, 0.2e-3), np.full(3, np.hypot(0.2e-3, 0.3e-3))
     est = UncertaintyEstimate(sigmas={"hand_eye_trans_m": sigma_h}, formal={}, jackknife={},
                               source={}, folds=0)
+
+    def shifted(d: list[float]) -> UncertaintyEstimate:
+        X_f[:3, 3] = d
+        return with_held_shift(est, ["kappa"],
+                               (FoldEstimate(X, X, 1.0), {"hand_eye_trans_m": sigma_h}),
+                               (FoldEstimate(X_f, X, 1.001), {"hand_eye_trans_m": sigma_f}))
+
+    out = shifted([1e-3, 0.1e-3, 0.5e-3])
+    T = (1e-6 + 0.01e-6 + 0.25e-6) / 0.09e-6
+    keep = 1.0 - 7.8147 / T
+    expected_bias = np.sqrt(keep * np.array([1e-6 - 0.09e-6, 0.0, 0.25e-6 - 0.09e-6]))
+    assert np.allclose(out.bias["hand_eye_trans_m"], expected_bias, rtol=1e-4)
+    assert np.allclose(out.sigmas["hand_eye_trans_m"], np.hypot(sigma_h, expected_bias))
+    assert np.allclose(out.shift["hand_eye_trans_m"], [1e-3, 0.1e-3, 0.5e-3])
+    # one axis beyond 1.96 times its noise, the vector within χ²₃ (T = 4): no bias (a test
+    # per axis added 0.52 mm)
+    within = shifted([0.6e-3, 0.0, 0.0])
+    assert 0.6e-3 > 1.96 * 0.3e-3 and np.all(within.bias["hand_eye_trans_m"] == 0.0)
+    # no jump at the threshold: just beyond it the bias is a tenth of the unshrunk excess
+    edge = np.sqrt(7.8147 * 0.09e-6 / 3) * 1.001
+    excess = np.sqrt(3 * (edge ** 2 - 0.09e-6))
+    assert np.linalg.norm(shifted([edge] * 3).bias["hand_eye_trans_m"]) < 0.1 * excess
+    assert with_held_shift(est, [], (None, {}), (None, {})) is est
+
+
+def test_an_axis_the_held_parameter_does_not_inform_carries_no_bias():
+    """Where freeing the parameter costs no precision (σ_f <= σ_h on an axis, Hausman's noise
+    variance <= 0) the axis is left out of the test and adds nothing; the others are tested
+    over their own degrees of freedom (χ²₁ here: one axis left)."""
+    X, X_f = np.eye(4), np.eye(4)
+    X_f[:3, 3] = [1e-3, 1e-3, 0.0]
+    sigma_h = np.full(3, 0.2e-3)
+    sigma_f = np.array([np.hypot(0.2e-3, 0.3e-3), 0.2e-3, 0.19e-3])
+    est = UncertaintyEstimate(sigmas={"hand_eye_trans_m": sigma_h}, formal={}, jackknife={},
+                              source={}, folds=0)
     out = with_held_shift(est, ["kappa"],
                           (FoldEstimate(X, X, 1.0), {"hand_eye_trans_m": sigma_h}),
                           (FoldEstimate(X_f, X, 1.001), {"hand_eye_trans_m": sigma_f}))
-    expected_bias = np.array([np.sqrt(1e-6 - 0.09e-6), 0.0, 0.0])
-    assert np.allclose(out.bias["hand_eye_trans_m"], expected_bias)
-    assert np.allclose(out.sigmas["hand_eye_trans_m"], np.hypot(sigma_h, expected_bias))
-    assert np.allclose(out.shift["hand_eye_trans_m"], [1e-3, 0.1e-3, 0.5e-3])
-    assert with_held_shift(est, [], (None, {}), (None, {})) is est
+    T = 1e-6 / 0.09e-6
+    keep = 1.0 - 3.8415 / T
+    assert np.allclose(out.bias["hand_eye_trans_m"],
+                       [np.sqrt(keep * (1e-6 - 0.09e-6)), 0.0, 0.0], rtol=1e-4)
+    assert np.all(np.isfinite(out.sigmas["hand_eye_trans_m"]))
 
 
 @pytest.mark.parametrize("directory", UR_SETS, ids=lambda p: p.name)
