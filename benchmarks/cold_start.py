@@ -82,6 +82,7 @@ from calib import (
     ColdStartScene,
     Pinhole,
     PlanOptions,
+    SolverOptions,
     View,
     board_from_target,
     calibrate,
@@ -113,7 +114,7 @@ def _calibrate(shots: list[Shot], cell: CornerCell, out: Outcome) -> bool:
         res = calibrate(station_set(
             [s.corners for s in shots], [ur_pose_from_matrix(s.T_base_tcp) for s in shots],
             board_from_target(scene.nominal_target()), image_size=scene.camera.image_size,
-            setup=scene.setup))
+            setup=scene.setup), SolverOptions(workspace=(scene.workspace.lo, scene.workspace.hi)))
     except ValueError:
         return False
     rot, trans = pose_error(res.hand_eye, scene.hand_eye_matrix)

@@ -44,6 +44,9 @@ class SolverOptions:
     estimated only when that predicts held-out stations clearly better, ``calib.selection``;
     pose-only stations have no such choice and hold κ at 1), ``estimate``, or ``fixed`` (held at
     exactly 1: the entered square size was measured); ``estimate_kappa=False`` means ``fixed``.
+    ``workspace``: the box (lo, hi corners, metres in the base frame) the robot's tool will work
+    in with the result; the hand-eye σ then include using the stations' estimate over it
+    (``calib.extrapolation``; joint only). None: the σ hold at the stations.
     """
 
     method: str | None = None
@@ -53,6 +56,7 @@ class SolverOptions:
     nu_method: str = "images"
     noise: RobotNoise = field(default_factory=RobotNoise)
     outlier_sigma: float | None = OUTLIER_SIGMA
+    workspace: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
 
     def __post_init__(self) -> None:
         if self.method is not None and self.method not in METHODS:
@@ -64,6 +68,11 @@ class SolverOptions:
         if self.nu_method not in NU_METHODS:
             raise ValueError(f"unknown nu_method '{self.nu_method}': choose one of "
                              f"{NU_METHODS}")
+        if self.workspace is not None and not (
+                len(self.workspace) == 2 and all(len(c) == 3 for c in self.workspace)
+                and all(lo < hi for lo, hi in zip(*self.workspace, strict=True))):
+            raise ValueError(f"workspace must be two corners (x, y, z) with lo < hi on every "
+                             f"axis, got {self.workspace}")
         if self.nu_method == "extrinsics" and (self.method not in (None, "joint")
                                                or not self.estimate_nu):
             raise ValueError("nu_method 'extrinsics' (Method #2) needs method 'joint' and "
@@ -86,4 +95,6 @@ class SolverOptions:
                     nu_method=self.nu_method,
                     robot_noise_rot_rad=self.noise.rot_rad,
                     robot_noise_trans_m=self.noise.trans_m, outlier_sigma=self.outlier_sigma,
-                    known_intrinsics=known_intrinsics)
+                    known_intrinsics=known_intrinsics,
+                    **({"workspace": [list(c) for c in self.workspace]} if self.workspace
+                       else {}))

@@ -35,6 +35,7 @@ from calib.chain import (
 )
 from calib.crossval import predict_dropped
 from calib.evidence import JointChoice, Trust, choose_joint, method_cross_validation
+from calib.extrapolation import box_shift_sigmas
 from calib.geometry import check_ur_poses
 from calib.handeye import calibrate_hand_eye
 from calib.intrinsics import IntrinsicsOptions, calibrate_intrinsics
@@ -60,6 +61,7 @@ from calib.stations import (
     resolve_symmetric_origin,
     usable_stations,
 )
+from calib.uncertainty import with_extrapolation
 from calib.validation import (
     leave_one_out,
     motion_residuals,
@@ -283,6 +285,13 @@ def _choose_model(stage: _Stage, stations: CornerStations, ids: list[str],
     stage.choice = choose_joint(data, [ids[i] for i in kept],
                                 JointModel("all estimated", stage.fix, options.noise), first,
                                 kappa=options.kappa_mode)
+    if options.workspace is not None:
+        # the stations' estimate used over the whole box (calib.extrapolation)
+        result = stage.choice.result
+        stage.choice = replace(stage.choice, uncertainty=with_extrapolation(
+            stage.choice.uncertainty, box_shift_sigmas(
+                data.stations.T_base_tcp, result.corrections, result.hand_eye, data.setup,
+                options.workspace)))
     joint = stage.choice.result
     stage.K, stage.dist, stage.nu, stage.kappa = joint.K, joint.dist, joint.nu, joint.kappa
     stage.hand_eye, stage.target_pose, stage.joint = joint.hand_eye, joint.target_pose, joint

@@ -93,6 +93,9 @@ class Uncertainty(_Block):
     held_bias: dict[str, Sigma] | None = Field(
         None, description="per pose σ, the bias that shift shows beyond its own noise, "
                           "added to the σ in quadrature")
+    workspace_extrapolation: dict[str, Sigma] | None = Field(
+        None, description="hand-eye σ added in quadrature for using the stations' estimate "
+                          "over the whole workspace box (calib.extrapolation)")
 
 
 class StationFit(_Block):

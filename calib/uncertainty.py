@@ -79,7 +79,9 @@ class UncertaintyEstimate:
     groups (0: none). ``held`` names the parameters the model selection held at 1, ``shift``
     the pose estimates' shift (3,) per name when they are estimated instead, ``bias`` the bias
     (3,) that shift shows beyond its noise, added to ``sigmas`` in quadrature (module
-    docstring).
+    docstring). ``extrapolation`` the hand-eye σ (3,) added for using the estimate over the
+    whole workspace box rather than at the stations (``calib.extrapolation``), when the box
+    is known.
     """
 
     sigmas: dict[str, float | np.ndarray]
@@ -91,6 +93,7 @@ class UncertaintyEstimate:
     held: tuple[str, ...] = ()
     shift: dict[str, np.ndarray] = field(default_factory=dict)
     bias: dict[str, np.ndarray] = field(default_factory=dict)
+    extrapolation: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def note(self) -> str:
@@ -116,6 +119,10 @@ class UncertaintyEstimate:
             text += ("; the poses' σ include the bias shown by how far they move when "
                      + " and ".join(self.held) + ", held at 1 by the model selection, "
                      "is estimated instead, beyond the noise of that move")
+        if self.extrapolation:
+            text += ("; the hand-eye σ include how far its mean over the workspace box may "
+                     "lie from its mean over the stations (the spread the stations show, "
+                     "extrapolated to the box's centre)")
         return text
 
 
@@ -222,6 +229,18 @@ def held_bias(d: np.ndarray, v: np.ndarray) -> np.ndarray:
     keep = max(0.0, 1.0 - c / T) if T > 0 else 0.0
     return np.where(tested, np.sqrt(keep * np.maximum(d ** 2 - np.where(tested, v, 0.0), 0.0)),
                     0.0)
+
+
+def with_extrapolation(estimate: UncertaintyEstimate, added: dict[str, np.ndarray]
+                       ) -> UncertaintyEstimate:
+    """``estimate`` with ``added`` (per-axis σ (3,) by name, ``calib.extrapolation``) added
+    to its σ in quadrature: the mean square error of the estimate as the box's hand-eye."""
+    if not added:
+        return estimate
+    sigmas = dict(estimate.sigmas)
+    for name, s_b in added.items():
+        sigmas[name] = np.hypot(np.asarray(sigmas[name], dtype=float), s_b)
+    return replace(estimate, sigmas=sigmas, extrapolation=dict(added))
 
 
 #: The 90 % bound on the norm of a 3-vector error (a pose's rotation or translation) as a

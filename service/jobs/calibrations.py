@@ -17,7 +17,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import logging
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from calib import MIN_IMAGES, Result
@@ -103,8 +103,11 @@ class Calibrations:
             cal = writes.add_calibration(s, run_id=run_id, cell=run.cell,
                                          instance_id=self.instance_id, state="running",
                                          options=options.model_dump())
-            job = SolveJob(cal_id=cal.id, run_id=run_id, stations=stations,
-                           options=options.solver())
+            solver = options.solver()
+            if run.cold_start is not None:  # a cold-start run was told its box: σ over it
+                solver = replace(solver, workspace=(tuple(self.settings.workspace_min),
+                                                    tuple(self.settings.workspace_max)))
+            job = SolveJob(cal_id=cal.id, run_id=run_id, stations=stations, options=solver)
         return cal, job
 
     def shutdown(self) -> None:

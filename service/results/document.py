@@ -182,7 +182,8 @@ def _uncertainty_extras(trust: Trust | None) -> dict[str, Any]:
             "formal": u.formal, "jackknife": u.jackknife,
             **({"jackknife_expected": u.expected} if u.expected else {}),
             **({"held_at_one": list(u.held), "held_shift": u.shift, "held_bias": u.bias}
-               if u.held else {})}
+               if u.held else {}),
+            **({"workspace_extrapolation": u.extrapolation} if u.extrapolation else {})}
 
 
 def _mm(v: float | None) -> float | None:

@@ -33,6 +33,7 @@ from calib import (
     ColdStartScene,
     Guess,
     Proposal,
+    SolverOptions,
     Station,
     Stations,
     View,
@@ -251,7 +252,9 @@ class ColdStartCapture(Capture):
         """The hand-eye σ a calibration of the good stations reports (root-sum-square over
         the axes), or None when they cannot be calibrated yet."""
         try:
-            result = calibrate(Stations(self.setup, tuple(good), self.target))
+            result = calibrate(Stations(self.setup, tuple(good), self.target),
+                               SolverOptions(workspace=(tuple(self.settings.workspace_min),
+                                                        tuple(self.settings.workspace_max))))
         except ValueError as exc:
             log.info("run %s: no honest σ yet after %d stations (%s)", self.run_id, len(good),
                      exc)
