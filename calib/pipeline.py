@@ -290,8 +290,8 @@ def _choose_model(stage: _Stage, stations: CornerStations, ids: list[str],
         result = stage.choice.result
         stage.choice = replace(stage.choice, uncertainty=with_extrapolation(
             stage.choice.uncertainty, box_shift_sigmas(
-                data.stations.T_base_tcp, result.corrections, result.hand_eye, data.setup,
-                options.workspace)))
+                data.stations.T_base_tcp[result.stations], result.corrections,
+                result.hand_eye, data.setup, options.workspace)))
     joint = stage.choice.result
     stage.K, stage.dist, stage.nu, stage.kappa = joint.K, joint.dist, joint.nu, joint.kappa
     stage.hand_eye, stage.target_pose, stage.joint = joint.hand_eye, joint.target_pose, joint

@@ -201,6 +201,11 @@ class Settings(BaseSettings):
         assert target is not None  # checked at startup
         return target
 
+    def workspace(self) -> tuple[Vector3, Vector3]:
+        """The TCP box (lo, hi corners, base frame, m), as the planners and ``calib``'s
+        ``SolverOptions.workspace`` take it."""
+        return self.workspace_min, self.workspace_max
+
     def calibration_setup(self) -> str:
         """``eye_in_hand`` or ``eye_to_hand``: the setting, else the backend's, else
         eye-in-hand."""

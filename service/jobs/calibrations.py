@@ -105,8 +105,7 @@ class Calibrations:
                                          options=options.model_dump())
             solver = options.solver()
             if run.cold_start is not None:  # a cold-start run was told its box: σ over it
-                solver = replace(solver, workspace=(tuple(self.settings.workspace_min),
-                                                    tuple(self.settings.workspace_max)))
+                solver = replace(solver, workspace=self.settings.workspace())
             job = SolveJob(cal_id=cal.id, run_id=run_id, stations=stations, options=solver)
         return cal, job
 

@@ -127,8 +127,7 @@ class ColdStartCapture(Capture):
         rule = plan.get("stop_rule")
         aim_deg, aim_mm = ((rule["tolerance_deg"], rule["tolerance_mm"]) if rule
                            else DEFAULT_AIM)
-        lo, hi = (np.asarray(b, dtype=float) for b in (self.settings.workspace_min,
-                                                       self.settings.workspace_max))
+        lo, hi = (np.asarray(b, dtype=float) for b in self.settings.workspace())
         assert self.board is not None
         scene = ColdStartScene(self.board, self.setup, tuple(plan["image_size"]), (lo, hi),
                       (np.deg2rad(aim_deg), aim_mm * 1e-3))
@@ -253,8 +252,7 @@ class ColdStartCapture(Capture):
         the axes), or None when they cannot be calibrated yet."""
         try:
             result = calibrate(Stations(self.setup, tuple(good), self.target),
-                               SolverOptions(workspace=(tuple(self.settings.workspace_min),
-                                                        tuple(self.settings.workspace_max))))
+                               SolverOptions(workspace=self.settings.workspace()))
         except ValueError as exc:
             log.info("run %s: no honest σ yet after %d stations (%s)", self.run_id, len(good),
                      exc)

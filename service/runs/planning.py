@@ -67,7 +67,7 @@ def plan_poses(motion: Motion, *, n: int, target: Target,
         d0 = float(np.linalg.norm(camera_from_robot(P0, X, Y, setup)[:3, 3]))
         plan = plan_stations(n, CellGuess(P0, X, Y, setup), pinhole, board, PlanOptions(
             image_size=(w, h), distance_band=(0.8 * d0, 1.3 * d0),
-            workspace=(settings.workspace_min, settings.workspace_max)))
+            workspace=settings.workspace()))
     except ValueError as exc:
         raise UnprocessableError(f"Cannot plan {n} stations: {exc}.",
                                  code="planning_failed") from None
