@@ -26,6 +26,7 @@ from mocks import ur_kinematics as kin
 from mocks.camera import MockCamera
 from mocks.devices import MockRobot, MockTiming, Workspace
 from mocks.scene import Noise, camera_pose_for_tcp, default_scene
+from tests.support.helpers import wait_for
 
 SCENE = default_scene()
 EXACT = SCENE.model_copy(update={"noise": Noise()})
@@ -126,10 +127,7 @@ def test_wait_settled_from_another_thread_waits_for_the_move() -> None:
     start_z = robot.true_pose[2, 3]
     t0 = time.monotonic()
     mover.start()
-    deadline = t0 + 10.0
-    while robot.true_pose[2, 3] == start_z:  # wait until the move has begun
-        assert time.monotonic() < deadline, "the move did not start"
-        time.sleep(0.002)
+    wait_for("the move to begin", lambda: robot.true_pose[2, 3] != start_z, 10)
     robot.wait_settled(timeout=5.0)
     assert time.monotonic() - t0 > 0.3 + 0.1 - 1e-3  # 0.3 s move + 0.1 s ringing
     np.testing.assert_allclose(robot.tcp_pose(), target, atol=1e-12)
@@ -150,10 +148,10 @@ def test_stop_interrupts_a_move() -> None:
     start = robot.tcp_pose()
 
     def stop_once_moving() -> None:
-        deadline = time.monotonic() + 5.0
-        while robot.true_pose[2, 3] > start[2] - 2e-3 and time.monotonic() < deadline:
-            time.sleep(0.005)
-        robot.stop()
+        try:
+            wait_for("2 mm of the move", lambda: robot.true_pose[2, 3] <= start[2] - 2e-3, 5)
+        finally:
+            robot.stop()
 
     threading.Thread(target=stop_once_moving, daemon=True).start()
     with pytest.raises(RobotError, match="stopped on request") as err:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -15,6 +15,7 @@ from drivers.base import Camera
 from drivers.errors import CameraError, CameraStalledError, CameraTimeoutError
 from drivers.opencv_camera import OpenCVCamera
 from drivers.stall import STALL_AFTER
+from tests.support.helpers import wait_for
 
 W, H = 160, 120
 LEVELS = [0, 60, 120, 180, 240]
@@ -329,7 +330,7 @@ def test_consecutive_timeouts_are_one_stall_then_reopen(live: tuple[FakeV4L2, Pa
     assert err.value.code == "camera_stalled"
     assert not isinstance(err.value, CameraTimeoutError)  # retrying the grab does not help
     assert not cam.opened
-    assert _wait_for(lambda: fake.releases == 1)  # released on the capture thread
+    wait_for("the release on the capture thread", lambda: fake.releases == 1, 10)
     with pytest.raises(CameraError, match="not open") as err:
         cam.grab(timeout=0.05)
     assert err.value.code == "camera_not_open"
@@ -348,20 +349,11 @@ def test_live_grab_stuck_in_the_driver_times_out(live: tuple[FakeV4L2, Path]) ->
     with pytest.raises(CameraTimeoutError, match=r"delivered no frame within 0\.2 s"):
         cam.grab(timeout=0.2)
     # the caller got its error while the backend blocks (or is about to, on a busy machine)
-    assert _wait_for(fake.blocked.is_set)
+    wait_for("the capture thread to block", fake.blocked.is_set, 10)
     cam.close()  # bounded even though the capture thread is stuck
     assert fake.blocked.is_set() and not cam.opened and fake.releases == 0
     fake.stuck.set()
-    assert _wait_for(lambda: fake.releases == 1)  # the queued release runs once it is free
-
-
-def _wait_for(condition: Callable[[], bool], timeout: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.01)
-    return True
+    wait_for("the queued release, once the thread is free", lambda: fake.releases == 1, 10)
 
 
 @pytest.mark.timeout(20)

@@ -22,7 +22,7 @@ from service.cli import report as report_cli
 from service.cli.main import main
 from service.results.report import render_report, report_plots
 from tests.support.helpers import wait_for
-from tests.support.service import finished, get_report, start_run, wait_run
+from tests.support.service import finished, get_report, start_run, wait_calibration, wait_run
 
 #: Plots a hand-eye result from images always has (``model-selection`` needs the block).
 IMAGE_PLOTS = ("station-errors", "residuals", "coverage", "uncertainty")
@@ -246,9 +246,7 @@ def test_rest_report_of_a_capture_run(client, monkeypatch) -> None:
     run_id = start_run(client, 8)
     wait_run(client, run_id, finished)
     cal_id = client.post(f"/runs/{run_id}/calibrations", json={}).json()["id"]
-    cal = wait_for("the calibration to end", lambda: (
-        c if (c := client.get(f"/calibrations/{cal_id}").json())["state"] != "running"
-        else None), timeout=240)
+    cal = wait_calibration(client, cal_id, 240)
     assert cal["state"] == "done", cal["error"]
     r = get_report(client, cal_id)
     assert r.status_code == 200

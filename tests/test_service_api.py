@@ -33,6 +33,7 @@ from tests.support.service import (
     service,
     settings,
     start_run,
+    wait_calibration,
     wait_run,
 )
 
@@ -405,10 +406,7 @@ def test_calibration_of_a_run(client: TestClient) -> None:
                                       "robot_noise_trans_mm": 0.1}})
     assert r.status_code == 202, r.text
     cal_id = r.json()["id"]
-    deadline = time.monotonic() + 180  # a stuck solve, not a slow machine
-    while (cal := client.get(f"/calibrations/{cal_id}").json())["state"] == "running":
-        assert time.monotonic() < deadline
-        time.sleep(0.2)
+    cal = wait_calibration(client, cal_id, timeout=180)
     assert cal["state"] == "done", cal["error"]
     result = cal["result"]
     assert result["format"] == "cellcal/result@1"

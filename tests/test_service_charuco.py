@@ -8,11 +8,8 @@ from __future__ import annotations
 
 import io
 import json
-import time
 import zipfile
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import httpx
 import numpy as np
@@ -31,6 +28,8 @@ from tests.support.service import (
     finished,
     settings,
     wait_calibration,
+    wait_doc,
+    wait_run,
 )
 
 SCENE = charuco_scene()
@@ -38,16 +37,6 @@ BOARD = board_from_target(SCENE.nominal_target())
 KEY = "charuco-key-0123456789abcdef"
 #: Stations of the run; every third one cuts the board at the image border.
 N_STATIONS, CUT_FRACTION = 12, 1 / 3
-
-
-def _wait(client: httpx.Client | TestClient, path: str,
-          until: Callable[[dict[str, Any]], bool], timeout: float = 180.0) -> dict[str, Any]:
-    """Poll ``path`` until ``until`` holds; ``timeout`` only catches a stuck run."""
-    deadline = time.monotonic() + timeout
-    while not until(doc := client.get(path).json()):
-        assert time.monotonic() < deadline, f"{path} stuck: {doc}"
-        time.sleep(0.1)
-    return doc
 
 
 def _poses() -> list[list[float]]:
@@ -94,7 +83,7 @@ def test_charuco_run_over_http_calibrates_exports_and_reproduces(tmp_path: Path)
         r = client.post("/runs", json={"poses": _poses()})
         assert r.status_code == 201, r.text
         run_id = r.json()["id"]
-        run = _wait(client, f"/runs/{run_id}", finished)
+        run = wait_run(client, run_id, finished, 180)
         assert run["state"] == "done" and run["stations_captured"] == N_STATIONS, run
         assert run["target"] == SCENE.nominal_target().model_dump(mode="json")
 
@@ -145,14 +134,14 @@ def test_planned_charuco_run_is_validated_by_dot_hit_and_recheck(tmp_path: Path)
         r = c.post("/runs", json={"stations": 8})
         assert r.status_code == 201, r.text
         run_id = r.json()["id"]
-        assert _wait(c, f"/runs/{run_id}", finished)["state"] == "done"
+        assert wait_run(c, run_id, finished, 180)["state"] == "done"
         cal_id = c.post(f"/runs/{run_id}/calibrations", json={}).json()["id"]
         cal = wait_calibration(c, cal_id, timeout=480.0)
         assert cal["state"] == "done", cal["error"]
 
         r = c.post(f"/calibrations/{cal_id}/checks", json={"stations": 3})
         assert r.status_code == 202, r.text
-        check = _wait(c, f"/validations/{r.json()['id']}", lambda v: v["state"] != "running")
+        check = wait_doc(c, f"/validations/{r.json()['id']}", timeout=180)
         assert check["state"] == "done", check["error"]
         assert check["result"]["state"] == "ok"
         assert all(s["state"] == "ok" for s in check["result"]["stations"])
@@ -160,7 +149,7 @@ def test_planned_charuco_run_is_validated_by_dot_hit_and_recheck(tmp_path: Path)
         # the dot-hit needs a current view: back to where the camera sees the board
         r = c.post(f"/calibrations/{cal_id}/validations", json={})
         assert r.status_code == 202, r.text
-        dot = _wait(c, f"/validations/{r.json()['id']}", lambda v: v["state"] != "running")
+        dot = wait_doc(c, f"/validations/{r.json()['id']}", timeout=180)
         assert dot["state"] == "done", dot["error"]
         ids = [p["id"] for p in dot["result"]["points"]]
         assert ids == ["corner_0_0", "corner_10_0", "corner_0_7", "corner_10_7", "centre"]

@@ -12,7 +12,7 @@ from calib import COVERAGE_90, pose_error, ur_pose_from_matrix
 from mocks.blindcells import random_blind_scene
 from service.app import create_app
 from service.settings import Settings
-from tests.support.helpers import wait_for
+from tests.support.service import finished, wait_calibration, wait_run
 
 pytestmark = pytest.mark.usefixtures("database")
 
@@ -28,14 +28,12 @@ def _settings(tmp_path, scene, **extra) -> Settings:
 
 
 def _finished(client: TestClient, run_id: str) -> dict:
-    return wait_for(f"run {run_id}", lambda: (r := client.get(f"/runs/{run_id}").json())[
-        "state"] not in ("capturing",) and r, timeout=900)
+    return wait_run(client, run_id, finished, 900)
 
 
 def _calibrated_error(client: TestClient, run_id: str, scene) -> tuple[float, float, dict]:
     cal_id = client.post(f"/runs/{run_id}/calibrations", json={}).json()["id"]
-    cal = wait_for("the calibration", lambda: (c := client.get(f"/calibrations/{cal_id}").json())[
-        "state"] in ("done", "failed") and c, timeout=600)
+    cal = wait_calibration(client, cal_id, 600)
     assert cal["state"] == "done", cal
     result = cal["result"]
     X = np.array(result["hand_eye"]["matrix"])
@@ -147,8 +145,8 @@ def test_an_interrupted_cold_start_run_resumes_where_it_was(tmp_path):
     with TestClient(create_app(settings)) as client:
         client.headers.update(AUTH)
         run_id = client.post("/runs", json={"stations": 10}).json()["id"]
-        wait_for("planned stations", lambda: (r := client.get(f"/runs/{run_id}").json())[
-            "stations_captured"] >= r["cold_start"]["exploratory_moves"] + 3, timeout=600)
+        wait_run(client, run_id, lambda r: r["stations_captured"]
+                 >= r["cold_start"]["exploratory_moves"] + 3, 600)
     with TestClient(create_app(settings)) as client:  # the old service has stopped
         client.headers.update(AUTH)
         before = client.get(f"/runs/{run_id}").json()

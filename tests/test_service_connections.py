@@ -30,6 +30,8 @@ from service.serving.connections import (
     guarded_protocol,
 )
 from service.serving.local import LocalService, ServeOptions, local_service
+from tests.support.helpers import wait_for
+from tests.support.service import finished
 
 KEY = "connections-key-0123456789abcdef"
 AUTH = {"Authorization": f"Bearer {KEY}"}
@@ -90,16 +92,6 @@ def _closed_by_peer(sock: socket.socket) -> bool:
     return True
 
 
-def _wait_run(service: LocalService, run_id: str) -> dict[str, object]:
-    deadline = time.monotonic() + 5 * HANG_S
-    while time.monotonic() < deadline:
-        run = httpx.get(f"{service.url}/runs/{run_id}", headers=AUTH, timeout=60).json()
-        if run["state"] != "capturing":
-            return run
-        time.sleep(0.2)
-    raise AssertionError(f"run {run_id} still capturing")
-
-
 def test_idle_flood_leaves_health_and_capture_working(tmp_path: Path) -> None:
     options = ServeOptions(preexec=_limit_open_files)
     with (_own_fd_limit(IDLE_CONNECTIONS + 256),
@@ -112,7 +104,9 @@ def test_idle_flood_leaves_health_and_capture_working(tmp_path: Path) -> None:
         run = httpx.post(f"{service.url}/runs", json={"stations": 4}, headers=AUTH,
                          timeout=HANG_S)
         assert run.status_code == 201, run.text
-        final = _wait_run(service, run.json()["id"])
+        path = f"{service.url}/runs/{run.json()['id']}"  # a new connection each poll
+        final = wait_for(path, lambda: httpx.get(path, headers=AUTH, timeout=HANG_S).json(),
+                         5 * HANG_S, until=finished)
         open_fds = len(list(fds.iterdir()))
         log = service.log.read_text()
         took = time.monotonic() - began
@@ -159,17 +153,16 @@ def test_a_client_trickling_its_next_request_is_closed(
         sock.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\n\r\n")
         assert sock.recv(4096).startswith(b"HTTP/1.1 200")
         sock.settimeout(0.2)
-        deadline = time.monotonic() + HANG_S
-        closed = False
-        while not closed and time.monotonic() < deadline:
+
+        def closed_after_one_more_byte() -> bool:
             try:
                 sock.sendall(b"X")
-                closed = sock.recv(4096) == b""
+                return sock.recv(4096) == b""
             except TimeoutError:
-                continue
+                return False
             except (BrokenPipeError, ConnectionResetError):
-                closed = True
-        assert closed
+                return True
+        wait_for("the trickling connection to be closed", closed_after_one_more_byte, HANG_S)
 
 
 class _FullTransport(asyncio.Transport):
@@ -282,9 +275,8 @@ def test_beyond_the_cap_idle_connections_make_room_busy_ones_do_not(tmp_path: Pa
         assert refused.json()["code"] == "too_many_connections"
         assert refused.headers["retry-after"] == "5"
         held.pop().close()  # a stream ends: its place is free again
-        deadline = time.monotonic() + HANG_S
-        while (r := httpx.get(f"{service.url}/health", timeout=HANG_S)).status_code == 503:
-            assert time.monotonic() < deadline
+        r = wait_for("the freed place", lambda: httpx.get(f"{service.url}/health", timeout=HANG_S),
+                     HANG_S, until=lambda r: r.status_code != 503)
         assert r.status_code == 200
 
 

@@ -26,6 +26,7 @@ from service.serving.local import ServeOptions, local_service
 from service.settings import Settings
 from service.store import queries
 from tests.support.helpers import wait_for
+from tests.support.service import wait_doc
 
 KEY = "outage-key-0123456789abcdef"
 LOCK_S = float(os.environ.get("CELLCAL_TEST_DB_LOCK_S", "5"))
@@ -66,14 +67,12 @@ def test_run_survives_a_database_lock_and_resumes(tmp_path):
             lock.execute("ROLLBACK")
             lock.close()
 
-        run = wait_for("the run to be interrupted", lambda: (
-            r := client.get(path).json())["state"] != "capturing" and r)
+        run = wait_doc(client, path)
         assert run["state"] == "interrupted", run
         assert run["error"]["code"] == "database_unavailable"
         assert run["error"]["detail"].endswith("resume the run once the database is back.")
         assert client.post(f"{path}/resume").json()["state"] == "capturing"
-        run = wait_for("the run to finish", lambda: (
-            r := client.get(path).json())["state"] != "capturing" and r)
+        run = wait_doc(client, path)
         assert run["state"] == "done", run
         indices = [s["index"] for s in client.get(f"{path}/stations").json()]
         assert indices == list(range(STATIONS))  # every station, exactly once

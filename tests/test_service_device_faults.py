@@ -41,7 +41,7 @@ from service.serving.local import LocalService, ServeOptions, listening_socket, 
 from service.settings import Settings
 from service.store.records import RunRecord, StationRecord
 from tests.support.helpers import wait_for
-from tests.support.service import CELL
+from tests.support.service import CELL, finished, wait_doc, wait_run
 from tests.support.stations import rendered_stations
 
 KEY = "faults-key-0123456789abcdef"
@@ -53,10 +53,9 @@ def _poses(n: int, seed: int = 6) -> list[list[float]]:
                                                     np.random.default_rng(seed))).tolist()
 
 
-def _settled(client: httpx.Client | TestClient, run_id: str) -> dict[str, Any]:
+def _settled(client: httpx.Client, run_id: str) -> dict[str, Any]:
     """The run once it is no longer capturing."""
-    return wait_for(f"run {run_id}", lambda: (r := client.get(f"/runs/{run_id}").json())["state"]
-                 != "capturing" and r)
+    return wait_run(client, run_id, finished, 120)
 
 
 @contextlib.contextmanager
@@ -89,8 +88,7 @@ def test_unplugged_camera_comes_back_on_resume(tmp_path, board_images):
         path = f"/runs/{run_id}"
         wait_for("a first station", lambda: client.get(path).json()["stations_captured"] >= 1)
         client.post(f"{path}/pause")
-        run = wait_for("the pause", lambda: (r := client.get(path).json())["state"] == "paused"
-                    and r)
+        run = wait_doc(client, path, lambda r: r["state"] == "paused")
         assert run["stations_captured"] < n, "the run ended before the pause: add frames"
 
         frames.rename(tmp_path / "unplugged")

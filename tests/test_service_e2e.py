@@ -7,7 +7,6 @@ from __future__ import annotations
 import contextlib
 import json
 import signal
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -19,6 +18,7 @@ import pytest
 from calib.geometry import ur_pose_from_matrix
 from mocks.scene import default_scene, sample_station_poses
 from service.serving.local import local_service
+from tests.support.service import finished, wait_calibration, wait_run
 
 pytestmark = pytest.mark.usefixtures("database")
 
@@ -42,15 +42,6 @@ def start_server(tmp_path: Path) -> Iterator[Server]:
 def _poses(n: int) -> list[list[float]]:
     T = sample_station_poses(default_scene(), n, np.random.default_rng(11))
     return ur_pose_from_matrix(T).tolist()
-
-
-def _wait(client: httpx.Client, path: str, until: Callable[[dict[str, Any]], bool],
-          timeout: float = 90.0) -> dict[str, Any]:
-    deadline = time.monotonic() + timeout
-    while not until(doc := client.get(path).json()):
-        assert time.monotonic() < deadline, f"{path} stuck: {doc}"
-        time.sleep(0.1)
-    return doc
 
 
 def _events(client: httpx.Client, run_id: str) -> list[tuple[str, dict[str, Any]]]:
@@ -85,8 +76,7 @@ def test_capture_watch_and_calibrate_over_http(start_server: Callable[[], Any]) 
 
         r = client.post(f"/runs/{run_id}/calibrations", json={"options": {}})
         assert r.status_code == 202
-        cal = _wait(client, f"/calibrations/{r.json()['id']}",
-                    lambda c: c["state"] != "running", timeout=180)
+        cal = wait_calibration(client, r.json()["id"], timeout=180)
         assert cal["state"] == "done", cal["error"]
         assert cal["result"]["target"]["kappa"] == pytest.approx(1.005, abs=3e-3)
 
@@ -96,7 +86,7 @@ def test_service_killed_mid_run_resumes_after_restart(start_server: Callable[[],
     url, proc = start_server()
     with httpx.Client(base_url=url, headers=AUTH, timeout=30) as client:
         run_id = client.post("/runs", json={"poses": _poses(10)}).json()["id"]
-        _wait(client, f"/runs/{run_id}", lambda r: r["stations_captured"] >= 3)
+        wait_run(client, run_id, lambda r: r["stations_captured"] >= 3, 90)
     proc.send_signal(signal.SIGKILL)
     proc.wait(10)
 
@@ -106,7 +96,7 @@ def test_service_killed_mid_run_resumes_after_restart(start_server: Callable[[],
         assert run["state"] == "interrupted"
         assert 3 <= run["stations_captured"] < 10
         assert client.post(f"/runs/{run_id}/resume").json()["state"] == "capturing"
-        run = _wait(client, f"/runs/{run_id}", lambda r: r["state"] != "capturing")
+        run = wait_run(client, run_id, finished, 90)
         assert (run["state"], run["stations_captured"]) == ("done", 10)
         indices = [s["index"] for s in client.get(f"/runs/{run_id}/stations").json()]
         assert indices == list(range(10))

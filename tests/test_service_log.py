@@ -4,38 +4,26 @@
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
-from typing import Any
 
 import httpx
 import pytest
 
 from service.serving.local import ServeOptions, local_service
 from service.serving.logs import JSONLines, lifecycle
-from tests.support.service import KEY
-
-
-def _wait_final(url: str, headers: dict[str, str], path: str) -> dict[str, Any]:
-    deadline = time.monotonic() + 240
-    while (doc := httpx.get(url + path, headers=headers).json())["state"] in ("capturing",
-                                                                            "running"):
-        assert time.monotonic() < deadline, doc
-        time.sleep(0.2)
-    return doc
+from tests.support.service import AUTH, KEY, finished, wait_calibration, wait_run
 
 
 @pytest.mark.timeout(300)
 def test_json_log_tells_the_lifecycle_of_a_run_and_its_calibration(tmp_path: Path) -> None:
     log = tmp_path / "serve.log"
     options = ServeOptions(log=log, args=("--log-format", "json"))
-    with local_service(tmp_path / "data", KEY, options) as service:
-        headers = {"Authorization": f"Bearer {KEY}"}
-        run = httpx.post(f"{service.url}/runs", json={"stations": 4}, headers=headers).json()
-        assert _wait_final(service.url, headers, f"/runs/{run['id']}")["state"] == "done"
-        cal = httpx.post(f"{service.url}/runs/{run['id']}/calibrations", json={},
-                         headers=headers).json()
-        final = _wait_final(service.url, headers, f"/calibrations/{cal['id']}")["state"]
+    with (local_service(tmp_path / "data", KEY, options) as service,
+          httpx.Client(base_url=service.url, headers=AUTH, timeout=30) as client):
+        run = client.post("/runs", json={"stations": 4}).json()
+        assert wait_run(client, run["id"], finished, 240)["state"] == "done"
+        cal = client.post(f"/runs/{run['id']}/calibrations", json={}).json()
+        final = wait_calibration(client, cal["id"], 240)["state"]
     lines = [line for line in log.read_text().splitlines() if line.startswith("{")]
     records = [json.loads(line) for line in lines]
     events = [(r["kind"], r["id"], r["event"]) for r in records if r.get("logger") ==

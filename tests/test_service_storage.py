@@ -13,7 +13,6 @@ from __future__ import annotations
 import errno
 import shutil
 import threading
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -37,6 +36,7 @@ from tests.support.service import (
     settings,
     start_run,
     wait_calibration,
+    wait_doc,
     wait_run,
 )
 
@@ -159,7 +159,7 @@ def test_a_job_that_ends_without_its_data_directory_is_not_done(
         monkeypatch.setattr(Validations, "_check", check_then_move)
         r = client.post(f"/calibrations/{cal_id}/checks", json={"stations": 3})
         assert r.status_code == 202, r.text
-        val = wait_for_state(client, f"/validations/{r.json()['id']}")
+        val = wait_doc(client, f"/validations/{r.json()['id']}")
         assert val["state"] == "failed" and val["result"] is None
         assert val["error_code"] == "storage_unavailable", val
         assert "deleted or replaced" in val["error"]
@@ -181,13 +181,6 @@ def test_a_job_that_ends_without_its_data_directory_is_not_done(
         assert "deleted or replaced" in cal["error"]
         listed = client.get("/calibrations", params={"run_id": run_id}).json()["items"]
         assert [c["error_code"] for c in listed if c["id"] == cal_id] == ["storage_unavailable"]
-
-
-def wait_for_state(client: TestClient, path: str) -> dict[str, Any]:
-    """The job at ``path`` once it has left ``running``."""
-    while (job := client.get(path).json())["state"] == "running":
-        time.sleep(0.05)
-    return job
 
 
 @pytest.mark.timeout(60)

@@ -8,7 +8,6 @@ the board) with the settings it needs.
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from itertools import pairwise
@@ -37,6 +36,8 @@ from tests.support.service import (
     poses,
     read_events,
     settings,
+    wait_calibration,
+    wait_doc,
     wait_run,
 )
 
@@ -63,7 +64,7 @@ def calibrated(tmp_path_factory: pytest.TempPathFactory,
         assert wait_run(c, run_id, finished)["state"] == "done"
         # default options: 'auto' must see the mock board's 0.5 % oversize on 8 stations
         cal_id = c.post(f"/runs/{run_id}/calibrations", json={}).json()["id"]
-        cal = wait_for(c, f"/calibrations/{cal_id}", timeout=180)
+        cal = wait_calibration(c, cal_id, timeout=180)
         assert cal["state"] == "done", cal["error"]
     return data, run_id, cal_id
 
@@ -87,21 +88,11 @@ def app_on(calibrated: tuple[Path, str, str]) -> Iterator[Client]:
         c.__exit__(None, None, None)
 
 
-def wait_for(client: TestClient, path: str, timeout: float = 60.0) -> dict[str, Any]:
-    """Poll ``path`` until its state is no longer ``running``; ``timeout`` only catches a
-    stuck job (a loaded machine solves several times slower)."""
-    deadline = time.monotonic() + timeout
-    while (doc := client.get(path).json())["state"] == "running":
-        assert time.monotonic() < deadline, f"{path} stuck: {doc}"
-        time.sleep(0.05)
-    return doc
-
-
 def validate(client: TestClient, cal_id: str, body: dict[str, Any] | None = None
              ) -> dict[str, Any]:
     r = client.post(f"/calibrations/{cal_id}/validations", json=body or {})
     assert r.status_code == 202, r.text
-    return wait_for(client, f"/validations/{r.json()['id']}")
+    return wait_doc(client, f"/validations/{r.json()['id']}")
 
 
 def true_pose(client: TestClient) -> np.ndarray:
@@ -200,7 +191,7 @@ def test_the_robot_does_one_motion_job_at_a_time(app_on: Client,
                                       f"{val_id}, held by {holder}; let it finish first.",
                             "code": "robot_busy"}
     gate.set()
-    assert wait_for(client, f"/validations/{val_id}")["state"] == "done"
+    assert wait_doc(client, f"/validations/{val_id}")["state"] == "done"
     assert client.get(f"/runs/{interrupted.id}").json()["state"] == "interrupted"
     client.post(f"/runs/{interrupted.id}/cancel")
 
@@ -228,7 +219,7 @@ def test_two_services_never_move_one_robot_at_once(app_on: Client,
         for r in answers:
             if r.status_code == 202:
                 accepted.append(r.json()["id"])
-                assert wait_for(services[0], f"/validations/{r.json()['id']}")["state"] == "done"
+                assert wait_doc(services[0], f"/validations/{r.json()['id']}")["state"] == "done"
             else:
                 assert r.json()["code"] == "robot_busy"
                 refused += 1

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import os
 import signal
-import time
 from pathlib import Path
 
 import httpx
@@ -22,6 +21,7 @@ from mocks.scene import default_scene, sample_station_poses
 from service.jobs.workers import WorkerPool
 from service.serving.local import LocalService, ServeOptions, local_service
 from tests.support.helpers import wait_for
+from tests.support.service import finished, wait_run
 
 KEY = "orphan-key-0123456789abcdef"
 #: Issue 11 acceptance: no orphan 15 s after the kill.
@@ -70,8 +70,7 @@ def _captured_run(client: httpx.Client) -> str:
     poses = ur_pose_from_matrix(
         sample_station_poses(default_scene(), 5, np.random.default_rng(4))).tolist()
     run = client.post("/runs", json={"poses": poses}).json()
-    wait_for("the run", lambda: client.get(f"/runs/{run['id']}").json()["state"] == "done",
-              120)
+    assert wait_run(client, run["id"], finished, 120)["state"] == "done"
     return run["id"]
 
 
@@ -96,16 +95,9 @@ def test_kill_9_during_a_calibration_leaves_no_process(tmp_path):
         assert workers <= before
         os.kill(server, signal.SIGKILL)
         service.proc.wait(10)
-        left = _wait_for_gone(before)
-        assert not left, {pid: _cmdline(pid) for pid, _ in left}
-
-
-def _wait_for_gone(processes: set[Process]) -> set[Process]:
-    """Poll until none of ``processes`` is alive or the deadline passes; those still alive."""
-    deadline = time.monotonic() + ORPHAN_DEADLINE_S
-    while (alive := processes & set(_processes())) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    return alive
+        wait_for("the server's former children to end",  # the last: what still runs
+                 lambda: {pid: _cmdline(pid) for pid, _ in before & set(_processes())},
+                 ORPHAN_DEADLINE_S, until=lambda alive: not alive)
 
 
 def test_calibration_queue_is_bounded(tmp_path):

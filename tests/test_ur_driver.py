@@ -13,8 +13,7 @@ import signal
 import subprocess
 import sys
 import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -33,7 +32,7 @@ from drivers.ur import URRobot
 from drivers.ur_dashboard import parse_identity
 from mocks.ur_emulator.wire import CONTROLLER_VERSION
 from mocks.ur_kinematics import fk_pose
-from tests.support.helpers import ends_with_this_process
+from tests.support.helpers import ends_with_this_process, wait_for
 from tests.support.ur_emulator import (
     EmulatorProcess,
     free_host,
@@ -83,13 +82,6 @@ def assert_pose_close(actual: np.ndarray, expected: np.ndarray, *, rot: float = 
     assert angle < rot and dist < trans, f"off by {angle:.2e} rad, {dist:.2e} m"
 
 
-def wait_until(predicate: Callable[[], bool], timeout: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached in time"
-        time.sleep(0.01)
-
-
 def start_slow_move(robot: URRobot) -> tuple[np.ndarray, threading.Thread, list[RobotError]]:
     """A 10 cm move up at 5 cm/s (about 2 s) in a thread, once it has begun: its target, the
     thread, and the list that receives its error."""
@@ -105,7 +97,7 @@ def start_slow_move(robot: URRobot) -> tuple[np.ndarray, threading.Thread, list[
     start_z = robot.tcp_pose()[2]
     mover = threading.Thread(target=move)
     mover.start()
-    wait_until(lambda: robot.tcp_pose()[2] > start_z + 1e-3)
+    wait_for("the move to begin", lambda: robot.tcp_pose()[2] > start_z + 1e-3, 10)
     return target, mover, errors
 
 
@@ -175,7 +167,7 @@ def test_protective_stop_during_move_then_unlock(robot: URRobot, emulator: Emula
     with pytest.raises(ProtectiveStopError):  # refuses to move until unlocked
         robot.move_linear(target, **FAST)
     assert emulator.command("unlock protective stop") == "Protective stop releasing"
-    wait_until(lambda: not robot.status().protective_stop)
+    wait_for("the protective stop to clear", lambda: not robot.status().protective_stop, 10)
     robot.move_linear(target, **FAST)  # the driver restarts the control program
     assert_pose_close(robot.tcp_pose(), target)
 
@@ -248,7 +240,7 @@ def test_the_rtde_client_ends_with_its_parent(emulator: EmulatorProcess) -> None
         assert _alive(client)
         parent.kill()
         parent.wait(10)
-        wait_until(lambda: not _alive(client))
+        wait_for("the orphaned client to die", lambda: not _alive(client), 10)
     finally:
         parent.kill()
         parent.wait(10)
@@ -289,7 +281,7 @@ def test_connection_drop_while_idle_is_noticed(robot: URRobot, emulator: Emulato
             return True
         return False
 
-    wait_until(lost)
+    wait_for("the connection to be lost", lost, 10)
     wait_ports(emulator.host)
     robot.connect()
     status = robot.status()

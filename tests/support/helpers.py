@@ -68,15 +68,22 @@ def poll_pauses(first: float = FIRST_POLL_S) -> Iterator[float]:
         pause = min(1.5 * pause, LONGEST_POLL_S)
 
 
-def wait_for(what: str, condition: Callable[[], T], timeout: float = 120.0) -> T:
-    """Poll ``condition`` until it returns something truthy and return that; fail after
-    ``timeout`` s naming ``what`` (a guard against hangs, not a speed requirement)."""
+def wait_for(what: str, condition: Callable[[], T], timeout: float = 120.0, *,
+             until: Callable[[T], object] = bool, first: float = FIRST_POLL_S) -> T:
+    """Poll ``condition`` until ``until`` holds for what it returns (by default: until it is
+    truthy) and return that; fail after ``timeout`` s naming ``what`` and the last value (a
+    guard against hangs, not a speed requirement). The one way tests wait for a condition."""
     deadline = time.monotonic() + timeout
-    pauses = poll_pauses()
-    while not (value := condition()):
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+    pauses = poll_pauses(first)
+    while not until(value := condition()):
+        assert time.monotonic() < deadline, _timed_out(what, value)
         time.sleep(next(pauses))
     return value
+
+
+def _timed_out(what: str, last: object) -> str:
+    seen = "" if last is None or isinstance(last, bool) else f" (last: {last!r})"
+    return f"timed out waiting for {what}{seen}"
 
 
 #: ``../shared`` beside the repository (CI and developers have it there), e.g. the real images.

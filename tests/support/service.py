@@ -14,6 +14,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
+import httpx
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
@@ -24,7 +25,7 @@ from mocks.scene import default_scene, sample_station_poses
 from service.app import create_app
 from service.cell.devices import DeviceOpener, settings_opener
 from service.settings import Settings
-from tests.support.helpers import poll_pauses
+from tests.support.helpers import wait_for
 
 KEY = "test-key-0123456789abcdef"
 #: The cell of the services here (the default CELLCAL_CELL).
@@ -56,22 +57,24 @@ def service(tmp_path: Path, open_devices: DeviceOpener | None = None) -> Iterato
         yield c
 
 
-def wait_run(client: TestClient, run_id: str, until: Callable[[dict[str, Any]], bool],
+def finished(doc: dict[str, Any]) -> bool:
+    """A run no longer capturing, a calibration or validation no longer running."""
+    return doc["state"] not in ("capturing", "running")
+
+
+def wait_doc(client: httpx.Client, path: str,
+             until: Callable[[dict[str, Any]], bool] = finished, timeout: float = 120.0, *,
+             first: float = 0.05) -> dict[str, Any]:
+    """Poll ``GET path`` until ``until(doc)`` (by default: ``finished``) and return the
+    document; ``timeout`` only catches a stuck run or job (generous: a loaded machine
+    captures and solves several times slower)."""
+    return wait_for(path, lambda: client.get(path).json(), timeout, until=until, first=first)
+
+
+def wait_run(client: httpx.Client, run_id: str, until: Callable[[dict[str, Any]], bool],
              timeout: float = 60.0) -> dict[str, Any]:
-    """Poll ``GET /runs/{id}`` until ``until(run)``; ``timeout`` only catches a stuck run
-    (generous: a loaded machine captures several times slower)."""
-    deadline = time.monotonic() + timeout
-    pauses = poll_pauses(0.05)
-    while True:
-        run = client.get(f"/runs/{run_id}").json()
-        if until(run):
-            return run
-        assert time.monotonic() < deadline, f"run stuck: {run}"
-        time.sleep(next(pauses))
-
-
-def finished(run: dict[str, Any]) -> bool:
-    return run["state"] != "capturing"
+    """Poll ``GET /runs/{id}`` until ``until(run)``."""
+    return wait_doc(client, f"/runs/{run_id}", until, timeout)
 
 
 def start_run(client: TestClient, n: int) -> str:
@@ -155,13 +158,10 @@ def robot_pose(client: TestClient) -> list[float]:
     return client.get("/devices").json()["robot"]["tcp_pose"]
 
 
-def wait_calibration(client: TestClient, cal_id: str, timeout: float = 120.0) -> dict[str, Any]:
-    deadline = time.monotonic() + timeout
-    pauses = poll_pauses(0.1)
-    while (cal := client.get(f"/calibrations/{cal_id}").json())["state"] == "running":
-        assert time.monotonic() < deadline, "calibration did not finish"
-        time.sleep(next(pauses))
-    return cal
+def wait_calibration(client: httpx.Client, cal_id: str, timeout: float = 120.0
+                     ) -> dict[str, Any]:
+    """The calibration once it has left ``running``."""
+    return wait_doc(client, f"/calibrations/{cal_id}", finished, timeout, first=0.1)
 
 
 def get_report(client: TestClient, cal_id: str, timeout: float = 240.0) -> Any:

@@ -13,13 +13,12 @@ import selectors
 import socket
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from tests.support.helpers import ends_with_this_process
+from tests.support.helpers import ends_with_this_process, wait_for
 
 REPO = Path(__file__).resolve().parents[2]
 PORTS = (29999, 30003, 30004)
@@ -64,13 +63,11 @@ def serving(host: str, *, timeout: float = 0.5) -> bool:
 def wait_ports(host: str, proc: subprocess.Popen | None = None, *,
                timeout: float = 10.0) -> None:
     """Block until ``host`` serves all UR ports; fail early if ``proc`` died."""
-    deadline = time.monotonic() + timeout
-    while not serving(host):
+    def ports_open() -> bool:
         if proc is not None and proc.poll() is not None:
             raise RuntimeError(f"ur_emulator on {host} exited with code {proc.returncode}")
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"ur_emulator on {host} did not open its ports in {timeout} s")
-        time.sleep(0.02)
+        return serving(host)
+    wait_for(f"ur_emulator on {host} to open its ports", ports_open, timeout)
 
 
 @contextmanager
