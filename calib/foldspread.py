@@ -34,6 +34,7 @@ from itertools import pairwise
 import numpy as np
 
 from calib.joint import GLOBAL_PARAMS, JointProblem, sigmas_from_covariance
+from calib.levmar import inverse_scaled
 
 
 def expected_jackknife(problem: JointProblem, x: np.ndarray, folds: Sequence[np.ndarray],
@@ -57,9 +58,9 @@ def expected_jackknife(problem: JointProblem, x: np.ndarray, folds: Sequence[np.
     C_h = np.stack([C_i[group == f].sum(axis=0) for f in range(len(folds))])
     S = S_i.sum(axis=0)
     try:
-        S_inv = _inverse(S)
-        P = np.stack([_inverse(S - S_h[f]) - S_inv for f in range(len(folds))])
-    except np.linalg.LinAlgError:
+        S_inv = inverse_scaled(S, strict=True)
+        P = np.stack([inverse_scaled(S - S_h[f], strict=True) - S_inv for f in range(len(folds))])
+    except np.linalg.LinAlgError:  # the globals are undetermined without a fold
         return {}
     g = len(folds)
     # M[f, h]: the effect of group h's residuals on fold f's deviation (module docstring)
@@ -92,13 +93,3 @@ def _station_terms(problem: JointProblem, x: np.ndarray, factors: tuple[float, f
         S_i.append(U - WV @ W.T)
         C_i.append(f_corner * (U - 2.0 * WV @ W.T + WV @ Vc @ WV.T) + WV @ prior @ WV.T)
     return np.stack(S_i), np.stack(C_i)
-
-
-def _inverse(S: np.ndarray) -> np.ndarray:
-    """``S⁻¹`` with Jacobi scaling (the globals span pixels to radians); LinAlgError when
-    singular."""
-    d = np.sqrt(np.clip(np.diag(S), 1e-300, None))
-    scaled = S / d[:, None] / d[None, :]
-    if not np.isfinite(scaled).all() or np.linalg.cond(scaled) > 1e14:
-        raise np.linalg.LinAlgError("the globals are undetermined without this fold")
-    return np.linalg.inv(scaled) / d[:, None] / d[None, :]

@@ -77,12 +77,34 @@ def levenberg_marquardt(normals: Callable[[np.ndarray], N], step: Callable[[N, f
     return x, ne, nfev, False
 
 
+#: Singular values of a Jacobi-scaled normal matrix below this fraction of its largest are
+#: taken for zero: the directions the data leave undetermined.
+RCOND = 1e-14
+
+
+def _jacobi_scale(S: np.ndarray) -> np.ndarray:
+    """``d = √diag S`` (p,): ``S / d dᵀ`` has a unit diagonal, so unknowns in pixels, radians,
+    metres and ratios side by side do not read as an ill-conditioned matrix."""
+    return np.sqrt(np.clip(np.diag(S), 1e-300, None))
+
+
 def solve_scaled(S: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``S⁻¹ b`` with Jacobi scaling (unknowns in pixels, radians, metres and ratios)."""
-    d = np.sqrt(np.clip(np.diag(S), 1e-300, None))
+    """``S⁻¹ b`` with Jacobi scaling, least squares over the undetermined directions."""
+    d = _jacobi_scale(S)
     if not (np.isfinite(S).all() and np.isfinite(b).all()):
         raise np.linalg.LinAlgError("non-finite normal equations")
-    return np.linalg.lstsq(S / d[:, None] / d[None, :], b / d, rcond=1e-14)[0] / d
+    return np.linalg.lstsq(S / d[:, None] / d[None, :], b / d, rcond=RCOND)[0] / d
+
+
+def inverse_scaled(S: np.ndarray, *, strict: bool = False) -> np.ndarray:
+    """``S⁻¹`` (p, p) of a normal matrix with Jacobi scaling: the pseudo-inverse of
+    ``S / d dᵀ``, scaled back. ``strict``: LinAlgError where ``S`` is not finite or has
+    directions the pseudo-inverse would drop (condition of the scaled matrix above 1/RCOND)."""
+    d = _jacobi_scale(S)
+    scaled = S / d[:, None] / d[None, :]
+    if strict and (not np.isfinite(scaled).all() or np.linalg.cond(scaled) > 1.0 / RCOND):
+        raise np.linalg.LinAlgError("singular after Jacobi scaling")
+    return np.linalg.pinv(scaled, rcond=RCOND) / d[:, None] / d[None, :]
 
 
 @dataclass(frozen=True)

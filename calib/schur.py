@@ -24,7 +24,7 @@ from typing import Protocol
 
 import numpy as np
 
-from calib.levmar import levenberg_marquardt, solve_scaled
+from calib.levmar import inverse_scaled, levenberg_marquardt, solve_scaled
 
 
 class BlockProblem(Protocol):
@@ -135,8 +135,7 @@ def prior_redundancy(problem: BlockProblem, x: np.ndarray) -> tuple[float, float
     """
     ne = _normal_equations(problem, x)
     S, _, V_inv = _reduced(ne, 0.0)
-    d = np.sqrt(np.clip(np.diag(S), 1e-300, None))
-    S_inv = np.linalg.pinv(S / d[:, None] / d[None, :], rcond=1e-14) / d[:, None] / d[None, :]
+    S_inv = inverse_scaled(S)
     WV = ne.W @ V_inv  # (n, g, 6)
     cov = V_inv + np.einsum("nji,jk,nkl->nil", WV, S_inv, WV)  # (n, 6, 6)
     h = np.diagonal(cov, axis1=1, axis2=2) / np.asarray(problem.prior_sigma) ** 2
