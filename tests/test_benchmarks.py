@@ -17,6 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = {
     "charuco": "charuco.png",
     "cold_start": "cold_start.png",
+    "cold_start_bound": "cold_start_bound.png",
     "end_to_end": "end_to_end.png",
     "handeye_accuracy": "handeye_accuracy.png",
     "kappa_nu": "kappa_nu.png",
