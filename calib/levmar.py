@@ -84,8 +84,16 @@ RCOND = 1e-14
 
 def _jacobi_scale(S: np.ndarray) -> np.ndarray:
     """``d = √diag S`` (p,): ``S / d dᵀ`` has a unit diagonal, so unknowns in pixels, radians,
-    metres and ratios side by side do not read as an ill-conditioned matrix."""
-    return np.sqrt(np.clip(np.diag(S), 1e-300, None))
+    metres and ratios side by side do not read as an ill-conditioned matrix.
+
+    A diagonal at or below zero is an unknown without information (in a reduced matrix,
+    one the eliminated blocks explain entirely, left as rounding noise): its ``d`` is inf,
+    so its row and column of ``S / d dᵀ`` are zero and the solve or pseudo-inverse drops it.
+    A floor such as 1e-300 would instead scale its noise up by 1e150, overflow, and leave
+    that row the only direction above the cut-off, dropping every determined one.
+    """
+    diag = np.diag(S)
+    return np.sqrt(np.where(diag > 0.0, diag, np.inf))
 
 
 def solve_scaled(S: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -11,7 +11,7 @@ import pytest
 from scipy.optimize import least_squares
 from scipy.optimize._numdiff import approx_derivative
 
-from calib.levmar import solve_dense
+from calib.levmar import inverse_scaled, solve_dense, solve_scaled
 
 T = np.linspace(0.0, 4.0, 40)
 Y = 2.5 * np.exp(-1.3 * T) + 0.4 * np.cos(3.0 * T) + 0.01 * np.random.default_rng(5).normal(
@@ -46,6 +46,37 @@ def test_dense_reaches_a_distant_minimum_through_damping():
 
     sol = solve_dense(rosenbrock, np.array([-1.2, 1.0]), max_nfev=200)
     assert sol.converged and np.allclose(sol.x, [1.0, 1.0], atol=1e-8)
+
+
+def _uninformed(noise: float) -> tuple[np.ndarray, np.ndarray]:
+    """A reduced normal matrix (4, 4) of three globals in mixed units and a fourth that the
+    stations explain entirely, so that only rounding noise is left of it (the wrong-setup
+    real set of test_evidence, where a parameter has no information): its block of the
+    three (3, 3), and the matrix."""
+    J = np.random.default_rng(2).normal(size=(12, 3)) * np.array([1e3, 1.0, 1e-3])
+    A = J.T @ J
+    S = np.zeros((4, 4))
+    S[:3, :3] = A
+    S[3, :3] = S[:3, 3] = noise * np.array([1e3, 1.0, -1e-3])
+    S[3, 3] = -noise ** 2
+    return A, S
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+@pytest.mark.parametrize("noise", [0.0, 1e-12, 1e-9])
+def test_a_parameter_without_information_drops_out_of_the_scaled_inverse(noise):
+    """The scaled inverse and solve drop the uninformed global and keep the others' own
+    inverse: its diagonal at or below zero is no information, not a scale of 1e-150 that
+    overflowed and made the pseudo-inverse drop every other direction instead."""
+    A, S = _uninformed(noise)
+    S_inv = inverse_scaled(S)
+    np.testing.assert_allclose(S_inv[:3, :3], np.linalg.inv(A), rtol=1e-9)
+    assert not S_inv[3].any() and not S_inv[:, 3].any()
+    b = np.array([1.0, -2.0, 3.0, 4.0])
+    np.testing.assert_allclose(solve_scaled(S, b), [*np.linalg.solve(A, b[:3]), 0.0],
+                               rtol=1e-9)
+    with pytest.raises(np.linalg.LinAlgError):
+        inverse_scaled(S, strict=True)
 
 
 def test_calibrate_loads_no_scipy_optimize():
