@@ -36,6 +36,17 @@ from calib.stations import MIN_IMAGES
 PARAM_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "nu")
 #: Parameters that ``fix=`` may hold: the principal point at the image centre, distortion at 0.
 FIXABLE = ("cx", "cy", "k1", "k2", "p1", "p2", "k3")
+#: The joint closed form's fx and fy are used when each is within this factor of the median
+#: of the views' own focal lengths (``_median_focal``); else that median, for both. The joint
+#: fit can rest on one view: with the principal point off the image centre (which the closed
+#: form assumes) by (-24, +19) px, one view near a corner of the image took fx to 2.2x the
+#: truth (no noise) or to a negative 1/fx² (0.1 px noise) on cold-start cell 13's 21 views,
+#: where the median was 6 % off. The median is the start value the refinement needs, not more.
+FOCAL_AGREE = 1.25
+#: A view's own focal length counts in that median when ``|r31 r32|`` of its board rotation
+#: (about ``|r1| |r2|`` projected on the image plane) exceeds this: a tilt of about 6° about
+#: the board's diagonal.
+SELF_TILT = 0.005
 #: Fewest corners per image the calibration accepts (fewest images: ``MIN_IMAGES``).
 MIN_POINTS = 4
 #: Largest square size we accept as metres; anything beyond is almost surely millimetres.
@@ -130,7 +141,9 @@ def initial_intrinsics(object_points_2d: Sequence[np.ndarray], image_points: Seq
     from the orthogonality constraint ``h1ᵀ ω h2 = 0`` alone, which eq. (4) leaves untouched by
     ν and κ (the normalisation constraint would be biased by ν). Per image then
     ``r1 ∝ A⁻¹h1``, ``r2 ∝ A⁻¹h2``, ``t ∝ A⁻¹h3`` (κ = 1), R orthonormalised by SVD, and
-    ν = median of ``|A⁻¹h1| / |A⁻¹h2|``. Inputs are trusted (see :func:`calibrate_intrinsics`).
+    ν = median of ``|A⁻¹h1| / |A⁻¹h2|``. Where that joint fit of fx, fy disagrees with the
+    median of the views' own focal lengths (``FOCAL_AGREE``), the median stands for both.
+    Inputs are trusted (see :func:`calibrate_intrinsics`).
 
     Parameters
     ----------
@@ -153,11 +166,15 @@ def initial_intrinsics(object_points_2d: Sequence[np.ndarray], image_points: Seq
     rows = np.stack([h1[:, 0] * h2[:, 0], h1[:, 1] * h2[:, 1], h1[:, 2] * h2[:, 2]], axis=1)
     rows /= np.linalg.norm(rows, axis=1, keepdims=True)
     (a, b), *_ = np.linalg.lstsq(rows[:, :2], -rows[:, 2], rcond=None)
-    if not (a > 0 and b > 0):
-        raise ValueError(
-            "initial intrinsics failed: the views do not constrain fx and fy "
-            "(board orientations too similar or too fronto-parallel; tilt the board about "
-            "different axes)")
+    single = _median_focal(h1, h2)
+    if not (a > 0 and b > 0 and np.all(np.abs(np.log([a, b]) / 2 + np.log(single))
+                                       < np.log(FOCAL_AGREE))):
+        if not np.isfinite(single):
+            raise ValueError(
+                "initial intrinsics failed: the views do not constrain fx and fy "
+                "(board orientations too similar or too fronto-parallel; tilt the board about "
+                "different axes)")
+        a = b = single ** -2.0
     fx, fy = 1.0 / np.sqrt(a), 1.0 / np.sqrt(b)
     A_inv = np.diag([1.0 / fx, 1.0 / fy, 1.0])
     a1, a2, a3 = h1 @ A_inv, h2 @ A_inv, h3 @ A_inv
@@ -173,6 +190,22 @@ def initial_intrinsics(object_points_2d: Sequence[np.ndarray], image_points: Seq
     R = (U * D[:, None, :]) @ Vt
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     return InitialIntrinsics(K, nu, so3.log(R), a3 / lam[:, None])
+
+
+def _median_focal(h1: np.ndarray, h2: np.ndarray) -> float:
+    """The median over the views of each one's own focal length (fx = fy) from the
+    orthogonality constraint ``(h11 h21 + h12 h22) / f² + h13 h23 = 0``, over the views that
+    determine it (``SELF_TILT``) and give a positive 1/f²; nan when none does. ``h1``, ``h2``
+    (n, 3): the homographies' first two columns, to centred pixels.
+
+    ``h11 h21 + h12 h22 = -f² r31 r32`` (r the board's rotation): a board facing the camera, or
+    turned about one of its own axes only, leaves f out of its constraint."""
+    across = h1[:, 0] * h2[:, 0] + h1[:, 1] * h2[:, 1]
+    tilt = np.abs(across) / (np.linalg.norm(h1[:, :2], axis=1) * np.linalg.norm(h2[:, :2], axis=1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_f2 = -h1[:, 2] * h2[:, 2] / across
+    ok = (tilt > SELF_TILT) & np.isfinite(inv_f2) & (inv_f2 > 0)
+    return float(np.median(1.0 / np.sqrt(inv_f2[ok]))) if ok.any() else float("nan")
 
 
 @dataclass(frozen=True)
