@@ -46,7 +46,6 @@ Prints a table and writes benchmarks/results/cold_start_bound.png.
 from __future__ import annotations
 
 import argparse
-import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,7 +55,15 @@ from scipy.spatial.transform import Rotation
 
 from benchmarks import results_dir
 from benchmarks.cold_start import _numbers
-from benchmarks.cold_start_bound_report import Row, count, plot, read_cold_start, table
+from benchmarks.cold_start_bound_report import (
+    Row,
+    count,
+    plot,
+    read_cold_start,
+    read_rows,
+    table,
+    write_rows,
+)
 from benchmarks.cold_start_report import MAX_STATIONS, TOL_DEG, TOL_MM
 from benchmarks.stationset import station_set
 from calib import (
@@ -73,7 +80,7 @@ from calib.boards import Board
 from calib.chain import RobotNoise, camera_from_robot
 from calib.joint import GLOBAL_PARAMS, CellParameters, JointOptions, JointProblem
 from calib.viewselect import INTRINSICS_TOLERANCE, SIGMA_PX, hand_eye_sigma, prior_information
-from mocks.blindcells import CornerCell, random_blind_scene, readings_hand_eye
+from mocks.blindcells import CornerCell, random_blind_scene
 from mocks.scene import MockScene, true_tcp_pose
 
 OUT = results_dir()
@@ -380,40 +387,52 @@ def bound_cell(k: int, stations: int, *, draws: int = DRAWS) -> Row:
                poses=[t.start.tolist(), *[P[i].tolist() for i in swapped]])
 
 
-def validate(k: int, row: Row) -> str:
+def validate(row: Row) -> str:
     """Shoot the oracle's design (start view plus the exchanged stations) on the corner-level
-    cell and calibrate it as the cold-start benchmark does: the formal σ of that calibration
-    against the predicted one, at the mock's noise and at the noise the calibration
-    estimated (its selection's candidate with the robot noise estimated)."""
-    t = truth(k)
+    cell and calibrate it as the cold-start benchmark does; fills ``row.calibrated`` ({} if
+    the calibration fails; else the
+    calibration's formal and honest σ, its error against the true flange, the robot noise
+    its variance components found and the σ predicted at that noise) and says it with the σ
+    predicted at the calibration's and the mock's noise."""
+    t = truth(row.cell)
     cell = CornerCell(t.scene)
-    shots = [s for s in (cell.shoot(np.array(P)) for P in row.poses or [])
-             if s.corners is not None]
+    shots = [s for s in (cell.shoot(np.array(P)) for P in row.poses) if s.corners is not None]
     P = np.stack([s.T_base_tcp for s in shots])
-    res = calibrate(station_set([s.corners for s in shots], [ur_pose_from_matrix(p) for p in P],
-                                t.board, image_size=t.scene.camera.image_size, setup=t.setup),
-                    SolverOptions(workspace=(t.scene.workspace.lo, t.scene.workspace.hi)))
+    try:
+        res = calibrate(station_set(
+            [s.corners for s in shots], [ur_pose_from_matrix(p) for p in P], t.board,
+            image_size=t.scene.camera.image_size, setup=t.setup),
+            SolverOptions(workspace=(t.scene.workspace.lo, t.scene.workspace.hi)))
+    except ValueError as exc:
+        row.calibrated = {}
+        return f"cell {row.cell}: the calibration of the design failed: {exc}"
     u = res.trust.uncertainty
-    rot, trans = pose_error(res.hand_eye, readings_hand_eye(t.scene, scale=True))
-    sig = {name: (float(np.degrees(np.linalg.norm(d["hand_eye_rot_rad"]))),
-                  float(1e3 * np.linalg.norm(d["hand_eye_trans_m"])))
-           for name, d in (("formal", u.formal), ("honest", res.sigmas))}
-    est = next((c.fit for c in res.trust.model_selection.candidates
-                if c.model is not None and c.model.estimate_noise and c.fit), None)
-    lines = [f"cell {k}: {len(shots)} of {len(row.poses or [])} views detected; calibration "
-             f"formal σ {sig['formal'][0]:.4f} deg / {sig['formal'][1]:.3f} mm, honest "
-             f"{sig['honest'][0]:.4f} / {sig['honest'][1]:.3f}, error (readings frame) "
-             f"{np.degrees(rot):.4f} / {1e3 * trans:.3f}; held at 1: {u.held}"]
-    noises = {"calibration": calibration_noise(t.scene), "mock": mock_noise(t.scene)}
-    if est is not None:
-        noises["estimated"] = (est.sigma_px, est.noise)
+    rot, trans = pose_error(res.hand_eye, t.scene.hand_eye_matrix)
+    est = next(c.fit for c in res.trust.model_selection.candidates
+               if c.model is not None and c.model.estimate_noise and c.fit)
+    noises = {"estimated": (est.sigma_px, est.noise),
+              "calibration": calibration_noise(t.scene), "mock": mock_noise(t.scene)}
+    predicted = {}
     for name, noise in noises.items():
         S = station_information(t, P, noise).sum(axis=0) + prior_information()
-        rot, trans = hand_eye_sigma(np.linalg.inv(S))
-        lines.append(f"  predicted at the {name} noise ({noise[0]:.3f} px, "
-                     f"{np.degrees(noise[1].rot_rad):.4f} deg, {1e3 * noise[1].trans_m:.3f} "
-                     f"mm): {np.degrees(rot):.4f} deg / {1e3 * trans:.3f} mm")
-    return "\n".join(lines)
+        predicted[name] = np.array(hand_eye_sigma(np.linalg.inv(S))) * [np.degrees(1), 1e3]
+    row.calibrated = dict(
+        views=len(shots),
+        formal_deg=float(np.degrees(np.linalg.norm(u.formal["hand_eye_rot_rad"]))),
+        formal_mm=float(1e3 * np.linalg.norm(u.formal["hand_eye_trans_m"])),
+        honest_deg=float(np.degrees(np.linalg.norm(res.sigmas["hand_eye_rot_rad"]))),
+        honest_mm=float(1e3 * np.linalg.norm(res.sigmas["hand_eye_trans_m"])),
+        error_deg=float(np.degrees(rot)), error_mm=float(1e3 * trans),
+        noise_deg=float(np.degrees(est.noise.rot_rad)), noise_mm=1e3 * est.noise.trans_m,
+        predicted_deg=float(predicted["estimated"][0]),
+        predicted_mm=float(predicted["estimated"][1]))
+    c = row.calibrated
+    return (f"cell {row.cell}: {len(shots)} of {len(row.poses)} views detected; calibration "
+            f"formal σ {c['formal_deg']:.4f} deg / {c['formal_mm']:.3f} mm, honest "
+            f"{c['honest_deg']:.4f} / {c['honest_mm']:.3f}, error (true flange) "
+            f"{c['error_deg']:.4f} / {c['error_mm']:.3f}, held at 1: {u.held}; its robot noise "
+            f"{c['noise_deg']:.4f} deg / {c['noise_mm']:.3f} mm; predicted " + ", ".join(
+                f"{v[0]:.4f} / {v[1]:.3f} at the {k} noise" for k, v in predicted.items()))
 
 
 def main() -> None:
@@ -426,25 +445,29 @@ def main() -> None:
     parser.add_argument("--draws", type=int, default=DRAWS, help="candidate views per family")
     parser.add_argument("--validate", type=_numbers, default=[], metavar="K[,K...]",
                         help="calibrate the oracle's design of these cells on the mock")
+    parser.add_argument("--from-log", action="store_true",
+                        help="the designs of the last run's log instead of new ones")
     parser.add_argument("--cold-log", type=Path, default=OUT / "cold_start.jsonl",
                         help="a cold-start benchmark log to compare with")
     args = parser.parse_args()
     cells = args.only or list(range(4 if args.quick else args.cells))
+    if args.from_log and not args.only:
+        cells = sorted(r.cell for r in read_rows(OUT / "cold_start_bound.jsonl"))
     draws = QUICK_DRAWS if args.quick else args.draws
     OUT.mkdir(exist_ok=True)
+    log = OUT / "cold_start_bound.jsonl"
+    logged = {r.cell: r for r in read_rows(log)} if args.from_log else {}
     rows = []
     for k in cells:
-        row = bound_cell(k, args.stations, draws=draws)
+        row = logged.get(k) or bound_cell(k, args.stations, draws=draws)
         print(f"cell {k:2d} {row.setup:11s} {row.distance_m:.2f} m, pool {row.pool}: within "
               f"after {count(row.first)}; ratio at {args.stations}: {row.ratio_greedy:.2f} "
               f"greedy, {row.ratio_exchange:.2f} exchange, {row.ratio_restart:.2f} restarts",
               flush=True)
         if k in args.validate:
-            print(validate(k, row), flush=True)
+            print(validate(row), flush=True)
         rows.append(row)
-    with (OUT / "cold_start_bound.jsonl").open("w") as f:
-        for row in rows:
-            f.write(json.dumps(vars(row)) + "\n")
+        write_rows(log, rows + [r for c, r in logged.items() if c not in cells[:len(rows)]])
     cold = read_cold_start(args.cold_log)
     print(table(rows, args.stations, cold))
     plot(rows, cold, args.stations, OUT / "cold_start_bound.png")
