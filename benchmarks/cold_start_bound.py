@@ -47,11 +47,9 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from benchmarks import results_dir
 from benchmarks.cold_start import _numbers
@@ -64,72 +62,36 @@ from benchmarks.cold_start_bound_report import (
     table,
     write_rows,
 )
-from benchmarks.cold_start_report import MAX_STATIONS, TOL_DEG, TOL_MM
+from benchmarks.cold_start_report import FIRST_CHECK, MAX_STATIONS, TOL_DEG, TOL_MM
+from benchmarks.cold_start_views import DRAWS, Truth, pool, truth
 from benchmarks.stationset import station_set
 from calib import (
-    Pinhole,
+    CalibrationResult,
     SolverOptions,
-    board_from_target,
     calibrate,
-    look_at_view,
     pose_error,
-    robot_from_camera,
     ur_pose_from_matrix,
 )
-from calib.boards import Board
 from calib.chain import RobotNoise, camera_from_robot
-from calib.joint import GLOBAL_PARAMS, CellParameters, JointOptions, JointProblem
+from calib.joint import GLOBAL_PARAMS, JointOptions, JointProblem
 from calib.viewselect import INTRINSICS_TOLERANCE, SIGMA_PX, hand_eye_sigma, prior_information
-from mocks.blindcells import CornerCell, random_blind_scene
+from mocks.blindcells import CornerCell, Shot
 from mocks.scene import MockScene, true_tcp_pose
 
 OUT = results_dir()
-#: Candidate views drawn per family and round (around the board, from anywhere in the box),
-#: the feasible views wanted, and the most rounds drawn for them.
-DRAWS, POOL, ROUNDS = 4000, 4000, 5
 #: Draws of a ``--quick`` run.
 QUICK_DRAWS = 400
-#: Largest tilt from the board normal of the views around the board.
-MAX_TILT_DEG = 60.0
-#: Free border of every corner in the image, px (``CornerCell`` detects from 4 px).
-IMAGE_MARGIN_PX = 8.0
-#: The tcp's and the camera's least margin inside the box, m.
-BOX_MARGIN_M = 0.01
+#: Station counts at which a greedy design's honest σ is checked: from 8 images on, as the
+#: service computes it (``FIRST_CHECK``), every count to 24, then a few more.
+HONEST_CHECKS = (*range(FIRST_CHECK - 1, 25), 28, 32, 36, MAX_STATIONS)
 #: Exchange sweeps over the stations, and random starts of the exchange.
 SWEEPS, RESTARTS = 4, 2
-#: The start view's planning noise, for the check against ``calib.viewselect``.
+#: The planner's noise (``calib.viewselect``), to check that the information is its own.
 PLANNER_NOISE = (SIGMA_PX, RobotNoise())
 _ROT = slice(GLOBAL_PARAMS.index("hand_eye_rx"), GLOBAL_PARAMS.index("hand_eye_rx") + 3)
 _TRANS = slice(_ROT.stop, _ROT.stop + 3)
 _NU, _KAPPA = GLOBAL_PARAMS.index("nu"), GLOBAL_PARAMS.index("kappa")
 _TOL = np.array([np.deg2rad(TOL_DEG), TOL_MM * 1e-3])
-
-
-@dataclass(frozen=True)
-class Truth:
-    """A blind cell as the oracle knows it: the scene, the joint model's parameters at the
-    truth, the nominal board, the box (lo, hi) and the start T_base_tcp (4, 4)."""
-
-    scene: MockScene
-    cell: CellParameters
-    board: Board
-    box: tuple[np.ndarray, np.ndarray]
-    start: np.ndarray
-
-    @property
-    def setup(self) -> str:
-        return self.scene.setup
-
-
-def truth(k: int) -> Truth:
-    """Blind cell ``k`` as ``benchmarks.cold_start.one_cell`` draws it, with its truth."""
-    scene = random_blind_scene(k, ("eye_in_hand", "eye_to_hand")[k % 2])
-    cam, target = scene.camera, scene.target
-    cell = CellParameters(K=cam.k_matrix, dist=cam.dist_coeffs, nu=target.nu,
-                          kappa=target.kappa, hand_eye=scene.hand_eye_matrix,
-                          target_pose=scene.target_pose_matrix)
-    return Truth(scene, cell, board_from_target(scene.nominal_target()),
-                 (np.array(scene.workspace.lo), np.array(scene.workspace.hi)), scene.start_pose())
 
 
 def mock_noise(scene: MockScene) -> tuple[float, RobotNoise]:
@@ -157,118 +119,6 @@ def station_information(t: Truth, T_base_tcp: np.ndarray, noise: tuple[float, Ro
         W = A[:, :g, g:]
         out.append(A[:, :g, :g] - W @ np.linalg.solve(V, np.swapaxes(W, 1, 2)))
     return np.concatenate(out)
-
-
-def _turned(C: np.ndarray, rng: np.random.Generator, half_fov: float) -> np.ndarray:
-    """Views C (n, 4, 4) turned about the camera centre across the optical axis, by up to
-    ``half_fov`` in a random direction, so the board lands anywhere in the image."""
-    turn = np.tile(np.eye(4), (len(C), 1, 1))
-    angle = rng.uniform(0.0, 2.0 * np.pi, len(C))
-    xy = half_fov * rng.uniform(0.0, 1.0, (len(C), 1)) * np.column_stack([np.cos(angle),
-                                                                           np.sin(angle)])
-    turn[:, :3, :3] = Rotation.from_rotvec(np.column_stack([xy, np.zeros(len(C))])).as_matrix()
-    return turn @ C
-
-
-def _around_board(t: Truth, rng: np.random.Generator, n: int, d0: float) -> np.ndarray:
-    """T_cam_target (n, 4, 4) of views around the board (module docstring)."""
-    grid = t.board.points()
-    centre = grid[[0, -1]].mean(axis=0)
-    look = centre + (grid[-1] - centre) * rng.uniform(-1.0, 1.0, (n, 3)) * [1, 1, 0]
-    tilt = np.deg2rad(MAX_TILT_DEG) * np.sqrt(rng.uniform(0.0, 1.0, n))
-    dist = rng.uniform(max(0.05, d0 - 0.45), d0 + 0.45, n)
-    return np.stack([look_at_view(look[k], tilt[k], *rng.uniform(0, 2 * np.pi, 2), dist[k])
-                     for k in range(n)])
-
-
-def _look_from(eye: np.ndarray, at: np.ndarray, roll: np.ndarray) -> np.ndarray:
-    """R_cam_base (n, 3, 3) of cameras at ``eye`` (n, 3) looking at ``at`` (n, 3), rolled."""
-    z = at - eye
-    z /= np.linalg.norm(z, axis=1, keepdims=True)
-    x = np.cross(z, _other_axis(z))
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    R = np.stack([x, np.cross(z, x), z], axis=2)  # columns: camera axes in the base frame
-    return np.swapaxes(R @ Rotation.from_rotvec(np.outer(roll, [0, 0, 1])).as_matrix(), 1, 2)
-
-
-def _other_axis(z: np.ndarray) -> np.ndarray:
-    """An axis (n, 3) not parallel to each row of ``z`` (n, 3)."""
-    return np.where(np.abs(z[:, 2:]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
-
-
-def _from_box(t: Truth, rng: np.random.Generator, n: int) -> np.ndarray:
-    """T_cam_target (n, 4, 4) of views from anywhere in the box (module docstring)."""
-    lo, hi = t.box
-    X, Y = t.cell.hand_eye, t.cell.target_pose
-    grid = t.board.points()
-    on_board = grid[0] + (grid[-1] - grid[0]) * rng.uniform(0.0, 1.0, (n, 3))
-    roll = rng.uniform(0.0, 2.0 * np.pi, n)
-    if t.setup == "eye_in_hand":  # the camera anywhere in the box, looking at a board point
-        eye = rng.uniform(lo, hi, (n, 3))
-        R = _look_from(eye, on_board @ Y[:3, :3].T + Y[:3, 3], roll)  # R_cam_base
-        C = np.tile(np.eye(4), (n, 1, 1))
-        C[:, :3, :3] = R @ Y[:3, :3]
-        C[:, :3, 3] = np.einsum("nij,nj->ni", R, Y[:3, 3] - eye)
-        return C
-    # eye-to-hand: the tool anywhere in the box, the board facing the camera; its centre's
-    # line of sight depends on the board's turn, so two rounds settle it
-    tcp = rng.uniform(lo, hi, (n, 3))
-    tcp_cam = (tcp - X[:3, 3]) @ X[:3, :3]  # tool positions in the camera frame
-    centre = on_board
-    C = np.tile(np.eye(4), (n, 1, 1))
-    tilt = np.deg2rad(MAX_TILT_DEG) * np.sqrt(rng.uniform(0.0, 1.0, n))
-    tilt_turn = Rotation.from_rotvec(np.column_stack([np.cos(roll), np.sin(roll), 0 * roll])
-                                     * tilt[:, None]).as_matrix()
-    sight = tcp_cam
-    for _ in range(2):
-        R_cam_target = np.swapaxes(_look_from(np.zeros((n, 3)), sight,
-                                              rng.uniform(0, 2 * np.pi, n)), 1, 2) @ tilt_turn
-        # the tcp at tcp_cam: C = inv(X) P Y, so the board origin is tcp_cam + R_cam_tcp t_Y
-        C[:, :3, :3] = R_cam_target
-        C[:, :3, 3] = tcp_cam + (R_cam_target @ Y[:3, :3].T) @ Y[:3, 3]
-        sight = np.einsum("nij,nj->ni", R_cam_target, centre) + C[:, :3, 3]
-    return C
-
-
-def feasible(t: Truth, C: np.ndarray) -> np.ndarray:
-    """Which views C = T_cam_target (n, 4, 4) the cell detects and the box allows, (n,)."""
-    p = np.einsum("nij,mj->nmi", C[:, :3, :3], t.scene.true_board_points()) + C[:, None, :3, 3]
-    front = (p[..., 2] > 0.02).all(axis=1)
-    uv = Pinhole(t.cell.K, t.cell.dist).project(np.where(p[..., 2:] > 0.02, p, 1.0)
-                                                .reshape(-1, 3)).reshape(len(C), -1, 2)
-    w, h = t.scene.camera.image_size
-    m = IMAGE_MARGIN_PX
-    inside = ((uv >= m) & (uv <= [w - m, h - m])).all(axis=(1, 2))
-    facing = C[:, 2, 2] > np.cos(np.deg2rad(CornerCell.MAX_DETECT_TILT_DEG))
-    P = robot_from_camera(C, t.cell.hand_eye, t.cell.target_pose, t.setup)
-    ok = front & inside & facing & _in_box(t, P[:, :3, 3])
-    if t.setup == "eye_in_hand":
-        ok &= _in_box(t, (P @ t.cell.hand_eye)[:, :3, 3])
-    return ok
-
-
-def _in_box(t: Truth, p: np.ndarray) -> np.ndarray:
-    lo, hi = t.box
-    return ((p >= lo + BOX_MARGIN_M) & (p <= hi - BOX_MARGIN_M)).all(axis=1)
-
-
-def pool(t: Truth, rng: np.random.Generator, draws: int = DRAWS) -> np.ndarray:
-    """Feasible views of both families, as T_base_tcp (n, 4, 4): rounds of ``draws`` per
-    family (the views from the box half of them turned) until ``POOL`` are feasible or
-    ``ROUNDS`` rounds are drawn."""
-    C0 = camera_from_robot(t.start, t.cell.hand_eye, t.cell.target_pose, t.setup)
-    half_fov = float(np.arctan(t.scene.camera.image_size[0] / 2.0 / t.cell.K[0, 0]))
-    found: list[np.ndarray] = []
-    for _ in range(ROUNDS):
-        box = _from_box(t, rng, draws)
-        C = np.concatenate([
-            _turned(_around_board(t, rng, draws, float(np.linalg.norm(C0[:3, 3]))), rng,
-                    half_fov), box[: draws // 2], _turned(box[draws // 2:], rng, half_fov)])
-        found.append(C[feasible(t, C)])
-        if sum(len(c) for c in found) >= POOL:
-            break
-    C = np.concatenate(found)[:POOL]
-    return robot_from_camera(C, t.cell.hand_eye, t.cell.target_pose, t.setup)
 
 
 def _diag_of_inverse(S: np.ndarray) -> np.ndarray:
@@ -384,7 +234,8 @@ def bound_cell(k: int, stations: int, *, draws: int = DRAWS) -> Row:
                sigma_mm=(1e3 * sig[:, 1]).tolist(), first=_first(sig),
                ratio_greedy=float((sig[n] / _TOL).max()), ratio_exchange=r_ex,
                ratio_restart=r_restart, floor_first=_first(floor),
-               poses=[t.start.tolist(), *[P[i].tolist() for i in swapped]])
+               poses=[t.start.tolist(), *[P[i].tolist() for i in swapped]],
+               greedy_poses=[t.start.tolist(), *[P[i].tolist() for i in chosen]])
 
 
 def validate(row: Row) -> str:
@@ -395,14 +246,10 @@ def validate(row: Row) -> str:
     its variance components found and the σ predicted at that noise) and says it with the σ
     predicted at the calibration's and the mock's noise."""
     t = truth(row.cell)
-    cell = CornerCell(t.scene)
-    shots = [s for s in (cell.shoot(np.array(P)) for P in row.poses) if s.corners is not None]
+    shots = _shots(t, row.poses)
     P = np.stack([s.T_base_tcp for s in shots])
     try:
-        res = calibrate(station_set(
-            [s.corners for s in shots], [ur_pose_from_matrix(p) for p in P], t.board,
-            image_size=t.scene.camera.image_size, setup=t.setup),
-            SolverOptions(workspace=(t.scene.workspace.lo, t.scene.workspace.hi)))
+        res = _calibrated(t, shots)
     except ValueError as exc:
         row.calibrated = {}
         return f"cell {row.cell}: the calibration of the design failed: {exc}"
@@ -435,6 +282,43 @@ def validate(row: Row) -> str:
                 f"{v[0]:.4f} / {v[1]:.3f} at the {k} noise" for k, v in predicted.items()))
 
 
+def _shots(t: Truth, poses: list) -> list[Shot]:
+    """The views of ``poses`` (T_base_tcp lists) that ``CornerCell`` detects, in order."""
+    cell = CornerCell(t.scene)
+    return [s for s in (cell.shoot(np.array(P)) for P in poses) if s.corners is not None]
+
+
+def _calibrated(t: Truth, shots: list[Shot]) -> CalibrationResult:
+    """The calibration of ``shots`` as ``benchmarks.cold_start`` makes it (the box given)."""
+    return calibrate(station_set(
+        [s.corners for s in shots], [ur_pose_from_matrix(s.T_base_tcp) for s in shots],
+        t.board, image_size=t.scene.camera.image_size, setup=t.setup),
+        SolverOptions(workspace=(t.scene.workspace.lo, t.scene.workspace.hi)))
+
+
+def honest_stations(row: Row) -> str:
+    """The fewest stations of the greedy design whose calibration on the mock has its honest
+    σ within the tolerance: the design's views shot once, the start view and the first n
+    stations calibrated for each n of ``HONEST_CHECKS`` in turn (σ need not fall with every
+    station: the robot noise the calibration finds grows as the stations spread). Fills
+    ``row.honest_first`` (-1: not within at any)."""
+    t = truth(row.cell)
+    shots = _shots(t, row.greedy_poses or [])
+
+    def within(n: int) -> bool:
+        try:
+            res = _calibrated(t, shots[:n + 1])
+        except ValueError:
+            return False
+        sig = [np.linalg.norm(res.sigmas[k]) for k in ("hand_eye_rot_rad", "hand_eye_trans_m")]
+        return bool((np.array(sig) <= _TOL).all())
+
+    hit = next((n for n in HONEST_CHECKS if n < len(shots) and within(n)), None)
+    row.honest_first = -1 if hit is None else hit
+    return (f"cell {row.cell}: the greedy design calibrated on the mock: honest σ within the "
+            f"tolerance from {count(row.honest_first)} stations ({len(shots)} views detected)")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true",
@@ -445,6 +329,9 @@ def main() -> None:
     parser.add_argument("--draws", type=int, default=DRAWS, help="candidate views per family")
     parser.add_argument("--validate", type=_numbers, default=[], metavar="K[,K...]",
                         help="calibrate the oracle's design of these cells on the mock")
+    parser.add_argument("--honest", action="store_true",
+                        help="the stations at which each greedy design's honest σ, calibrated "
+                             "on the mock, is first within the tolerance")
     parser.add_argument("--from-log", action="store_true",
                         help="the designs of the last run's log instead of new ones")
     parser.add_argument("--cold-log", type=Path, default=OUT / "cold_start.jsonl",
@@ -466,6 +353,8 @@ def main() -> None:
               flush=True)
         if k in args.validate:
             print(validate(row), flush=True)
+        if args.honest:
+            print(honest_stations(row), flush=True)
         rows.append(row)
         write_rows(log, rows + [r for c, r in logged.items() if c not in cells[:len(rows)]])
     cold = read_cold_start(args.cold_log)

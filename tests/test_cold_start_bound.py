@@ -6,22 +6,24 @@ from __future__ import annotations
 import numpy as np
 
 from benchmarks import cold_start_bound as bound
+from benchmarks import cold_start_views as views
+from calib.chain import camera_from_robot
 from calib.viewselect import station_information
 
 
 def test_information_at_the_planners_noise_is_the_planners() -> None:
-    t = bound.truth(13)
-    P = bound.pool(t, np.random.default_rng(0), draws=100)[:4]
+    t = views.truth(13)
+    P = views.pool(t, np.random.default_rng(0), draws=100)[:4]
     ours = bound.station_information(t, P, bound.PLANNER_NOISE)
     np.testing.assert_allclose(ours, station_information(t.cell, P, t.board, t.setup),
                                rtol=1e-9, atol=1e-9 * np.abs(ours).max())
 
 
 def test_greedy_design_lowers_sigma_with_every_station() -> None:
-    t = bound.truth(13)
-    P = bound.pool(t, np.random.default_rng(0), draws=150)
+    t = views.truth(13)
+    P = views.pool(t, np.random.default_rng(0), draws=150)
     assert len(P) >= 20
-    assert bound.feasible(t, bound.camera_from_robot(
+    assert views.feasible(t, camera_from_robot(
         P, t.cell.hand_eye, t.cell.target_pose, t.setup)).all()
     noise = bound.calibration_noise(t.scene)
     S0 = bound.station_information(t, t.start[None], noise)[0] + bound.prior_information()
