@@ -39,6 +39,8 @@ exchange finds (neither is a global optimum).
     python -m benchmarks.cold_start_bound                 # 50 cells, table and figure
     python -m benchmarks.cold_start_bound --quick         # 4 cells, smaller pools
     python -m benchmarks.cold_start_bound --only 8,10 --validate 8   # and calibrate cell 8
+    python -m benchmarks.cold_start_bound --from-log --honest   # the logged greedy designs,
+                                                     # calibrated: stations to honest σ
 
 Prints a table and writes benchmarks/results/cold_start_bound.png.
 """
