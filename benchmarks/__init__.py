@@ -9,10 +9,23 @@ benchmark writes there instead, so a test's quick run never replaces the recorde
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
+from typing import Any
 
 
 def results_dir() -> Path:
     """Where a benchmark writes its tables and figures (``CELLCAL_BENCH_OUT`` or
     ``benchmarks/results/``)."""
     return Path(os.environ.get("CELLCAL_BENCH_OUT") or Path(__file__).parent / "results")
+
+
+def interrupt_on_sigterm() -> None:
+    """Turn SIGTERM into KeyboardInterrupt, so a benchmark stopped with ``kill`` runs its
+    ``finally`` and ``with`` exits (reaps its server, terminates its worker pool) instead of
+    leaving its children running."""
+
+    def on_term(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, on_term)

@@ -61,7 +61,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from benchmarks import results_dir
+from benchmarks import interrupt_on_sigterm, results_dir
 from benchmarks.cold_start_report import (
     FIRST_CHECK,
     MAX_STATIONS,
@@ -352,6 +352,7 @@ def main() -> None:
     parser.add_argument("--from-log", action="store_true",
                         help="only tabulate the cells a previous run logged")
     args = parser.parse_args()
+    interrupt_on_sigterm()  # the worker pool is terminated, not left running
     cells = args.only or list(range(args.cells or (6 if args.quick else 50)))
     OUT.mkdir(exist_ok=True)
     log = OUT / "cold_start.jsonl"

@@ -34,7 +34,6 @@ import contextlib
 import datetime as dt
 import os
 import secrets
-import signal
 import sys
 import tempfile
 import threading
@@ -64,7 +63,7 @@ from mocks.scene import default_scene, sample_station_poses
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from benchmarks import results_dir
+from benchmarks import interrupt_on_sigterm, results_dir
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -378,10 +377,7 @@ def main() -> int:
                            else (args.backend,))
     n = args.stations or (20 if args.quick else 80)
 
-    def on_term(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt  # run every finally: reap the server, remove temp dirs
-
-    signal.signal(signal.SIGTERM, on_term)
+    interrupt_on_sigterm()  # run every finally: reap the server, remove temp dirs
     T = sample_station_poses(default_scene(), n + 3, np.random.default_rng(2026))
     poses = ur_pose_from_matrix(T).tolist()
     busy = machine_busy()
