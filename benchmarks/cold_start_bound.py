@@ -73,9 +73,10 @@ from calib import (
     calibrate,
     pose_error,
     ur_pose_from_matrix,
+    viewselect,
 )
 from calib.chain import RobotNoise, camera_from_robot
-from calib.joint import GLOBAL_PARAMS, JointOptions, JointProblem
+from calib.joint import GLOBAL_PARAMS, JointOptions
 from calib.viewselect import INTRINSICS_TOLERANCE, SIGMA_PX, hand_eye_sigma, prior_information
 from mocks.blindcells import CornerCell, Shot
 from mocks.scene import MockScene, true_tcp_pose
@@ -105,22 +106,12 @@ def mock_noise(scene: MockScene) -> tuple[float, RobotNoise]:
 
 def station_information(t: Truth, T_base_tcp: np.ndarray, noise: tuple[float, RobotNoise]
                         ) -> np.ndarray:
-    """Reduced Fisher information (k, 23, 23) of each view T_base_tcp (k, 4, 4) at the truth:
-    ``calib.viewselect.station_information`` with the noise (σ_px, robot) as an argument (the
-    planner fixes it at its own), in chunks."""
-    grid = t.board.points()[:, :2]
-    options = JointOptions(sigma_px=noise[0], setup=t.setup, noise=noise[1])
-    out = []
-    for T in np.array_split(T_base_tcp, max(1, len(T_base_tcp) // 300)):
-        problem = JointProblem([grid] * len(T), [np.zeros_like(grid)] * len(T), T, t.cell,
-                               options)
-        _, blocks = problem.evaluate(problem.x0())  # (m, 2, g + 6)
-        A = np.add.reduceat(np.einsum("mki,mkj->mij", blocks, blocks), problem.starts, axis=0)
-        g = problem.n_free_global
-        V = A[:, g:, g:] + np.diag(1.0 / problem.prior_sigma ** 2)
-        W = A[:, :g, g:]
-        out.append(A[:, :g, :g] - W @ np.linalg.solve(V, np.swapaxes(W, 1, 2)))
-    return np.concatenate(out)
+    """Reduced Fisher information (k, 23, 23) of each view T_base_tcp (k, 4, 4) at the truth
+    (``calib.viewselect.station_information`` at the noise (σ_px, robot)), in chunks of 300."""
+    return np.concatenate([
+        viewselect.station_information(t.cell, T, t.board, JointOptions(
+            sigma_px=noise[0], setup=t.setup, noise=noise[1]))
+        for T in np.array_split(T_base_tcp, max(1, len(T_base_tcp) // 300))])
 
 
 def _diag_of_inverse(S: np.ndarray) -> np.ndarray:

@@ -22,7 +22,6 @@ fixed pattern.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -109,15 +108,14 @@ class Choice:
 
 
 def station_information(cell: CellParameters, T_base_tcp: np.ndarray, board: Board,
-                        setup: str, ids: Sequence[np.ndarray] | None = None) -> np.ndarray:
+                        model: JointOptions) -> np.ndarray:
     """Reduced Fisher information of each station (k, 23, 23), the station's own correction
-    eliminated, at the estimate ``cell`` (the corner Jacobian does not depend on where the
-    corners were seen, so none are needed)."""
+    eliminated, at the estimate ``cell`` under the joint ``model`` (setup, corner and robot
+    noise; the planner's is ``SIGMA_PX`` and the default robot noise). The corner Jacobian
+    does not depend on where the corners were seen, so none are needed."""
     T = np.asarray(T_base_tcp, dtype=float).reshape(-1, 4, 4)
     grid = board.points()[:, :2]
-    grids = [grid if ids is None else grid[i] for i in (ids or [None] * len(T))]
-    problem = JointProblem(grids, [np.zeros_like(g) for g in grids], T, cell,
-                           JointOptions(sigma_px=SIGMA_PX, setup=setup))
+    problem = JointProblem([grid] * len(T), [np.zeros_like(grid)] * len(T), T, cell, model)
     _, blocks = problem.evaluate(problem.x0())  # (m, 2, 23 + 6)
     per_corner = np.einsum("mki,mkj->mij", blocks, blocks)
     A = np.add.reduceat(per_corner, problem.starts, axis=0)  # (k, 29, 29)
@@ -149,9 +147,10 @@ def choose_view(cell: CellParameters, scene: Scene, reach: Reach, history: Histo
     if not keep.any():
         return None
     P_ok = P[keep]
-    S0 = station_information(cell, history.visited, scene.board, scene.setup).sum(axis=0) \
+    model = JointOptions(sigma_px=SIGMA_PX, setup=scene.setup)
+    S0 = station_information(cell, history.visited, scene.board, model).sum(axis=0) \
         + prior_information()
-    S_c = station_information(cell, P_ok, scene.board, scene.setup)
+    S_c = station_information(cell, P_ok, scene.board, model)
     cov = np.linalg.inv(S0[None] + S_c)
     rot_tol, trans_tol = scene.tolerance
     d = np.einsum("kii->ki", cov)

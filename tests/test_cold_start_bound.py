@@ -8,14 +8,16 @@ import numpy as np
 from benchmarks import cold_start_bound as bound
 from benchmarks import cold_start_views as views
 from calib.chain import camera_from_robot
-from calib.viewselect import station_information
+from calib.joint import JointOptions
+from calib.viewselect import SIGMA_PX, station_information
 
 
 def test_information_at_the_planners_noise_is_the_planners() -> None:
     t = views.truth(13)
     P = views.pool(t, np.random.default_rng(0), draws=100)[:4]
     ours = bound.station_information(t, P, bound.PLANNER_NOISE)
-    np.testing.assert_allclose(ours, station_information(t.cell, P, t.board, t.setup),
+    planner = JointOptions(sigma_px=SIGMA_PX, setup=t.setup)
+    np.testing.assert_allclose(ours, station_information(t.cell, P, t.board, planner),
                                rtol=1e-9, atol=1e-9 * np.abs(ours).max())
 
 
