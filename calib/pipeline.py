@@ -286,11 +286,13 @@ def _choose_model(stage: _Stage, stations: CornerStations, ids: list[str],
                                 JointModel("all estimated", stage.fix, options.noise), first,
                                 kappa=options.kappa_mode)
     if options.workspace is not None:
-        # the stations' estimate used over the whole box (calib.extrapolation)
+        # the stations' estimate used over the whole box (calib.extrapolation); ``data`` holds
+        # the kept stations in the order of the result's corrections (its ``stations`` index
+        # all the stations, so they do not index ``data``)
         result = stage.choice.result
         stage.choice = replace(stage.choice, uncertainty=with_extrapolation(
             stage.choice.uncertainty, box_shift_sigmas(
-                data.stations.T_base_tcp[result.stations], result.corrections,
+                data.stations.T_base_tcp, result.corrections,
                 result.hand_eye, data.setup, options.workspace)))
     joint = stage.choice.result
     stage.K, stage.dist, stage.nu, stage.kappa = joint.K, joint.dist, joint.nu, joint.kappa

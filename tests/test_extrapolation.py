@@ -9,11 +9,13 @@ import pytest
 from calib import SolverOptions, so3
 from calib.extrapolation import box_shift_sigmas, implied_hand_eyes
 from calib.geometry import invert, make_transform
-from tests.support.projected import calibrate, stations
+from calib.pipeline import StationInputs, calibrate_stations
+from tests.support.projected import BOARD, calibrate, scene, stations
 
 BOX = (np.array([-0.25, -0.25, 0.2]), np.array([0.25, 0.25, 0.7]))
 CENTRE = (BOX[0] + BOX[1]) / 2
 X = make_transform(so3.exp(np.array([0.3, -1.2, 0.4])), [0.05, -0.02, 0.11])
+SIZE = tuple(scene(1.0).camera.image_size)
 
 
 def _readings(positions: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -90,6 +92,28 @@ def test_a_calibration_given_its_box_reports_the_term_in_its_hand_eye_sigma():
         assert np.all(u.extrapolation[name] > 0)
         assert np.allclose(res.sigmas[name], np.hypot(plain.sigmas[name], u.extrapolation[name]))
     assert "workspace box" in u.note and not plain.trust.uncertainty.extrapolation
+
+
+def test_the_term_is_taken_over_the_stations_kept_when_one_is_dropped():
+    """A station the joint fit drops (its robot pose is 4 mm off) leaves the term to the
+    others, as if it had not been captured. The kept stations' indices then run past their
+    count: a cold-start demo run that dropped one failed with an IndexError. (The two fits
+    start from different values, so they agree to about 0.3 %.)"""
+    corners, poses = stations()
+    poses[3][0] += 4e-3
+    box = (CENTRE - 0.4, CENTRE + 0.4)
+    res = calibrate_stations(StationInputs(corners, poses, image_size=SIZE), BOARD,
+                             SolverOptions(workspace=box))
+    assert [i for i, _ in res.rejected] == ["003"]
+    others = [k for k in range(len(poses)) if k != 3]
+    without = calibrate_stations(StationInputs([corners[k] for k in others],
+                                               [poses[k] for k in others], image_size=SIZE),
+                                 BOARD, SolverOptions(workspace=box))
+    assert without.rejected == ()
+    for name in ("hand_eye_rot_rad", "hand_eye_trans_m"):
+        term = res.trust.uncertainty.extrapolation[name]
+        assert np.all(term > 0)
+        assert np.allclose(term, without.trust.uncertainty.extrapolation[name], rtol=0.02)
 
 
 def test_a_box_that_is_not_two_ordered_corners_is_refused():

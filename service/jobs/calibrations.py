@@ -152,7 +152,7 @@ class Calibrations:
                                "it again."}
         except Exception as exc:
             solved = False  # maybe raised before the worker had the call
-            log.error("calibration %s: %s: %s", cal_id, type(exc).__name__, exc)
+            log.exception("calibration %s", cal_id)
             values = {"state": "failed", "error_code": "internal_error",
                       "error": f"Internal error ({type(exc).__name__}: {exc})."}
         try:
