@@ -6,7 +6,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from calib.boards.grid_check import MOVE_CHECKED, keep_consistent, neighbour_prediction
+from calib.boards.grid_check import (
+    MOVE_CHECKED,
+    keep_consistent,
+    neighbour_prediction,
+    stray_corners,
+)
 
 COLS, ROWS = 11, 8
 
@@ -62,3 +67,13 @@ def test_a_stray_refinement_keeps_its_start_and_a_good_one_its_place() -> None:
     assert np.array_equal(kept[others], refined[others])
     # nothing moved that far: the refinement is returned as it is
     assert keep_consistent(refined, refined, (COLS, ROWS), spacing) is refined
+
+
+def test_only_a_corner_a_third_of_a_square_off_is_a_stray() -> None:
+    grid = _board_image(k1=-0.25).reshape(-1, 2)  # distorted as the real OpenCV set
+    assert not stray_corners(grid, (COLS, ROWS)).any()
+    spacing = np.median(np.linalg.norm(np.diff(grid.reshape(ROWS, COLS, 2), axis=1), axis=-1))
+    misread = grid.copy()
+    misread[6] += [0.0, 0.35 * spacing]  # the demo's misplaced corner, on the board's edge
+    assert np.flatnonzero(stray_corners(misread, (COLS, ROWS))).tolist() == [6]
+    assert not stray_corners(grid[:22], (COLS, 2)).any()  # too thin to check

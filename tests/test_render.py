@@ -93,3 +93,15 @@ def test_supersampling_agrees_with_analytic_coverage():
 def test_rejects_bad_pose():
     with pytest.raises(ValueError, match="4x4"):
         render_board(SCENE, np.eye(3))
+
+
+def test_a_corner_the_reduced_search_misplaces_on_a_steep_view_is_found_in_full():
+    """A demo station (board tilted ~70°, its far squares 25 px): the quarter-size search put
+    one corner 19 px off, inside a square, where no refinement moves it. The coarse find is
+    checked against the corners' neighbours (``calib.boards.grid_check.stray_corners``) and
+    the full-size search reads every corner."""
+    pose = np.array([0.30153, -0.700545, 1.224054, 0.049512, -0.132495, 0.574932])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = cv2.Rodrigues(pose[:3])[0], pose[3:]
+    errors = _render_detect_errors(RenderParams.from_scene(SCENE), T[None])
+    assert np.abs(errors).max() < 0.2

@@ -45,7 +45,7 @@ from calib.boards.detection import (
     sharpness,
     sub_pixel,
 )
-from calib.boards.grid_check import keep_consistent
+from calib.boards.grid_check import keep_consistent, stray_corners
 from calib.boards.grid_survey import GridSurvey, diagnose_missing_board, even_square_darkness
 from calib.boards.markers import markers_seen_reason
 
@@ -55,7 +55,8 @@ from calib.boards.markers import markers_seen_reason
 _COARSE_MIN_SIZE = 720
 #: ... and at quarter size first from this size on (quarter-size squares of the 1280x1024
 #: renders and of ``rwhe-kuka_1`` are read there; of the 1280x720 UR Kinect images some are
-#: not). A quarter-size find is kept only when every corner refines on the half-size image.
+#: not). A quarter-size find is kept only when every corner refines on the half-size image,
+#: and a coarse find only when no corner strays from its neighbours (``grid_check``).
 _QUARTER_MIN_SIZE = 960
 #: SB detector flags tried, in order, only when the default call (flags 0, what an OpenCV user
 #: writes) fails: with normalisation (low contrast), the exhaustive search with and without it,
@@ -217,7 +218,8 @@ def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], survey: GridSur
     Coarse corners are scaled back (a half-size pixel centre x sits at 2x + 0.5) and are
     only a start for :func:`refine_corners` at full resolution; quarter-size ones are first
     refined on the half-size copy, and the find is dropped unless all of them converge there
-    (a quarter-size start is up to 2 px off, beyond the full-size window). Only when the
+    (a quarter-size start is up to 2 px off, beyond the full-size window); a coarse find with a
+    corner its neighbours do not predict is dropped too (``stray_corners``). Only when the
     default call fails is the full image searched with each of ``_FALLBACK_FLAGS`` in turn,
     and last the exhaustive search on a locally equalised copy (CLAHE) for boards in shadow or
     glare; except when ``survey`` sees a board larger than ``inner_corners``, or more grid
@@ -235,10 +237,10 @@ def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], survey: GridSur
             if found:
                 start = raw.reshape(-1, 2) * 2.0 + 0.5  # half-size pixels
                 corners, converged = sub_pixel(half, start, _spacing(start, inner_corners))
-                if converged.all():
+                if converged.all() and not stray_corners(corners, inner_corners).any():
                     return True, corners * 2.0 + 0.5
         found, raw = find_board_sb(half, inner_corners)
-        if found:
+        if found and not stray_corners(raw.reshape(-1, 2), inner_corners).any():
             return True, raw * 2.0 + 0.5
         in_view = GridSurvey(half)  # a grid has the same size at half size, 4x cheaper
     found, raw = find_board_sb(grey, inner_corners)
