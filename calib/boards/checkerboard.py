@@ -40,7 +40,6 @@ from calib.boards.detection import (
     find_board_sb,
     grey_range,
     hull_coverage,
-    refine_corners,
     region_sharpness,
     sharpness,
     sub_pixel,
@@ -183,8 +182,8 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
     lo, hi = grey_range(grey)
     faint = hi - lo < min_contrast  # a blank frame, or a board in a few grey levels
     survey = GridSurvey(grey)
-    found, raw = ((False, None) if hi == lo
-                  else _find_grid(grey, (cols, rows), survey, quick=faint))
+    found, raw, coarse = ((False, None, False) if hi == lo
+                          else _find_grid(grey, (cols, rows), survey, quick=faint))
     if not found:
         if faint:
             return Detection(ok=False, sharpness=0.0, reason=blank_reason(lo, hi))
@@ -199,8 +198,18 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
 
     corners, ambiguous, contrast = order_corners(grey, raw.reshape(-1, 2), (cols, rows))
     spacing = _spacing(corners, (cols, rows))
-    corners = keep_consistent(corners, refine_corners(grey, corners, spacing), (cols, rows),
-                              spacing)
+    refined, converged = sub_pixel(grey, corners, spacing)
+    if coarse and not converged.all():
+        # a reduced copy's corner the refinement could not reach (on a steep view one 4 px
+        # off) starts again from the full-size search's, if that search reads the board
+        found, raw = find_board_sb(grey, (cols, rows))
+        if found:
+            full = order_corners(grey, raw.reshape(-1, 2), (cols, rows))[0]
+            again = ~converged & (np.linalg.norm(full - corners, axis=1) < spacing / 2)
+            corners[again] = full[again]
+            refined[again], converged[again] = sub_pixel(grey, full[again], spacing)
+    refined[~converged] = corners[~converged]
+    corners = keep_consistent(corners, refined, (cols, rows), spacing)
     sharp = region_sharpness(grey, corners)
     metrics = {"sharpness": sharp, "coverage": hull_coverage(corners, grey.shape),
                "mean_contrast": contrast, "ambiguous": ambiguous}
@@ -210,7 +219,7 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
 
 
 def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], survey: GridSurvey, *,
-               quick: bool = False) -> tuple[bool, np.ndarray | None]:
+               quick: bool = False) -> tuple[bool, np.ndarray | None, bool]:
     """OpenCV's SB detector with its default flags, on a half-size copy of a large image first
     (about 4x faster; a quarter-size copy before it, 4x faster again, from
     ``_QUARTER_MIN_SIZE`` on), then on the full image: the common case costs one call.
@@ -227,7 +236,8 @@ def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], survey: GridSur
     board of exactly the size asked for, so the searches could not succeed (a wrong
     ``inner_corners`` is told in a fraction of a second instead of several; a checker
     texture costs no fallback). ``quick`` (faint images, usually blank frames) tries the
-    normalised searches alone.
+    normalised searches alone. Returns whether it found the board, its corners
+    (cols * rows, 2) in full-size pixels, and whether a reduced copy's search found them.
     """
     in_view = survey
     if min(grey.shape) >= _COARSE_MIN_SIZE:
@@ -238,24 +248,24 @@ def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], survey: GridSur
                 start = raw.reshape(-1, 2) * 2.0 + 0.5  # half-size pixels
                 corners, converged = sub_pixel(half, start, _spacing(start, inner_corners))
                 if converged.all() and not stray_corners(corners, inner_corners).any():
-                    return True, corners * 2.0 + 0.5
+                    return True, corners * 2.0 + 0.5, True
         found, raw = find_board_sb(half, inner_corners)
         if found and not stray_corners(raw.reshape(-1, 2), inner_corners).any():
-            return True, raw * 2.0 + 0.5
+            return True, raw * 2.0 + 0.5, True
         in_view = GridSurvey(half)  # a grid has the same size at half size, 4x cheaper
     found, raw = find_board_sb(grey, inner_corners)
     if found:
-        return True, raw
+        return True, raw, False
     if (not quick and in_view.larger_than(inner_corners)) or survey.lattice(inner_corners):
-        return False, None
+        return False, None, False
     for flags in _FALLBACK_FLAGS[:2] if quick else _FALLBACK_FLAGS:
         found, raw = find_board_sb(grey, inner_corners, flags)
         if found:
-            return True, raw
+            return True, raw, False
     if quick:
-        return False, None
+        return False, None, False
     found, raw = find_board_sb(_CLAHE.apply(grey), inner_corners, _FALLBACK_FLAGS[1])
-    return (True, raw) if found else (False, None)
+    return (True, raw, False) if found else (False, None, False)
 
 
 def _spacing(corners: np.ndarray, inner_corners: tuple[int, int]) -> float:
