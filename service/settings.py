@@ -17,7 +17,7 @@ import numpy as np
 from pydantic import Field, SecretStr, ValidationInfo, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from calib import Target, TargetAdapter, matrix_from_ur_pose
+from calib import SolverOptions, Target, TargetAdapter, matrix_from_ur_pose
 from drivers import registry
 from drivers.base import CellHints
 
@@ -205,6 +205,13 @@ class Settings(BaseSettings):
         """The TCP box (lo, hi corners, base frame, m), as the planners and ``calib``'s
         ``SolverOptions.workspace`` take it."""
         return self.workspace_min, self.workspace_max
+
+    def cold_start_solver(self, solver: SolverOptions | None = None) -> SolverOptions:
+        """``solver`` (default options if None) for a cold-start run's stations: told the
+        workspace box, so the hand-eye σ covers using the result anywhere in it
+        (``calib.extrapolation``). The run's stop rule and its calibrations both use it, so
+        the σ a run stopped at is the σ its result reports."""
+        return dataclasses.replace(solver or SolverOptions(), workspace=self.workspace())
 
     def calibration_setup(self) -> str:
         """``eye_in_hand`` or ``eye_to_hand``: the setting, else the backend's, else

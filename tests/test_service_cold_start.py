@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from calib import COVERAGE_90, pose_error, ur_pose_from_matrix
+from calib import COVERAGE_90, SolverOptions, pose_error, ur_pose_from_matrix
 from mocks.blindcells import random_blind_scene
 from service.app import create_app
 from service.settings import Settings
@@ -166,3 +166,14 @@ def test_an_interrupted_cold_start_run_resumes_where_it_was(tmp_path):
     old = np.array([s["commanded_tcp_pose"] for s in kept])
     # each new station is a new pose, none a replay of an earlier one (the start included)
     assert len(new) and np.min(np.linalg.norm(new[:, None] - old[None], axis=2)) > 1e-3
+
+
+def test_a_cold_start_calibration_keeps_the_users_options_and_adds_the_box(tmp_path):
+    """The stop rule's σ and the run's calibrations are solved with the same box
+    (``Settings.cold_start_solver``); a user's options are kept."""
+    scene = random_blind_scene(3, "eye_to_hand")
+    settings = _settings(tmp_path, scene)
+    assert settings.cold_start_solver().workspace == settings.workspace()
+    mine = settings.cold_start_solver(SolverOptions(method="refine", outlier_sigma=4.0))
+    assert (mine.method, mine.outlier_sigma) == ("refine", 4.0)
+    assert mine.workspace == (scene.workspace.lo, scene.workspace.hi)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import logging
 import threading
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 from calib import MIN_IMAGES, Result
@@ -104,8 +104,8 @@ class Calibrations:
                                          instance_id=self.instance_id, state="running",
                                          options=options.model_dump())
             solver = options.solver()
-            if run.cold_start is not None:  # a cold-start run was told its box: σ over it
-                solver = replace(solver, workspace=self.settings.workspace())
+            if run.cold_start is not None:
+                solver = self.settings.cold_start_solver(solver)
             job = SolveJob(cal_id=cal.id, run_id=run_id, stations=stations, options=solver)
         return cal, job
 

@@ -33,7 +33,6 @@ from calib import (
     ColdStartScene,
     Guess,
     Proposal,
-    SolverOptions,
     Station,
     Stations,
     View,
@@ -252,7 +251,7 @@ class ColdStartCapture(Capture):
         the axes), or None when they cannot be calibrated yet."""
         try:
             result = calibrate(Stations(self.setup, tuple(good), self.target),
-                               SolverOptions(workspace=self.settings.workspace()))
+                               self.settings.cold_start_solver())
         except ValueError as exc:
             log.info("run %s: no honest σ yet after %d stations (%s)", self.run_id, len(good),
                      exc)
