@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import re
 import threading
-import time
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +22,7 @@ from mocks.scene import default_scene
 from service.app import create_app
 from service.cell.devices import settings_opener
 from service.settings import Settings
-from tests.support.helpers import undeclared_fields
+from tests.support.helpers import undeclared_fields, wait_for
 from tests.support.service import (
     AUTH,
     KEY,
@@ -220,11 +219,9 @@ def test_pause_then_resume_captures_each_station_once(client: TestClient) -> Non
     wait_run(client, run_id, lambda r: r["stations_captured"] >= 1)
     r = client.post(f"/runs/{run_id}/pause")
     assert r.status_code == 200 and r.json()["state"] == "paused"
-    time.sleep(0.4)  # the station in progress is dropped, nothing more is captured
-    held = client.get(f"/runs/{run_id}").json()
-    time.sleep(0.4)
-    assert client.get(f"/runs/{run_id}").json()["stations_captured"] == \
-        held["stations_captured"] < 10
+    wait_for("the capture thread to end", client.app.state.runtime.motion.idle)
+    held = client.get(f"/runs/{run_id}").json()  # the station in progress ended or dropped
+    assert held["state"] == "paused" and held["stations_captured"] < 10
     assert client.post(f"/runs/{run_id}/pause").json()["state"] == "paused"  # idempotent
     assert client.post(f"/runs/{run_id}/resume").json()["state"] == "capturing"
     run = wait_run(client, run_id, finished)
@@ -239,7 +236,7 @@ def test_cancel_stops_the_run_for_good(client: TestClient) -> None:
     run_id = start_run(client, 10)
     wait_run(client, run_id, lambda r: r["stations_captured"] >= 1)
     assert client.post(f"/runs/{run_id}/cancel").json()["state"] == "cancelled"
-    time.sleep(0.5)
+    wait_for("the capture thread to end", client.app.state.runtime.motion.idle)
     run = client.get(f"/runs/{run_id}").json()
     assert run["state"] == "cancelled" and run["stations_captured"] < 10
     assert client.post(f"/runs/{run_id}/cancel").status_code == 200  # idempotent
@@ -352,7 +349,8 @@ def test_restart_mid_run_then_resume_loses_and_duplicates_nothing(tmp_path: Path
             run = wait_run(new, run_id, finished)
             assert (run["state"], run["stations_captured"]) == ("done", 6)
             gate.set()  # the old thread wakes up: its station must not be stored
-            time.sleep(0.5)
+            wait_for("the old service's capture thread to end",
+                     old.app.state.runtime.motion.idle)
             assert station_indices(new, run_id) == list(range(6))
             assert new.get(f"/runs/{run_id}").json()["state"] == "done"
     assert len(list((tmp_path / "runs" / run_id).glob("*.png"))) == 6

@@ -112,6 +112,12 @@ class Motion:
             self._threads[key] = thread
         thread.start()
 
+    def idle(self) -> bool:
+        """True when no motion thread (capture run, validation) is alive: a paused or
+        cancelled run's thread has ended its station in progress and captures nothing more."""
+        with self._threads_lock:
+            return not self._threads
+
     def stop_if_moving(self, key: str) -> None:
         """Stop the robot if the thread ``key`` is driving it."""
         with self._threads_lock:
