@@ -228,9 +228,9 @@ class ColdStart:
         return Reach(max_tilt_deg=min(50.0, 10.0 + 4.0 * k),
                      band=(self._d0 * band[0], self._d0 * band[1]),
                      max_roll_deg=min(90.0, 15.0 + 8.0 * k),
-                     step=(np.deg2rad(s * min(60.0, 10.0 + 5.0 * k)),
+                     step=(np.deg2rad(s * min(180.0, 10.0 + 8.0 * k)),
                            s * min(0.4, 0.05 + 0.03 * k)),
-                     margin_frac=max(0.04, 0.15 - 0.01 * k),
+                     margin_frac=max(0.03, 0.15 - 0.01 * k),
                      camera_margin=self._camera_margin())
 
     def _relaxed(self, reach: Reach) -> Reach:

@@ -1,13 +1,17 @@
 """The next station chosen by what it teaches: candidate views scored by predicted uncertainty.
 
-Given the current estimate of the cell (``calib.coldstart``), candidate views are drawn around
-the board (``calib.planning.look_at_view``: tilt, azimuth, roll, distance, look-at point)
-within a *reach* that grows as the estimate firms up (:class:`Reach`), and as small tool moves
-from the last good pose. A candidate is feasible
-when, under the estimate, the whole board projects inside the image with a margin, the view is
-not too oblique, its tcp (and, eye-in-hand, its camera, along the whole move) stays inside the
-safety box by a margin, the move from the last good pose is within the reach's step, and it is
-not near a view where the board was already lost.
+Given the current estimate of the cell (``calib.coldstart``), candidate views are drawn within
+a *reach* that grows as the estimate firms up (:class:`Reach`) in three families: views that
+look at the board (``calib.planning.look_at_view``: tilt, azimuth, roll, distance, look-at
+point), half of them turned about the camera centre so the board lands anywhere in the image
+(:func:`turned_toward`); views from where the box lets the camera (eye-in-hand) or the board
+(eye-to-hand) go (:func:`_in_box`); and small tool moves from the last good pose. A candidate
+is feasible when, under the estimate, the whole board projects inside the image with a
+margin, the view is not too oblique, its tcp (and, eye-in-hand, its camera, along the whole
+move) stays inside the safety box by a margin, the move from the last good pose is within the
+reach's step, and it is not near a view where the board was already lost. Rounds of
+candidates are drawn until ``FEASIBLE_WANTED`` are feasible: on a far board 5-15 % of the
+draws are, and the choice is only as good as the views it is offered.
 
 Each feasible candidate is scored by the covariance the joint model (``calib.joint``) would
 have with it added: the Fisher information of the joint problem with the station corrections
@@ -18,6 +22,13 @@ tolerance (rotation and translation), plus the focal length and principal point'
 ``INTRINSICS_TOLERANCE``: the A-optimal design criterion restricted to what the user asked
 for. The candidate with the lowest score is visited; it is a fresh draw every step, not a
 fixed pattern.
+
+Why the board anywhere in the image and the camera anywhere in the box: a turn of the camera
+across its optical axis is what fixes the hand-eye translation along it (the focal length and
+the distance otherwise trade against each other), and for a far board the box keeps the camera
+within about 10° of its first line of sight unless the board may leave the image centre. An
+oracle design over such views at the true cell (``benchmarks.cold_start_bound``) reaches the
+tolerance's formal σ after 10 stations at the 90th percentile.
 """
 
 from __future__ import annotations
@@ -48,6 +59,10 @@ FAILED_NEAR = (np.deg2rad(6.0), 0.03)
 CAMERA_MARGIN_M = 0.03
 #: Points of a move at which the camera's position is checked.
 PATH_SAMPLES = 6
+#: Candidates are drawn in rounds until this many are feasible, or ``ROUNDS`` rounds.
+FEASIBLE_WANTED, ROUNDS = 150, 4
+#: Share of the views that look at the board turned so it lands on a random pixel.
+PAN_SHARE = 0.5
 _HAND_EYE = slice(GLOBAL_PARAMS.index("hand_eye_rx"), GLOBAL_PARAMS.index("hand_eye_rx") + 3)
 _HAND_EYE_T = slice(_HAND_EYE.stop, _HAND_EYE.stop + 3)
 
@@ -141,12 +156,17 @@ def choose_view(cell: CellParameters, scene: Scene, reach: Reach, history: Histo
                 rng: np.random.Generator) -> Choice | None:
     """The feasible candidate that most reduces the predicted uncertainty (module
     docstring), or None when no drawn candidate is feasible."""
-    P = np.concatenate([_candidates(cell, scene, reach, rng),
-                        _nearby(history.last_good, reach, rng)])
-    keep = _feasible(P, cell, scene, reach, history)
-    if not keep.any():
+    drawn, found = 0, []
+    for _ in range(ROUNDS):
+        P = np.concatenate([_candidates(cell, scene, reach, history.last_good, rng),
+                            _nearby(history.last_good, reach, rng)])
+        drawn += len(P)
+        found.append(P[_feasible(P, cell, scene, reach, history)])
+        if sum(len(f) for f in found) >= FEASIBLE_WANTED:
+            break
+    P_ok = np.concatenate(found)
+    if not len(P_ok):
         return None
-    P_ok = P[keep]
     model = JointOptions(sigma_px=SIGMA_PX, setup=scene.setup)
     S0 = station_information(cell, history.visited, scene.board, model).sum(axis=0) \
         + prior_information()
@@ -159,25 +179,105 @@ def choose_view(cell: CellParameters, scene: Scene, reach: Reach, history: Histo
              + d[:, _HAND_EYE_T].sum(axis=1) / trans_tol ** 2
              + d[:, 0:4].sum(axis=1) / (INTRINSICS_TOLERANCE * f) ** 2)
     best = int(np.argmin(score))
-    return Choice(T_base_tcp=P_ok[best], predicted=hand_eye_sigma(cov[best]), drawn=len(P),
-                  feasible=int(keep.sum()))
+    return Choice(T_base_tcp=P_ok[best], predicted=hand_eye_sigma(cov[best]), drawn=drawn,
+                  feasible=len(P_ok))
 
 
-def _candidates(cell: CellParameters, scene: Scene, reach: Reach, rng: np.random.Generator
-                ) -> np.ndarray:
-    """``reach.draws`` candidate tcp poses (n, 4, 4) for views around the board in reach."""
-    n = reach.draws
+def _candidates(cell: CellParameters, scene: Scene, reach: Reach, last_good: np.ndarray,
+                rng: np.random.Generator) -> np.ndarray:
+    """``reach.draws`` candidate tcp poses (n, 4, 4): half views around the board in reach,
+    half of those turned so the board lands anywhere in the image (``_panned``), and half
+    from where the box lets the camera (eye-in-hand) or the board (eye-to-hand) go."""
+    C = np.concatenate([_panned(_around_board(scene, reach, reach.draws // 2, rng), cell, scene,
+                                rng), _in_box(cell, scene, reach, last_good, rng)])
+    return robot_from_camera(C, cell.hand_eye, cell.target_pose, scene.setup)
+
+
+def _panned(C: np.ndarray, cell: CellParameters, scene: Scene, rng: np.random.Generator
+            ) -> np.ndarray:
+    """Views C (n, 4, 4), ``PAN_SHARE`` of them turned about the camera centre so the board's
+    centre lands on a random pixel."""
+    pan = rng.uniform(0.0, 1.0, len(C)) < PAN_SHARE
+    w, h = scene.image_size
+    uv = rng.uniform(0.0, 1.0, (int(pan.sum()), 2)) * [w, h]
+    ray = np.column_stack([(uv - cell.K[:2, 2]) / np.diag(cell.K)[:2], np.ones(len(uv))])
+    C[pan] = turned_toward(C[pan], ray)
+    return C
+
+
+def _look_at(scene: Scene, reach: Reach, n: int, rng: np.random.Generator
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``n`` look-at points near the board centre (n, 3, target frame), view tilts (n,) and
+    rolls (n,) in reach."""
     grid = scene.board.points()
     centre = grid[[0, -1]].mean(axis=0)
-    half = grid[-1] - centre
+    look = centre + 0.25 * (grid[-1] - centre) * rng.uniform(-1.0, 1.0, (n, 3))
     tilt = np.deg2rad(reach.max_tilt_deg) * np.sqrt(rng.uniform(0.0, 1.0, n))
-    azimuth = rng.uniform(0.0, 2.0 * np.pi, n)
     roll = scene.start_roll + np.deg2rad(reach.max_roll_deg) * rng.uniform(-1, 1, n)
-    dist = rng.uniform(*reach.band, n)
-    look = centre + 0.25 * half * rng.uniform(-1.0, 1.0, (n, 3))
-    C = np.stack([look_at_view(look[k], tilt[k], azimuth[k], roll[k], dist[k])
-                  for k in range(n)])
-    return robot_from_camera(C, cell.hand_eye, cell.target_pose, scene.setup)
+    return look, tilt, roll
+
+
+def _views(look: np.ndarray, tilt: np.ndarray, azimuth: np.ndarray, roll: np.ndarray,
+           dist: np.ndarray) -> np.ndarray:
+    """:func:`calib.planning.look_at_view` row by row, T_cam_target (n, 4, 4), also for n = 0."""
+    return np.array([look_at_view(look[k], tilt[k], azimuth[k], roll[k], dist[k])
+                     for k in range(len(tilt))]).reshape(-1, 4, 4)
+
+
+def _around_board(scene: Scene, reach: Reach, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` views T_cam_target (n, 4, 4) that look at the board's centre from every side in
+    reach."""
+    look, tilt, roll = _look_at(scene, reach, n, rng)
+    return _views(look, tilt, rng.uniform(0.0, 2.0 * np.pi, n), roll, rng.uniform(*reach.band, n))
+
+
+def _in_box(cell: CellParameters, scene: Scene, reach: Reach, last_good: np.ndarray,
+            rng: np.random.Generator) -> np.ndarray:
+    """Up to ``reach.draws // 2`` views T_cam_target (k, 4, 4): eye-in-hand the camera's centre
+    drawn in the box within a step of where it is, looking at a point near the board's centre
+    and turned so it lands anywhere in the image; eye-to-hand the board's centre so drawn,
+    seen by the fixed camera wherever it falls in the image, turned by a tilt in reach."""
+    n = reach.draws // 2
+    grid = scene.board.points()
+    centre = np.append(grid[[0, -1]].mean(axis=0), 1.0)
+    X, Y = cell.hand_eye, cell.target_pose
+    lo, hi = (np.asarray(b, dtype=float) for b in scene.box)
+    if scene.setup == "eye_in_hand":
+        here = (last_good @ X)[:3, 3]
+        lo, hi = lo + reach.camera_margin, hi - reach.camera_margin
+    else:
+        here = (last_good @ Y @ centre)[:3]
+        lo, hi = lo + here - last_good[:3, 3], hi + here - last_good[:3, 3]
+    a, b = np.maximum(lo, here - reach.step[1]), np.minimum(hi, here + reach.step[1])
+    if (a >= b).any():
+        return np.empty((0, 4, 4))
+    at = np.column_stack([rng.uniform(a, b, (n, 3)), np.ones(n)])
+    look, tilt, roll = _look_at(scene, reach, n, rng)
+    if scene.setup == "eye_in_hand":
+        sight = look - (np.linalg.inv(Y) @ at.T).T[:, :3]  # camera to look-at, target frame
+        dist = np.linalg.norm(sight, axis=1)
+        sight /= dist[:, None]
+        tilt = np.arccos(np.clip(sight[:, 2], -1.0, 1.0))
+        azimuth = np.arctan2(sight[:, 0], -sight[:, 1])
+        k = tilt <= np.deg2rad(reach.max_tilt_deg)
+        return _panned(_views(look[k], tilt[k], azimuth[k], roll[k], dist[k]), cell, scene, rng)
+    q = (np.linalg.inv(X) @ at.T).T[:, :3]  # the board centre in the camera frame
+    keep = q[:, 2] > 0.05
+    q, tilt, roll = q[keep], tilt[keep], roll[keep]
+    C = _views(np.tile(centre[:3], (len(q), 1)), tilt, rng.uniform(0.0, 2.0 * np.pi, len(q)),
+               roll, np.linalg.norm(q, axis=1))
+    return turned_toward(C, q)
+
+
+def turned_toward(C: np.ndarray, ray: np.ndarray) -> np.ndarray:
+    """Views C (n, 4, 4) = T_cam_target turned about the camera centre so that what lay on
+    the optical axis lies along ``ray`` (n, 3, camera frame) instead, (n, 4, 4)."""
+    ray = ray / np.linalg.norm(ray, axis=1, keepdims=True)
+    axis = np.column_stack([-ray[:, 1], ray[:, 0], np.zeros(len(C))])  # z x ray
+    sin = np.linalg.norm(axis, axis=1, keepdims=True)
+    turn = np.tile(np.eye(4), (len(C), 1, 1))
+    turn[:, :3, :3] = so3.exp(axis / np.maximum(sin, 1e-12) * np.arctan2(sin, ray[:, 2:]))
+    return turn @ C
 
 
 def _nearby(last_good: np.ndarray, reach: Reach, rng: np.random.Generator) -> np.ndarray:

@@ -17,7 +17,8 @@ from calib import (
 from calib.coldstart import Guess, View, bootstrap
 from calib.explorer import ColdStart
 from calib.pipeline import calibrate_stations
-from calib.viewselect import Scene
+from calib.planning import look_at_view
+from calib.viewselect import Scene, turned_toward
 from mocks.blindcells import CornerCell, random_blind_scene
 
 
@@ -92,3 +93,15 @@ def test_cold_start_plan_calibrates_a_blind_cell_inside_its_box(setup, seed):
     sigma_trans = np.linalg.norm(result.sigmas["hand_eye_trans_m"])
     assert np.degrees(rot) < 0.2 and trans < 2e-3
     assert rot <= 2.5 * sigma_rot and trans <= 2.5 * sigma_trans
+
+
+def test_a_turned_view_sees_the_board_centre_along_the_ray() -> None:
+    """turned_toward turns about the camera centre: what lay on the optical axis lies along
+    the given ray, at the same distance."""
+    C = look_at_view(np.zeros(3), 0.3, 1.0, 0.2, 1.2)[None]
+    ray = np.array([[0.3, -0.2, 1.0]])
+    T = turned_toward(C, ray)
+    seen = T[0, :3, 3]
+    np.testing.assert_allclose(seen / np.linalg.norm(seen), ray[0] / np.linalg.norm(ray[0]),
+                               atol=1e-12)
+    assert np.linalg.norm(seen) == pytest.approx(1.2)
