@@ -11,7 +11,7 @@ and the board from it.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -197,21 +197,35 @@ def box_poses(scene: MockScene) -> np.ndarray:
 
 
 def _box_readings(scene: MockScene) -> tuple[np.ndarray, np.ndarray]:
-    """``_READINGS_POSES`` random readings in the safety box that the arm reaches, the tool
-    turned up to 30° from the start, and their true flanges (n, 4, 4) each."""
+    """``_READINGS_POSES`` random readings in the safety box that the arm reaches
+    (:func:`box_draws`'s, drawn on until that many are reached) and their true flanges
+    (n, 4, 4) each."""
     key = scene.model_dump_json()
     if key not in _BOX_READINGS:
-        rng = np.random.default_rng([scene.seed, 29])
-        lo, hi = np.array(scene.workspace.lo), np.array(scene.workspace.hi)
-        P0 = scene.start_pose()
+        draws = _box_draws(scene)
         pairs: list[tuple[np.ndarray, np.ndarray]] = []
         while len(pairs) < _READINGS_POSES:
-            P = make_transform(P0[:3, :3] @ Rotation.from_rotvec(
-                rng.normal(size=3) * np.deg2rad(30.0) / np.sqrt(3)).as_matrix(),
-                rng.uniform(lo, hi))
-            pairs += _reached(scene, [P])
+            pairs += _reached(scene, [next(draws)])
         _BOX_READINGS[key] = _stacked(pairs)
     return _BOX_READINGS[key]
+
+
+def box_draws(scene: MockScene, n: int) -> np.ndarray:
+    """The first ``n`` of the random readings (n, 4, 4) over which :func:`readings_hand_eye`
+    sees the box, reached or not: ``readings_hand_eye(scene, poses=box_draws(scene, n))`` is
+    its fit over fewer draws, for when the inverse kinematics of 1,000 is too slow (a test)."""
+    draws = _box_draws(scene)
+    return np.stack([next(draws) for _ in range(n)])
+
+
+def _box_draws(scene: MockScene) -> Iterator[np.ndarray]:
+    """Random readings in the safety box, the tool turned up to 30° from the start (4, 4)."""
+    rng = np.random.default_rng([scene.seed, 29])
+    lo, hi = np.array(scene.workspace.lo), np.array(scene.workspace.hi)
+    P0 = scene.start_pose()
+    while True:
+        yield make_transform(P0[:3, :3] @ Rotation.from_rotvec(
+            rng.normal(size=3) * np.deg2rad(30.0) / np.sqrt(3)).as_matrix(), rng.uniform(lo, hi))
 
 
 def _with_flanges(scene: MockScene, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

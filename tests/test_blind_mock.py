@@ -20,6 +20,7 @@ from drivers.errors import ProtectiveStopError
 from mocks.blindcells import (
     BOX_HALF_M,
     CornerCell,
+    box_draws,
     box_poses,
     random_blind_scene,
     readings_hand_eye,
@@ -135,7 +136,8 @@ def test_readings_hand_eye_is_what_the_readings_see():
 def test_readings_hand_eye_over_given_poses():
     """Eye-in-hand cell 6: over 15 poses within a few degrees and centimetres of the start,
     the readings see a hand-eye more than 0.03° from the one they see over the box (the arm's
-    kinematic errors differ between the two regions); over the box's own poses, the box's."""
+    kinematic errors differ between the two regions); over the box's own poses, the box's;
+    ``box_draws`` gives those poses, in order."""
     scene = random_blind_scene(6, "eye_in_hand")
     X_box = readings_hand_eye(scene, scale=True)
     rng = np.random.default_rng(0)
@@ -145,6 +147,10 @@ def test_readings_hand_eye_over_given_poses():
     rot, _ = pose_error(readings_hand_eye(scene, scale=True, poses=near), X_box)
     assert np.degrees(rot) > 0.03
     assert np.allclose(readings_hand_eye(scene, scale=True, poses=box_poses(scene)), X_box)
+    # box_draws: the box's draws in order, those beyond the arm's reach included
+    box = box_poses(scene)
+    kept = [P for P in box_draws(scene, 30) if any(np.array_equal(P, Q) for Q in box[:30])]
+    assert len(kept) >= 20 and np.array_equal(np.stack(kept), box[:len(kept)])
 
 
 @pytest.mark.slow  # 1,000 poses of numerical inverse kinematics (the box drawn once)

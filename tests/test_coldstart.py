@@ -8,6 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from calib import (
+    SolverOptions,
     StationInputs,
     board_from_target,
     make_transform,
@@ -19,7 +20,7 @@ from calib.explorer import ColdStart
 from calib.pipeline import calibrate_stations
 from calib.planning import look_at_view
 from calib.viewselect import Scene, turned_toward
-from mocks.blindcells import CornerCell, random_blind_scene
+from mocks.blindcells import CornerCell, box_draws, random_blind_scene, readings_hand_eye
 
 
 def _explored(scene, cell):
@@ -64,8 +65,19 @@ def test_a_wrong_guess_is_detected_and_ignored():
                      right).rejected_guess is None
 
 
+#: Box draws the readings' hand-eye is fitted over here (the benchmark's 1,000 take 12-20 s of
+#: inverse kinematics per cell): on these two cells within 0.005° / 0.14 mm of the 1,000's.
+READINGS_DRAWS = 200
+
+
 @pytest.mark.parametrize(("setup", "seed"), [("eye_in_hand", 2), ("eye_to_hand", 1)])
 def test_cold_start_plan_calibrates_a_blind_cell_inside_its_box(setup, seed):
+    """18 stations of the plan, calibrated as a cold-start run does (the box given, so the σ
+    include using the stations' hand-eye over it), land within 2 mm / 0.2° and 2.5x their σ
+    of the hand-eye the arm's readings see over the box (``readings_hand_eye(scale=True)``,
+    the benchmark's criterion). Not the physical flange's: the mock's kinematic errors move
+    it by what no calibration from the readings can see (on eye-to-hand cell 1 0.042° /
+    0.87 mm, which put the result 3.1σ from it while 1.7σ from the readings')."""
     scene = random_blind_scene(seed, setup)
     cell = CornerCell(scene)
     board = board_from_target(scene.nominal_target())
@@ -86,8 +98,11 @@ def test_cold_start_plan_calibrates_a_blind_cell_inside_its_box(setup, seed):
     assert plan.log.explore_moves <= 8 and "station" in kinds
     result = calibrate_stations(StationInputs(
         [s.corners for s in shots], [ur_pose_from_matrix(s.T_base_tcp) for s in shots],
-        image_size=scene.camera.image_size, setup=setup), board)
-    rot, trans = pose_error(result.hand_eye, scene.hand_eye_matrix)
+        image_size=scene.camera.image_size, setup=setup), board,
+        SolverOptions(workspace=(scene.workspace.lo, scene.workspace.hi)))
+    X_readings = readings_hand_eye(scene, scale=True,
+                                   poses=box_draws(scene, READINGS_DRAWS))
+    rot, trans = pose_error(result.hand_eye, X_readings)
     # a calibration, and an honest one: within 2 mm / 0.2° and within 2.5x its reported σ
     sigma_rot = np.linalg.norm(result.sigmas["hand_eye_rot_rad"])
     sigma_trans = np.linalg.norm(result.sigmas["hand_eye_trans_m"])
