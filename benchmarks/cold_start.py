@@ -114,7 +114,8 @@ def _calibrate(shots: list[Shot], cell: CornerCell, out: Outcome) -> bool:
         res = calibrate(station_set(
             [s.corners for s in shots], [ur_pose_from_matrix(s.T_base_tcp) for s in shots],
             board_from_target(scene.nominal_target()), image_size=scene.camera.image_size,
-            setup=scene.setup), SolverOptions(workspace=(scene.workspace.lo, scene.workspace.hi)))
+            setup=scene.setup), SolverOptions(workspace=(scene.workspace.lo, scene.workspace.hi),
+                                              tolerance=(TOL_MM * 1e-3, np.deg2rad(TOL_DEG))))
     except ValueError:
         return False
     rot, trans = pose_error(res.hand_eye, scene.hand_eye_matrix)
@@ -123,6 +124,7 @@ def _calibrate(shots: list[Shot], cell: CornerCell, out: Outcome) -> bool:
         scene, scale=True, poses=np.stack([s.T_base_tcp for s in shots])))
     out.own_deg, out.own_mm = float(np.degrees(rot)), float(trans * 1e3)
     out.hand_eye = res.hand_eye.tolist()
+    out.verdict = res.trust.quality.verdict
     out.sigma_deg = float(np.degrees(np.linalg.norm(res.sigmas["hand_eye_rot_rad"])))
     out.sigma_mm = float(1e3 * np.linalg.norm(res.sigmas["hand_eye_trans_m"]))
     out.met = out.sigma_deg <= TOL_DEG and out.sigma_mm <= TOL_MM

@@ -51,6 +51,7 @@ class Outcome:
     own_deg: float = np.nan
     own_mm: float = np.nan
     cell: int = -1
+    verdict: str = ""  # the result's, given the tolerance (empty in logs from before it)
     stations_at: list[int] = field(default_factory=list)
     explore_at: list[int] = field(default_factory=list)
     last_miss: int = FIRST_CHECK - 1
@@ -111,6 +112,13 @@ def table(results: dict[str, list[Outcome]]) -> str:
     return "\n".join([*rows, "", *_cold_start_lines(results)])
 
 
+def _verdicts(outs: list[Outcome]) -> str:
+    """How many results got each verdict, e.g. ``pass 44, warn 6``."""
+    names = sorted({o.verdict or "not recorded" for o in outs})
+    return ", ".join(f"{n} {sum((o.verdict or 'not recorded') == n for o in outs)}"
+                     for n in names)
+
+
 def _cold_start_lines(results: dict[str, list[Outcome]]) -> list[str]:
     """The cold start against the acceptance: stations to σ <= tolerance, the tolerance
     runs' coverage, stations against random's for the same σ, planning CPU."""
@@ -127,6 +135,8 @@ def _cold_start_lines(results: dict[str, list[Outcome]]) -> list[str]:
                  if both else float("nan"))
     bad = sum(o.rf_deg > 2 * o.sigma_deg or o.rf_mm > 2 * o.sigma_mm for o in cs)
     bad_fl = sum(o.err_deg > 2 * o.sigma_deg or o.err_mm > 2 * o.sigma_mm for o in cs)
+    bad_pass = sum(o.verdict == "pass" and (o.rf_deg > 2 * o.sigma_deg
+                                            or o.rf_mm > 2 * o.sigma_mm) for o in cs)
     steps = np.concatenate([o.plan_s for o in cs])
     if not len(reached) or not stopped:
         return [f"cold start: σ ≤ tolerance held in {len(reached)} and the 90 % bound in "
@@ -143,7 +153,9 @@ def _cold_start_lines(results: dict[str, list[Outcome]]) -> list[str]:
         f"{len(cs)} runs, after {np.median([o.stations for o in stopped]):.0f} stations "
         f"median; error (readings frame) within the tolerance in "
         f"{np.mean([w for w, o in zip(within, cs, strict=True) if o.bound_met]):.0%} of "
-        f"those and {np.mean(within):.0%} of all runs; results with error > 2x σ: {bad}; "
+        f"those and {np.mean(within):.0%} of all runs; results with error > 2x σ: {bad}, "
+        f"of them stored as pass: {bad_pass} (verdicts given the tolerance: "
+        f"{_verdicts(cs)}); "
         f"against the true flange: within the tolerance in "
         f"{np.mean([w for w, o in zip(within_fl, cs, strict=True) if o.bound_met]):.0%} of "
         f"those and {np.mean(within_fl):.0%} of all runs, error > 2x σ: {bad_fl}",

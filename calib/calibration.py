@@ -25,7 +25,6 @@ from calib.evidence import Trust, choose_pose_only
 from calib.handeye import HandEyeResult
 from calib.options import SolverOptions
 from calib.pipeline import CalibrationResult, calibrate_stations
-from calib.refine import RefineOptions
 from calib.stations import Observation, Station, Stations
 
 
@@ -89,6 +88,6 @@ def _pose_only(stations: Stations, options: SolverOptions) -> PoseOnlyResult:
     estimate_kappa = options.kappa_mode == "estimate"
     fit, trust = choose_pose_only(
         PoseStations(T_base_tcp, T_cam_target, stations.setup), ids, method=method,
-        options=RefineOptions(noise=options.noise, estimate_kappa=estimate_kappa),
+        options=options,
         square_size_m=None if stations.target is None else stations.target.square_size_m)
     return PoseOnlyResult(fit, ids, trust, {"estimate_kappa": estimate_kappa})

@@ -28,7 +28,8 @@ from calib.crossval import (
 from calib.handeye import HandEyeResult, calibrate_hand_eye
 from calib.joint import CellParameters, JointResult
 from calib.jointfit import JointData, JointFit, JointModel, fit_joint
-from calib.quality import QualityInputs, assess, irreconcilable
+from calib.options import SolverOptions
+from calib.quality import QualityInputs, assess, hand_eye_sigma, irreconcilable
 from calib.refine import RefineOptions, scale_translations
 from calib.result import QualityBlock
 from calib.selection import ModelCandidate, Modes, Selection, select_joint_model
@@ -132,14 +133,18 @@ def method_cross_validation(data: JointData, station_ids: Sequence[str],
 
 
 def choose_pose_only(stations: PoseStations, station_ids: Sequence[str], *, method: str,
-                     options: RefineOptions, square_size_m: float | None
+                     options: SolverOptions, square_size_m: float | None
                      ) -> tuple[HandEyeResult, Trust]:
     """Pose-only hand-eye with evidence. ``method='refine'`` returns the refinement only when
-    it predicts held-out stations at least as well as the SM it starts from, else SM."""
+    it predicts held-out stations at least as well as the SM it starts from, else SM. Of
+    ``options`` it uses the robot noise, κ (estimated only for ``kappa='estimate'``: pose-only
+    stations have no cross-validated choice) and the tolerance."""
     T_base_tcp, setup = stations.T_base_tcp, stations.setup
+    estimate_kappa = options.kappa_mode == "estimate"
+    refine = RefineOptions(noise=options.noise, estimate_kappa=estimate_kappa)
 
     def fit(name: str, train: np.ndarray | slice = slice(None)) -> HandEyeResult:
-        opts = options if name == "refine" else RefineOptions(noise=options.noise)
+        opts = refine if name == "refine" else RefineOptions(noise=options.noise)
         return calibrate_hand_eye(T_base_tcp[train], stations.T_cam_target[train],
                                   setup=setup, method=name, options=opts)
 
@@ -163,10 +168,11 @@ def choose_pose_only(stations: PoseStations, station_ids: Sequence[str], *, meth
     result = fit(chosen)
     uncertainty = honest(result.sigmas, cvs[chosen].estimates, FoldEstimate(
         hand_eye=result.hand_eye, target_pose=result.target_pose, kappa=result.kappa))
-    kappa_sigma = uncertainty.sigmas.get("kappa") if options.estimate_kappa else None
+    kappa_sigma = uncertainty.sigmas.get("kappa") if estimate_kappa else None
     quality = assess(QualityInputs(
         setup=setup, T_base_tcp=T_base_tcp, corrections=result.station_residuals,
         cv=cvs[chosen], square_size_m=square_size_m, kappa=result.kappa,
-        kappa_sigma=None if kappa_sigma is None else float(kappa_sigma)))
+        kappa_sigma=None if kappa_sigma is None else float(kappa_sigma),
+        hand_eye_sigma=hand_eye_sigma(uncertainty.sigmas), tolerance=options.tolerance))
     return result, Trust(cross_validation=cvs[chosen], model_selection=selection,
                          uncertainty=uncertainty, quality=quality)

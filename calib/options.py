@@ -8,6 +8,7 @@ robot's reading noise and the outlier rule. The same options serve image station
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -46,7 +47,9 @@ class SolverOptions:
     exactly 1: the entered square size was measured); ``estimate_kappa=False`` means ``fixed``.
     ``workspace``: the box (lo, hi corners, metres in the base frame) the robot's tool will work
     in with the result; the hand-eye σ then include using the stations' estimate over it
-    (``calib.extrapolation``; joint only). None: the σ hold at the stations.
+    (``calib.extrapolation``; joint only). None: the σ hold at the stations. ``tolerance``
+    (translation m, rotation rad): the accuracy the user needs of the hand-eye; a result whose
+    90 % bound is beyond it gets the finding ``tolerance_not_met`` (``calib.quality``).
     """
 
     method: str | None = None
@@ -57,6 +60,7 @@ class SolverOptions:
     noise: RobotNoise = field(default_factory=RobotNoise)
     outlier_sigma: float | None = OUTLIER_SIGMA
     workspace: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    tolerance: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if self.method is not None and self.method not in METHODS:
@@ -73,6 +77,11 @@ class SolverOptions:
                 and all(lo < hi for lo, hi in zip(*self.workspace, strict=True))):
             raise ValueError(f"workspace must be two corners (x, y, z) with lo < hi on every "
                              f"axis, got {self.workspace}")
+        if self.tolerance is not None and not (
+                len(self.tolerance) == 2 and all(math.isfinite(v) and v > 0
+                                                 for v in self.tolerance)):
+            raise ValueError(f"tolerance must be two positive figures (translation m, rotation "
+                             f"rad), got {self.tolerance}")
         if self.nu_method == "extrinsics" and (self.method not in (None, "joint")
                                                or not self.estimate_nu):
             raise ValueError("nu_method 'extrinsics' (Method #2) needs method 'joint' and "
@@ -97,4 +106,5 @@ class SolverOptions:
                     robot_noise_trans_m=self.noise.trans_m, outlier_sigma=self.outlier_sigma,
                     known_intrinsics=known_intrinsics,
                     **({"workspace": [list(c) for c in self.workspace]} if self.workspace
-                       else {}))
+                       else {}),
+                    **({"tolerance": list(self.tolerance)} if self.tolerance else {}))

@@ -15,6 +15,9 @@ Each check looks at one thing a user cannot see in the numbers alone and says wh
   calibrations).
 * ``high_prediction_error`` (warn; info while the error at the board is within a healthy
   arm's accuracy) — the cross-validated error is far above the corner noise.
+* ``tolerance_not_met`` (warn) — the user asked for a tolerance (``SolverOptions.tolerance``,
+  a cold-start tolerance run's) and the hand-eye's 90 % bound (``COVERAGE_90`` σ, the bound
+  the run's stop rule uses) is beyond it: a run that ended at its station limit.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ import numpy as np
 from calib import so3
 from calib.crossval import CrossValidation
 from calib.result import Finding, QualityBlock
+from calib.uncertainty import COVERAGE_90
 
 #: κ must differ from 1 by more than this (and 3σ) for ``board_scale``.
 BOARD_SCALE_MIN = 0.002
@@ -58,6 +62,8 @@ class QualityInputs:
     the fit needed, or the pose-prediction residuals of a pose-only fit. ``corners`` and
     ``image_size`` are None for pose-only sets. ``kappa_sigma`` None when κ was held.
     ``robot_map`` (3, 3) the chosen model's map of the robot's translations, if any.
+    ``hand_eye_sigma`` (translation m, rotation rad) the hand-eye's honest σ, root-sum-square
+    over the axes; ``tolerance`` in the same units, the accuracy the user asked for.
     """
 
     setup: str
@@ -72,6 +78,8 @@ class QualityInputs:
     image_size: tuple[int, int] | None = None
     rejected: tuple[tuple[str, str], ...] = ()
     robot_map: np.ndarray | None = None
+    hand_eye_sigma: tuple[float, float] | None = None
+    tolerance: tuple[float, float] | None = None
 
 
 def assess(ev: QualityInputs) -> QualityBlock:
@@ -80,8 +88,17 @@ def assess(ev: QualityInputs) -> QualityBlock:
     if mismatch is not None:
         return QualityBlock.of([mismatch])
     checks = (_board_scale, _robot_translation_map, _few_stations, _weak_rotation,
-              _poor_coverage, _outliers, _high_prediction_error)
+              _poor_coverage, _outliers, _high_prediction_error, _tolerance_not_met)
     return QualityBlock.of([f for check in checks if (f := check(ev)) is not None])
+
+
+def hand_eye_sigma(sigmas: dict[str, Any]) -> tuple[float, float] | None:
+    """The hand-eye's σ (translation m, rotation rad), root-sum-square over the axes, from a
+    result's ``sigmas``; None when they hold none."""
+    if "hand_eye_trans_m" not in sigmas or "hand_eye_rot_rad" not in sigmas:
+        return None
+    return (float(np.linalg.norm(sigmas["hand_eye_trans_m"])),
+            float(np.linalg.norm(sigmas["hand_eye_rot_rad"])))
 
 
 def _finding(code: str, severity: str, message: str, figures: dict[str, Any]) -> Finding:
@@ -112,6 +129,23 @@ def _robot_translation_map(ev: QualityInputs) -> Finding | None:
         f"it (t + S t); readings used as they are will be off by up to that much. A robot "
         f"calibration of the arm removes it."),
         {"largest_entry": largest, "largest_shift_m": shift})
+
+
+def _tolerance_not_met(ev: QualityInputs) -> Finding | None:
+    """The hand-eye's 90 % bound beyond the tolerance asked for, in either figure."""
+    if ev.tolerance is None or ev.hand_eye_sigma is None:
+        return None
+    (tol_m, tol_rad), (sigma_m, sigma_rad) = ev.tolerance, ev.hand_eye_sigma
+    bound_m, bound_rad = COVERAGE_90 * sigma_m, COVERAGE_90 * sigma_rad
+    if bound_m <= tol_m and bound_rad <= tol_rad:
+        return None
+    return _finding("tolerance_not_met", "warn", (
+        f"the hand-eye is known to {bound_m * 1e3:.2f} mm / {np.degrees(bound_rad):.3f} deg "
+        f"(90 % bound), not to the {tol_m * 1e3:.3g} mm / {np.degrees(tol_rad):.3g} deg "
+        "asked for: use it only where that is good enough, or capture more stations (a nearer "
+        "board and larger tilts teach more) and calibrate again."),
+        {"bound_trans_m": bound_m, "bound_rot_rad": bound_rad, "tolerance_trans_m": tol_m,
+         "tolerance_rot_rad": tol_rad})
 
 
 def _setup_mismatch(ev: QualityInputs) -> Finding | None:

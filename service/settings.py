@@ -11,7 +11,7 @@ import dataclasses
 import ipaddress
 import socket
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, SecretStr, ValidationInfo, field_validator, model_validator
@@ -206,12 +206,18 @@ class Settings(BaseSettings):
         ``SolverOptions.workspace`` take it."""
         return self.workspace_min, self.workspace_max
 
-    def cold_start_solver(self, solver: SolverOptions | None = None) -> SolverOptions:
+    def cold_start_solver(self, solver: SolverOptions | None = None,
+                          stop_rule: dict[str, Any] | None = None) -> SolverOptions:
         """``solver`` (default options if None) for a cold-start run's stations: told the
         workspace box, so the hand-eye σ covers using the result anywhere in it
-        (``calib.extrapolation``). The run's stop rule and its calibrations both use it, so
-        the σ a run stopped at is the σ its result reports."""
-        return dataclasses.replace(solver or SolverOptions(), workspace=self.workspace())
+        (``calib.extrapolation``), and a tolerance run's tolerance (``stop_rule``, the run's:
+        ``tolerance_mm``, ``tolerance_deg``), so a result beyond it is not a plain pass. The
+        run's stop rule and its calibrations both use it, so the σ a run stopped at is the σ
+        its result reports."""
+        tolerance = None if not stop_rule else (stop_rule["tolerance_mm"] * 1e-3,
+                                                float(np.deg2rad(stop_rule["tolerance_deg"])))
+        return dataclasses.replace(solver or SolverOptions(), workspace=self.workspace(),
+                                   tolerance=tolerance)
 
     def calibration_setup(self) -> str:
         """``eye_in_hand`` or ``eye_to_hand``: the setting, else the backend's, else

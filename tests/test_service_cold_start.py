@@ -168,12 +168,18 @@ def test_an_interrupted_cold_start_run_resumes_where_it_was(tmp_path):
     assert len(new) and np.min(np.linalg.norm(new[:, None] - old[None], axis=2)) > 1e-3
 
 
-def test_a_cold_start_calibration_keeps_the_users_options_and_adds_the_box(tmp_path):
+def test_a_cold_start_calibration_keeps_the_users_options_and_adds_box_and_tolerance(
+        tmp_path):
     """The stop rule's σ and the run's calibrations are solved with the same box
-    (``Settings.cold_start_solver``); a user's options are kept."""
+    (``Settings.cold_start_solver``); a user's options are kept; a tolerance run's tolerance
+    goes to the verdict in metres and radians."""
     scene = random_blind_scene(3, "eye_to_hand")
     settings = _settings(tmp_path, scene)
-    assert settings.cold_start_solver().workspace == settings.workspace()
-    mine = settings.cold_start_solver(SolverOptions(method="refine", outlier_sigma=4.0))
+    plain = settings.cold_start_solver()
+    assert plain.workspace == settings.workspace() and plain.tolerance is None
+    mine = settings.cold_start_solver(SolverOptions(method="refine", outlier_sigma=4.0),
+                                      {"tolerance_mm": 0.5, "tolerance_deg": 0.05,
+                                       "max_stations": 40})
     assert (mine.method, mine.outlier_sigma) == ("refine", 4.0)
     assert mine.workspace == (scene.workspace.lo, scene.workspace.hi)
+    assert mine.tolerance == pytest.approx((5e-4, np.deg2rad(0.05)))

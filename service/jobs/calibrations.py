@@ -105,7 +105,8 @@ class Calibrations:
                                          options=options.model_dump())
             solver = options.solver()
             if run.cold_start is not None:
-                solver = self.settings.cold_start_solver(solver)
+                solver = self.settings.cold_start_solver(solver,
+                                                         run.cold_start.get("stop_rule"))
             job = SolveJob(cal_id=cal.id, run_id=run_id, stations=stations, options=solver)
         return cal, job
 
