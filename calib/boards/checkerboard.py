@@ -60,7 +60,7 @@ _QUARTER_MIN_SIZE = 960
 #: SB detector flags tried, in order, only when the default call (flags 0, what an OpenCV user
 #: writes) fails: with normalisation (low contrast), the exhaustive search with and without it,
 #: and last with ``CALIB_CB_ACCURACY``, whose up-sampled search reads some boards the others
-#: miss (it is 4x slower, and its corners are replaced by :func:`refine_corners`'s anyway).
+#: miss (it is 4x slower, and its corners are replaced by the sub-pixel refinement's anyway).
 _FALLBACK_FLAGS = (
     cv2.CALIB_CB_NORMALIZE_IMAGE,
     cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE,
@@ -164,8 +164,9 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
                         min_contrast: float = MIN_CONTRAST) -> Detection:
     """Find the checkerboard's inner corners in a grey or BGR uint8 image.
 
-    Uses OpenCV's sector-based detector (``findChessboardCornersSB``), refines the corners
-    (:func:`refine_corners`) and puts them in the canonical order (:func:`order_corners`).
+    Uses OpenCV's sector-based detector (``findChessboardCornersSB``), puts the corners in the
+    canonical order (:func:`order_corners`) and refines them (``sub_pixel``, a refined place
+    kept where the neighbours agree with it: ``grid_check.keep_consistent``).
     Bad input never raises: the returned :class:`Detection` says why it was rejected.
 
     Parameters
@@ -208,7 +209,10 @@ def detect_checkerboard(image: np.ndarray, inner_corners: tuple[int, int], *,
             again = ~converged & (np.linalg.norm(full - corners, axis=1) < spacing / 2)
             corners[again] = full[again]
             refined[again], converged[again] = sub_pixel(grey, full[again], spacing)
-    refined[~converged] = corners[~converged]
+    if min(cols, rows) < 3:  # no neighbourhoods: the window's convergence limit decides
+        refined[~converged] = corners[~converged]
+    # else every refined place is weighed against its start by the neighbours, also one
+    # beyond that limit: on a steep view even the full-size search's corner can be 3 px off
     corners = keep_consistent(corners, refined, (cols, rows), spacing)
     sharp = region_sharpness(grey, corners)
     metrics = {"sharpness": sharp, "coverage": hull_coverage(corners, grey.shape),
@@ -225,7 +229,7 @@ def _find_grid(grey: np.ndarray, inner_corners: tuple[int, int], survey: GridSur
     ``_QUARTER_MIN_SIZE`` on), then on the full image: the common case costs one call.
 
     Coarse corners are scaled back (a half-size pixel centre x sits at 2x + 0.5) and are
-    only a start for :func:`refine_corners` at full resolution; quarter-size ones are first
+    only a start for the sub-pixel refinement at full resolution; quarter-size ones are first
     refined on the half-size copy, and the find is dropped unless all of them converge there
     (a quarter-size start is up to 2 px off, beyond the full-size window); a coarse find with a
     corner its neighbours do not predict is dropped too (``stray_corners``). Only when the
