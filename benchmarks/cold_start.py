@@ -87,6 +87,7 @@ from calib import (
     board_from_target,
     calibrate,
     camera_from_robot,
+    hand_eye_rss,
     hand_eye_sigma,
     make_transform,
     plan_stations,
@@ -115,7 +116,7 @@ def _calibrate(shots: list[Shot], cell: CornerCell, out: Outcome) -> bool:
             [s.corners for s in shots], [ur_pose_from_matrix(s.T_base_tcp) for s in shots],
             board_from_target(scene.nominal_target()), image_size=scene.camera.image_size,
             setup=scene.setup), SolverOptions(workspace=(scene.workspace.lo, scene.workspace.hi),
-                                              tolerance=(TOL_MM * 1e-3, np.deg2rad(TOL_DEG))))
+                                              tolerance=(np.deg2rad(TOL_DEG), TOL_MM * 1e-3)))
     except ValueError:
         return False
     rot, trans = pose_error(res.hand_eye, scene.hand_eye_matrix)
@@ -125,8 +126,8 @@ def _calibrate(shots: list[Shot], cell: CornerCell, out: Outcome) -> bool:
     out.own_deg, out.own_mm = float(np.degrees(rot)), float(trans * 1e3)
     out.hand_eye = res.hand_eye.tolist()
     out.verdict = res.trust.quality.verdict
-    out.sigma_deg = float(np.degrees(np.linalg.norm(res.sigmas["hand_eye_rot_rad"])))
-    out.sigma_mm = float(1e3 * np.linalg.norm(res.sigmas["hand_eye_trans_m"]))
+    rot, trans = hand_eye_rss(res.sigmas)
+    out.sigma_deg, out.sigma_mm = float(np.degrees(rot)), trans * 1e3
     out.met = out.sigma_deg <= TOL_DEG and out.sigma_mm <= TOL_MM
     out.bound_met = bound(out.sigma_deg) <= TOL_DEG and bound(out.sigma_mm) <= TOL_MM
     return True

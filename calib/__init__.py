@@ -77,7 +77,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "screw": ("solve_sm",),
     "selection": ("ModelCandidate", "Selection", "SELECTION_RULE:RULE"),
     "stations": ("MIN_IMAGES", "Station", "StationInputs", "Stations"),
-    "uncertainty": ("COVERAGE_90",),
+    "uncertainty": ("COVERAGE_90", "hand_eye_rss"),
     "validation": ("dot_hit", "leave_one_out", "motion_residuals", "reprojection_rms"),
     "viewselect": ("ColdStartScene:Scene", "hand_eye_sigma"),
 }

@@ -29,11 +29,11 @@ from calib.handeye import HandEyeResult, calibrate_hand_eye
 from calib.joint import CellParameters, JointResult
 from calib.jointfit import JointData, JointFit, JointModel, fit_joint
 from calib.options import SolverOptions
-from calib.quality import QualityInputs, assess, hand_eye_sigma, irreconcilable
+from calib.quality import QualityInputs, assess, irreconcilable
 from calib.refine import RefineOptions, scale_translations
 from calib.result import QualityBlock
 from calib.selection import ModelCandidate, Modes, Selection, select_joint_model
-from calib.uncertainty import UncertaintyEstimate, honest, with_held_shift
+from calib.uncertainty import UncertaintyEstimate, hand_eye_rss, honest, with_held_shift
 
 #: Leading names of the pose-only candidates (``calib.handeye`` methods).
 POSE_CANDIDATES = ("sm", "refine")
@@ -173,6 +173,6 @@ def choose_pose_only(stations: PoseStations, station_ids: Sequence[str], *, meth
         setup=setup, T_base_tcp=T_base_tcp, corrections=result.station_residuals,
         cv=cvs[chosen], square_size_m=square_size_m, kappa=result.kappa,
         kappa_sigma=None if kappa_sigma is None else float(kappa_sigma),
-        hand_eye_sigma=hand_eye_sigma(uncertainty.sigmas), tolerance=options.tolerance))
+        hand_eye_rss=hand_eye_rss(uncertainty.sigmas), tolerance=options.tolerance))
     return result, Trust(cross_validation=cvs[chosen], model_selection=selection,
                          uncertainty=uncertainty, quality=quality)

@@ -48,8 +48,9 @@ class SolverOptions:
     ``workspace``: the box (lo, hi corners, metres in the base frame) the robot's tool will work
     in with the result; the hand-eye σ then include using the stations' estimate over it
     (``calib.extrapolation``; joint only). None: the σ hold at the stations. ``tolerance``
-    (translation m, rotation rad): the accuracy the user needs of the hand-eye; a result whose
-    90 % bound is beyond it gets the finding ``tolerance_not_met`` (``calib.quality``).
+    (rotation rad, translation m, the order of ``ColdStartScene.tolerance``): the accuracy the
+    user needs of the hand-eye; a result whose 90 % bound is beyond it gets the finding
+    ``tolerance_not_met`` (``calib.quality``).
     """
 
     method: str | None = None
@@ -80,8 +81,8 @@ class SolverOptions:
         if self.tolerance is not None and not (
                 len(self.tolerance) == 2 and all(math.isfinite(v) and v > 0
                                                  for v in self.tolerance)):
-            raise ValueError(f"tolerance must be two positive figures (translation m, rotation "
-                             f"rad), got {self.tolerance}")
+            raise ValueError(f"tolerance must be two positive figures (rotation rad, "
+                             f"translation m), got {self.tolerance}")
         if self.nu_method == "extrinsics" and (self.method not in (None, "joint")
                                                or not self.estimate_nu):
             raise ValueError("nu_method 'extrinsics' (Method #2) needs method 'joint' and "

@@ -49,7 +49,7 @@ from calib.joint import (
 from calib.jointfit import JointData, JointModel
 from calib.nu import NuSearch, nu_from_extrinsics
 from calib.options import SolverOptions
-from calib.quality import QualityInputs, assess, hand_eye_sigma, irreconcilable
+from calib.quality import QualityInputs, assess, irreconcilable
 from calib.refine import RefineOptions, scale_translations
 from calib.result import StationFit
 from calib.stations import (
@@ -61,7 +61,7 @@ from calib.stations import (
     resolve_symmetric_origin,
     usable_stations,
 )
-from calib.uncertainty import with_extrapolation
+from calib.uncertainty import hand_eye_rss, with_extrapolation
 from calib.validation import (
     leave_one_out,
     motion_residuals,
@@ -333,7 +333,7 @@ def _trust(stage: _Stage, stations: CornerStations, ids: list[str],
         sigma_px=stage.sigma_px, corners=tuple(data.stations.image_points),
         image_size=stage.image_size, rejected=tuple(rejected),
         robot_map=None if stage.joint is None else stage.joint.robot_map,
-        hand_eye_sigma=hand_eye_sigma(stage.sigmas), tolerance=options.tolerance))
+        hand_eye_rss=hand_eye_rss(stage.sigmas), tolerance=options.tolerance))
     return Trust(cross_validation=cv, model_selection=selection, uncertainty=uncertainty,
                  quality=quality)
 

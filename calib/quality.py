@@ -62,8 +62,9 @@ class QualityInputs:
     the fit needed, or the pose-prediction residuals of a pose-only fit. ``corners`` and
     ``image_size`` are None for pose-only sets. ``kappa_sigma`` None when κ was held.
     ``robot_map`` (3, 3) the chosen model's map of the robot's translations, if any.
-    ``hand_eye_sigma`` (translation m, rotation rad) the hand-eye's honest σ, root-sum-square
-    over the axes; ``tolerance`` in the same units, the accuracy the user asked for.
+    ``hand_eye_rss`` (rotation rad, translation m) the hand-eye's honest σ, root-sum-square
+    over the axes (``calib.uncertainty.hand_eye_rss``); ``tolerance`` in the same order and
+    units, the accuracy the user asked for.
     """
 
     setup: str
@@ -78,7 +79,7 @@ class QualityInputs:
     image_size: tuple[int, int] | None = None
     rejected: tuple[tuple[str, str], ...] = ()
     robot_map: np.ndarray | None = None
-    hand_eye_sigma: tuple[float, float] | None = None
+    hand_eye_rss: tuple[float, float] | None = None
     tolerance: tuple[float, float] | None = None
 
 
@@ -90,15 +91,6 @@ def assess(ev: QualityInputs) -> QualityBlock:
     checks = (_board_scale, _robot_translation_map, _few_stations, _weak_rotation,
               _poor_coverage, _outliers, _high_prediction_error, _tolerance_not_met)
     return QualityBlock.of([f for check in checks if (f := check(ev)) is not None])
-
-
-def hand_eye_sigma(sigmas: dict[str, Any]) -> tuple[float, float] | None:
-    """The hand-eye's σ (translation m, rotation rad), root-sum-square over the axes, from a
-    result's ``sigmas``; None when they hold none."""
-    if "hand_eye_trans_m" not in sigmas or "hand_eye_rot_rad" not in sigmas:
-        return None
-    return (float(np.linalg.norm(sigmas["hand_eye_trans_m"])),
-            float(np.linalg.norm(sigmas["hand_eye_rot_rad"])))
 
 
 def _finding(code: str, severity: str, message: str, figures: dict[str, Any]) -> Finding:
@@ -133,9 +125,9 @@ def _robot_translation_map(ev: QualityInputs) -> Finding | None:
 
 def _tolerance_not_met(ev: QualityInputs) -> Finding | None:
     """The hand-eye's 90 % bound beyond the tolerance asked for, in either figure."""
-    if ev.tolerance is None or ev.hand_eye_sigma is None:
+    if ev.tolerance is None or ev.hand_eye_rss is None:
         return None
-    (tol_m, tol_rad), (sigma_m, sigma_rad) = ev.tolerance, ev.hand_eye_sigma
+    (tol_rad, tol_m), (sigma_rad, sigma_m) = ev.tolerance, ev.hand_eye_rss
     bound_m, bound_rad = COVERAGE_90 * sigma_m, COVERAGE_90 * sigma_rad
     if bound_m <= tol_m and bound_rad <= tol_rad:
         return None

@@ -253,3 +253,13 @@ def with_extrapolation(estimate: UncertaintyEstimate, added: dict[str, np.ndarra
 #: the norm of the error with at least 90 % probability whatever the covariance's shape.
 COVERAGE_90 = 1.645
 
+
+def hand_eye_rss(sigmas: dict[str, float | np.ndarray]) -> tuple[float, float] | None:
+    """The hand-eye's σ root-sum-square over the axes, (rotation rad, translation m) as
+    ``calib.viewselect.hand_eye_sigma`` gives a covariance's, from a result's ``sigmas``; None
+    when they hold none. ``COVERAGE_90`` times it bounds the error's norm."""
+    if "hand_eye_rot_rad" not in sigmas or "hand_eye_trans_m" not in sigmas:
+        return None
+    return (float(np.linalg.norm(sigmas["hand_eye_rot_rad"])),
+            float(np.linalg.norm(sigmas["hand_eye_trans_m"])))
+

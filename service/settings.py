@@ -214,8 +214,8 @@ class Settings(BaseSettings):
         ``tolerance_mm``, ``tolerance_deg``), so a result beyond it is not a plain pass. The
         run's stop rule and its calibrations both use it, so the σ a run stopped at is the σ
         its result reports."""
-        tolerance = None if not stop_rule else (stop_rule["tolerance_mm"] * 1e-3,
-                                                float(np.deg2rad(stop_rule["tolerance_deg"])))
+        tolerance = None if not stop_rule else (float(np.deg2rad(stop_rule["tolerance_deg"])),
+                                                stop_rule["tolerance_mm"] * 1e-3)
         return dataclasses.replace(solver or SolverOptions(), workspace=self.workspace(),
                                    tolerance=tolerance)
 

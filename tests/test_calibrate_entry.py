@@ -94,13 +94,13 @@ def test_options_are_checked_when_made():
 
 @pytest.mark.parametrize("kind", ["pose-only", "images"])
 def test_a_result_beyond_the_tolerance_asked_for_is_a_warning(kind):
-    """``SolverOptions.tolerance`` (m, rad): ``tolerance_not_met`` when the hand-eye's 90 %
+    """``SolverOptions.tolerance`` (rad, m): ``tolerance_not_met`` when the hand-eye's 90 %
     bound (COVERAGE_90 σ, root-sum-square over the axes) is beyond either figure."""
     stations = pose_only_set()[0] if kind == "pose-only" else image_set()
     plain = calibrate(stations)
     sigmas = plain.fit.sigmas if kind == "pose-only" else plain.sigmas
-    bound = (COVERAGE_90 * np.linalg.norm(sigmas["hand_eye_trans_m"]),
-             COVERAGE_90 * np.linalg.norm(sigmas["hand_eye_rot_rad"]))
+    bound = (COVERAGE_90 * np.linalg.norm(sigmas["hand_eye_rot_rad"]),
+             COVERAGE_90 * np.linalg.norm(sigmas["hand_eye_trans_m"]))
     met = calibrate(stations, SolverOptions(tolerance=(1.01 * bound[0], 1.01 * bound[1])))
     assert met.trust.quality == plain.trust.quality
     for tight in ((0.99 * bound[0], 1.01 * bound[1]), (1.01 * bound[0], 0.99 * bound[1])):
@@ -108,9 +108,9 @@ def test_a_result_beyond_the_tolerance_asked_for_is_a_warning(kind):
         assert quality.verdict in ("warn", "fail")
         finding = quality.findings[-1]
         assert (finding.code, finding.severity) == ("tolerance_not_met", "warn")
-        assert finding.values["bound_trans_m"] == pytest.approx(bound[0])
-        assert finding.values["bound_rot_rad"] == pytest.approx(bound[1])
-        assert f"{bound[0] * 1e3:.2f} mm" in finding.message
+        assert finding.values["bound_rot_rad"] == pytest.approx(bound[0])
+        assert finding.values["bound_trans_m"] == pytest.approx(bound[1])
+        assert f"{bound[1] * 1e3:.2f} mm" in finding.message
 
 
 def test_a_tolerance_is_two_positive_figures():

@@ -172,7 +172,7 @@ def test_a_cold_start_calibration_keeps_the_users_options_and_adds_box_and_toler
         tmp_path):
     """The stop rule's σ and the run's calibrations are solved with the same box
     (``Settings.cold_start_solver``); a user's options are kept; a tolerance run's tolerance
-    goes to the verdict in metres and radians."""
+    goes to the verdict in radians and metres."""
     scene = random_blind_scene(3, "eye_to_hand")
     settings = _settings(tmp_path, scene)
     plain = settings.cold_start_solver()
@@ -182,4 +182,4 @@ def test_a_cold_start_calibration_keeps_the_users_options_and_adds_box_and_toler
                                        "max_stations": 40})
     assert (mine.method, mine.outlier_sigma) == ("refine", 4.0)
     assert mine.workspace == (scene.workspace.lo, scene.workspace.hi)
-    assert mine.tolerance == pytest.approx((5e-4, np.deg2rad(0.05)))
+    assert mine.tolerance == pytest.approx((np.deg2rad(0.05), 5e-4))

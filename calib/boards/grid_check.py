@@ -37,7 +37,7 @@ MOVE_CHECKED = 0.05
 STRAY = 0.15
 
 
-def _spacing(grid: np.ndarray) -> float:
+def _median_spacing(grid: np.ndarray) -> float:
     """The median distance (px) between neighbours along the rows of ``grid`` (rows, cols, 2):
     the unit of the misfits here."""
     return float(np.median(np.linalg.norm(np.diff(grid, axis=1), axis=-1)))
@@ -48,7 +48,7 @@ def neighbour_prediction(grid: np.ndarray) -> np.ndarray:
     (rows, cols, 2) in pixels (rows and columns of at least 3 corners)."""
     rows, cols, _ = grid.shape
     flat = grid.reshape(-1, 2)
-    spacing = _spacing(grid)
+    spacing = _median_spacing(grid)
     steps = np.arange(-_REACH, _REACH + 1)
     offsets = np.array([(dj, di) for dj in steps for di in steps if dj or di])  # (M, 2)
     jj, ii = np.divmod(np.arange(rows * cols), cols)
@@ -100,5 +100,5 @@ def stray_corners(corners: np.ndarray, inner_corners: tuple[int, int]) -> np.nda
     if min(cols, rows) < 3:
         return np.zeros(len(corners), dtype=bool)
     grid = np.asarray(corners, dtype=float).reshape(rows, cols, 2)
-    misfit = np.linalg.norm(neighbour_prediction(grid) - grid, axis=-1) / _spacing(grid)
+    misfit = np.linalg.norm(neighbour_prediction(grid) - grid, axis=-1) / _median_spacing(grid)
     return misfit.reshape(-1) > STRAY

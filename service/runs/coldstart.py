@@ -39,6 +39,7 @@ from calib import (
     board_from_target,
     calibrate,
     camera_position,
+    hand_eye_rss,
     hand_eye_sigma,
     matrix_from_ur_pose,
     ur_pose_from_matrix,
@@ -256,8 +257,7 @@ class ColdStartCapture(Capture):
             log.info("run %s: no honest σ yet after %d stations (%s)", self.run_id, len(good),
                      exc)
             return None
-        rot = float(np.linalg.norm(result.sigmas["hand_eye_rot_rad"]))
-        trans = float(np.linalg.norm(result.sigmas["hand_eye_trans_m"]))
+        rot, trans = hand_eye_rss(result.sigmas)
         return {"stations": len(good), "rot_deg": float(np.degrees(rot)),
                 "trans_mm": trans * 1e3, "kind": "honest"}
 
